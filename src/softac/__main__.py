@@ -1,0 +1,5 @@
+import sys
+
+from softac.cli import main
+
+sys.exit(main())

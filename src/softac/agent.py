@@ -1,0 +1,216 @@
+"""`SAC`: the Python API. It holds the learner state and composes the parts.
+
+    agent = SAC(SACConfig.preset("InvertedPendulum-v5"))
+    agent.learn(20_000)
+    agent.save("pendulum"); agent = SAC.load("pendulum")
+    action = agent.predict(obs, deterministic=True)
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from softac import checkpoint as ckpt
+from softac.buffer import ReplayBuffer
+from softac.config import SACConfig
+from softac.device import select_device
+from softac.envs import EnvPool, EnvSource, check_spaces, copy_env, env_name, make_env
+from softac.errors import SoftacError
+
+
+def _versions() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {}
+    for pkg in ("softac", "jax", "jaxlib", "optax", "numpy", "gymnasium", "mujoco"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+class SAC:
+    """A Soft Actor-Critic agent for one env (an id or a gym.Env instance)."""
+
+    def __init__(self, config: SACConfig | None = None, env: EnvSource | None = None):
+        import jax
+
+        if config is None:
+            config = SACConfig.for_env(env if isinstance(env, str) else None)
+        if env is None:
+            env = config.env_id
+        elif isinstance(env, str):
+            config = config.replace(env_id=env)
+        else:
+            config = config.replace(env_id=env_name(env))
+        self.config = config
+        self.env_source: EnvSource = env
+        self.device = select_device(config.device)
+
+        probe = make_env(env)
+        self.spaces = check_spaces(probe)
+        if isinstance(env, str):
+            probe.close()
+        else:
+            self.env_source = probe  # the (possibly flattened) user instance
+
+        from softac import sac
+
+        self.fns = sac.build(config, self.spaces.obs_dim, self.spaces.act_dim)
+        self.scaler = sac.ActionScaler(self.spaces.low, self.spaces.high)
+        root = jax.random.PRNGKey(config.seed)
+        init_key, act_key, predict_key = jax.random.split(root, 3)
+        self.state = self.fns.init(init_key)
+        self.act_key = act_key  # exploration noise while training
+        self.predict_key = predict_key  # stochastic predict() / evaluation, kept apart from training
+        self.rng = np.random.default_rng(config.seed)  # replay sampling and warm-up actions
+        self.num_steps = 0
+        self.num_episodes = 0
+        self.train_time_s = 0.0
+        self.trainer_state: dict[str, Any] = {}
+        self.buffer: ReplayBuffer | None = None
+        self.pool: EnvPool | None = None
+        self.pool_started = False
+
+    # ---- parts made on first use ----------------------------------------------
+
+    def make_env(self, render_mode: str | None = None):
+        return copy_env(self.env_source, render_mode)
+
+    def training_parts(self) -> tuple[ReplayBuffer, EnvPool]:
+        if self.buffer is None:
+            self.buffer = ReplayBuffer(self.config.buffer_size, self.spaces.obs_dim, self.spaces.act_dim)
+        if self.pool is None:
+            source = self.env_source
+
+            def make(i: int):
+                return source if (i == 0 and not isinstance(source, str)) else copy_env(source)
+
+            self.pool = EnvPool(make, self.config.n_envs, self.config.seed, env_name(source))
+        if not self.pool_started:
+            self.pool.reset(self.num_steps)
+            self.pool_started = True
+        return self.buffer, self.pool
+
+    # ---- acting ---------------------------------------------------------------
+
+    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray:
+        """Env-scaled action(s) for one observation or a batch of them."""
+        import jax.numpy as jnp
+
+        obs = np.asarray(obs, np.float32)
+        single = obs.ndim <= 1
+        batch = obs.reshape(1, -1) if single else obs.reshape(obs.shape[0], -1)
+        if batch.shape[1] != self.spaces.obs_dim:
+            raise SoftacError(f"observation has {batch.shape[1]} values; this agent expects {self.spaces.obs_dim}")
+        if deterministic:
+            normalised = self.fns.act_deterministic(self.state.actor, jnp.asarray(batch))
+        else:
+            normalised, self.predict_key = self.fns.act(self.state.actor, jnp.asarray(batch), self.predict_key)
+        actions = self.scaler.to_env(np.asarray(normalised))
+        return actions[0] if single else actions
+
+    # ---- training ---------------------------------------------------------------
+
+    def learn(self, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
+              progress: bool | None = None) -> dict[str, Any]:
+        """Train for `steps` more environment steps; returns a summary dict."""
+        from softac.trainer import train
+
+        return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress)
+
+    # ---- save / load --------------------------------------------------------------
+
+    def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        import jax
+
+        arrays: dict[str, np.ndarray] = {}
+        leaves = jax.tree_util.tree_flatten_with_path(self.state)[0]
+        for path, leaf in leaves:
+            arrays["state" + jax.tree_util.keystr(path)] = np.asarray(leaf)
+        arrays["act_key"] = np.asarray(self.act_key)
+        arrays["predict_key"] = np.asarray(self.predict_key)
+        meta: dict[str, Any] = {
+            "config": self.config.to_dict(),
+            "versions": _versions(),
+            "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "spaces": {"obs_dim": self.spaces.obs_dim, "act_dim": self.spaces.act_dim,
+                       "low": self.spaces.low.tolist(), "high": self.spaces.high.tolist()},
+            "num_steps": self.num_steps,
+            "num_episodes": self.num_episodes,
+            "train_time_s": self.train_time_s,
+            "numpy_rng": self.rng.bit_generator.state,
+            "trainer": self.trainer_state,
+            "has_buffer": bool(include_buffer and self.buffer is not None),
+            "has_envs": bool(include_buffer and self.pool is not None and self.pool_started),
+        }
+        if meta["has_buffer"]:
+            for k, v in self.buffer.state_dict().items():
+                arrays[f"buffer/{k}"] = v
+        if meta["has_envs"]:
+            env_meta, env_arrays = self.pool.get_state()
+            meta["envs"] = env_meta
+            for k, v in env_arrays.items():
+                arrays[f"envs/{k}"] = v
+        return meta, arrays
+
+    def save(self, path: str | Path, include_buffer: bool = False) -> Path:
+        """Save the agent (networks, optimisers, alpha, RNGs; the buffer and envs too if asked)."""
+        meta, arrays = self.checkpoint_parts(include_buffer)
+        return ckpt.save(path, meta, arrays)
+
+    @classmethod
+    def load(cls, path: str | Path, env: EnvSource | None = None, which: str | None = None,
+             device: str | None = None) -> "SAC":
+        """Load a checkpoint directory or a run (its best checkpoint, else last)."""
+        directory = ckpt.resolve(path, which)
+        meta, arrays = ckpt.load(directory)
+        try:
+            config = SACConfig().replace(**meta["config"])
+        except SoftacError as exc:
+            raise ckpt.CheckpointError(f"checkpoint {directory} has an invalid config: {exc}") from None
+        if device is not None:
+            config = config.replace(device=device)
+        agent = cls(config, env)
+        agent.restore(meta, arrays, directory)
+        return agent
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], where: Path | str = "") -> None:
+        import jax
+        import jax.numpy as jnp
+
+        spaces = meta.get("spaces", {})
+        if spaces.get("obs_dim") != self.spaces.obs_dim or spaces.get("act_dim") != self.spaces.act_dim:
+            raise ckpt.CheckpointError(
+                f"checkpoint {where} is for observations of {spaces.get('obs_dim')} and actions of "
+                f"{spaces.get('act_dim')} values, but the env has {self.spaces.obs_dim} and {self.spaces.act_dim}")
+        paths, treedef = jax.tree_util.tree_flatten_with_path(self.state)
+        leaves = []
+        for path, template in paths:
+            name = "state" + jax.tree_util.keystr(path)
+            value = arrays.get(name)
+            if value is None or value.shape != np.shape(template) or value.dtype != np.asarray(template).dtype:
+                raise ckpt.CheckpointError(f"checkpoint {where} does not match this config/env at {name}")
+            leaves.append(jnp.asarray(value))
+        self.state = jax.tree_util.tree_unflatten(treedef, leaves)
+        self.act_key = jnp.asarray(arrays["act_key"])
+        self.predict_key = jnp.asarray(arrays["predict_key"])
+        self.num_steps = int(meta["num_steps"])
+        self.num_episodes = int(meta["num_episodes"])
+        self.train_time_s = float(meta.get("train_time_s", 0.0))
+        self.rng.bit_generator.state = meta["numpy_rng"]
+        self.trainer_state = dict(meta.get("trainer") or {})
+        if meta.get("has_buffer"):
+            self.buffer = ReplayBuffer(self.config.buffer_size, self.spaces.obs_dim, self.spaces.act_dim)
+            self.buffer.load_state_dict({k[len("buffer/"):]: v for k, v in arrays.items() if k.startswith("buffer/")})
+        if meta.get("has_envs"):
+            self.pool = None
+            self.pool_started = True  # restored below, not reset
+            _, pool = self.training_parts()
+            env_arrays = {k[len("envs/"):]: v for k, v in arrays.items() if k.startswith("envs/")}
+            self.exact_env_restore = pool.set_state(meta["envs"], env_arrays, self.num_steps)

@@ -1,0 +1,152 @@
+"""Checkpoints: a directory with one .npz of arrays and a meta.json, never pickle.
+
+Writing is atomic in effect: the arrays go to a new, uniquely named file
+(written under a temporary name, fsynced, renamed), then meta.json, which
+names that file and its SHA-256, replaces the old meta.json in one rename.
+Only then is the previous arrays file removed. A crash at any moment leaves
+either the old checkpoint or the new one, whole.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import secrets
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from softac.errors import SoftacError
+
+FORMAT = "softac-checkpoint"
+FORMAT_VERSION = 1
+META = "meta.json"
+
+
+class CheckpointError(SoftacError):
+    pass
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Path:
+    """Write a checkpoint into `directory` (created if needed) atomically."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    name = f"arrays-{secrets.token_hex(6)}.npz"
+    final = directory / name
+    tmp = directory / f".{name}.tmp"
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, final)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+    meta = dict(meta, format=FORMAT, format_version=FORMAT_VERSION, arrays_file=name, sha256=_sha256(final))
+    try:
+        write_atomic(directory / META, json.dumps(meta, indent=1).encode())
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            final.unlink()
+        raise
+    _fsync_dir(directory)
+    for old in directory.glob("arrays-*.npz"):
+        if old.name != name:
+            with contextlib.suppress(OSError):
+                old.unlink()
+    for stale in directory.glob(".arrays-*.tmp"):
+        with contextlib.suppress(OSError):
+            stale.unlink()
+    return directory
+
+
+def is_checkpoint(path: Path) -> bool:
+    return (path / META).is_file()
+
+
+def resolve(path: str | Path, which: str | None = None) -> Path:
+    """A checkpoint directory from a checkpoint or a run directory.
+
+    For a run, `which` picks checkpoints/best or checkpoints/last; by default
+    best when it exists, else last.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise CheckpointError(f"no such run or checkpoint: {path}")
+    if which is None and is_checkpoint(path):
+        return path
+    order = [which] if which else ["best", "last"]
+    for name in order:
+        candidate = path / "checkpoints" / name
+        if is_checkpoint(candidate):
+            return candidate
+    if which:
+        raise CheckpointError(f"{path} has no {which} checkpoint (looked for {path / 'checkpoints' / which})")
+    raise CheckpointError(f"{path} holds no checkpoint (neither {META} nor checkpoints/best|last)")
+
+
+def load(directory: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Read and verify a checkpoint; any problem is a one-line CheckpointError."""
+    directory = Path(directory)
+    try:
+        meta = json.loads((directory / META).read_text())
+    except FileNotFoundError:
+        raise CheckpointError(f"no checkpoint at {directory} (missing {META})") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"corrupt checkpoint {directory}: {META} is unreadable ({exc})".splitlines()[0]) from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise CheckpointError(f"{directory} is not a softac checkpoint")
+    version = meta.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise CheckpointError(f"checkpoint {directory} has format version {version}, newer than this softac "
+                              f"reads ({FORMAT_VERSION}); upgrade softac")
+    name = meta.get("arrays_file")
+    if not isinstance(name, str) or "/" in name or not name.endswith(".npz"):
+        raise CheckpointError(f"corrupt checkpoint {directory}: bad arrays_file in {META}")
+    arrays_path = directory / name
+    if not arrays_path.is_file():
+        raise CheckpointError(f"corrupt checkpoint {directory}: {name} is missing")
+    if _sha256(arrays_path) != meta.get("sha256"):
+        raise CheckpointError(f"corrupt checkpoint {directory}: {name} does not match its checksum")
+    try:
+        with np.load(arrays_path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise CheckpointError(f"corrupt checkpoint {directory}: cannot read {name} ({exc})".splitlines()[0]) from None
+    return meta, arrays

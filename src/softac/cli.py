@@ -1,0 +1,217 @@
+"""The `softac` command: parse, call the library, map errors to exit codes.
+
+Exit codes: 0 success; 2 bad input (one line on stderr, no traceback);
+130 interrupted (Ctrl-C or SIGTERM) after a checkpoint was written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from softac.errors import SoftacError, TrainingInterrupted
+
+EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_INTERNAL = 0, 2, 130, 1
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, not usage + message
+        raise SoftacError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text.replace("_", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got '{text}'") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got '{text}'") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="softac", description="Soft Actor-Critic for continuous-control Gymnasium envs.")
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", parser_class=_Parser)
+
+    t = sub.add_parser("train", help="train an agent (InvertedPendulum-v5 by default)")
+    t.add_argument("--env", help="Gymnasium env id, or module:EnvId")
+    src = t.add_mutually_exclusive_group()
+    src.add_argument("--preset", help="preset name (see `softac presets`)")
+    src.add_argument("--config", help="YAML file of config keys")
+    t.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="override a config key (repeatable)")
+    t.add_argument("--steps", type=_positive_int, help="env steps to train (with --resume: steps to add)")
+    t.add_argument("--seed", type=int)
+    t.add_argument("--n-envs", type=_positive_int)
+    t.add_argument("--out", help="run directory (default runs/ENV/DATE-seedS)")
+    t.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
+    t.add_argument("--resume", metavar="DIR", help="continue the run in DIR exactly where it stopped")
+    t.add_argument("--target-return", type=_finite_float, metavar="R",
+                   help="stop once the deterministic eval mean reaches R")
+    bar = t.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None, help="force the progress bar")
+    bar.add_argument("--no-progress", dest="progress", action="store_false", help="plain log lines instead")
+
+    e = sub.add_parser("eval", help="evaluate a run or checkpoint")
+    e.add_argument("path", metavar="RUN_OR_CKPT")
+    e.add_argument("--episodes", type=_positive_int, default=10)
+    e.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean action")
+    e.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
+    e.add_argument("--seed", type=int, help="seed of the first eval episode (default: the run's eval seed)")
+    e.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
+    e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+
+    sub.add_parser("presets", help="list presets")
+    return parser
+
+
+# ---- commands -----------------------------------------------------------------
+
+def _resolve_train_config(args: argparse.Namespace):
+    from softac.config import SACConfig
+
+    if args.config:
+        config = SACConfig.from_yaml(args.config)
+        if args.env:
+            config = config.replace(env_id=args.env)
+    elif args.preset:
+        config = SACConfig.preset(args.preset, env_id=args.env)
+    else:
+        config = SACConfig.for_env(args.env)
+    overrides = [pair for group in args.overrides for pair in group]
+    config = config.with_overrides(overrides)
+    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "device": args.device}
+    return config.replace(**{k: v for k, v in direct.items() if v is not None})
+
+
+def _default_run_dir(config) -> Path:
+    name = config.env_id.replace(":", "_").replace("/", "_")
+    return Path("runs") / name / f"{time.strftime('%Y%m%d-%H%M%S')}-seed{config.seed}"
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from softac import checkpoint as ckpt
+    from softac.agent import SAC
+
+    if args.resume:
+        clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
+                                          ("--seed", args.seed), ("--n-envs", args.n_envs), ("--out", args.out))
+                 if value is not None] + (["--set"] if args.overrides else [])
+        if clash:
+            raise SoftacError(f"--resume continues a run with its own config; drop {', '.join(clash)}")
+        run = Path(args.resume)
+        directory = ckpt.resolve(run, "last")
+        if directory.parent.parent != run:
+            raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
+        agent = SAC.load(run, which="last", device=args.device)
+        if args.steps is not None:
+            steps = args.steps
+        else:
+            steps = max(agent.config.total_steps - agent.num_steps, 0)
+        print(f"resuming {run} at step {agent.num_steps}; training {steps} more steps", file=sys.stderr)
+    else:
+        config = _resolve_train_config(args)
+        run = Path(args.out) if args.out else _default_run_dir(config)
+        if (run / "checkpoints").exists() and any((run / "checkpoints").iterdir()):
+            raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
+        if run.exists() and not run.is_dir():
+            raise SoftacError(f"--out {run} exists and is not a directory")
+        agent = SAC(config)
+        try:
+            run.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
+        steps = config.total_steps
+        print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}", file=sys.stderr)
+    summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
+    last = summary["last_eval"]
+    solved = " (target reached)" if summary["stopped_early"] else ""
+    eval_text = f"; last eval mean return {last:.1f}" if last is not None else ""
+    print(f"done: {summary['steps']} steps in {summary['wall_s']:.1f}s{eval_text}{solved}; run in {run}",
+          file=sys.stderr)
+    return EXIT_OK
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from softac.agent import SAC
+    from softac.evaluation import evaluate
+
+    if args.episodes < 1:
+        raise SoftacError("--episodes must be >= 1")
+    agent = SAC.load(args.path, which=args.checkpoint, device=args.device)
+    stats = evaluate(agent, episodes=args.episodes, deterministic=not args.stochastic, seed=args.seed)
+    stats["checkpoint_step"] = agent.num_steps
+    stats["path"] = str(args.path)
+    if args.json:
+        print(json.dumps(stats))
+    else:
+        mode = "stochastic" if args.stochastic else "deterministic"
+        print(f"{stats['env_id']}: mean return {stats['mean_return']:.2f} +- {stats['std_return']:.2f} over "
+              f"{stats['episodes']} {mode} episodes (mean length {stats['mean_length']:.0f}; "
+              f"checkpoint at step {agent.num_steps})")
+    return EXIT_OK
+
+
+def cmd_presets(args: argparse.Namespace) -> int:
+    from softac.config import GENERIC_PRESETS, preset_names, preset_summary
+
+    names = preset_names()
+    width = max(len(n) for n in names)
+    for name in names:
+        kind = "any env" if name in GENERIC_PRESETS else "env"
+        print(f"{name:<{width}}  [{kind}]  {preset_summary(name)}")
+    return EXIT_OK
+
+
+COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if args.version:
+            from softac import __version__
+
+            print(__version__)
+            return EXIT_OK
+        if args.command is None:
+            parser.print_help(sys.stderr)
+            return EXIT_BAD_INPUT
+        return COMMANDS[args.command](args)
+    except SoftacError as exc:
+        print(f"softac: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except TrainingInterrupted as exc:
+        print(f"softac: {exc}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:
+        print("softac: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # a bug of ours: say so in one line, keep the traceback for SOFTAC_DEBUG
+        if os.environ.get("SOFTAC_DEBUG"):
+            raise
+        print(f"softac: internal error: {type(exc).__name__}: {exc} (rerun with SOFTAC_DEBUG=1 for the traceback)"
+              .splitlines()[0], file=sys.stderr)
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,301 @@
+"""SACConfig: every hyperparameter once, with its one-line doc.
+
+The command line (`--set KEY=VALUE`), the YAML presets in `presets/` and the
+README table all come from the fields below, so there is one source of truth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from softac.errors import SoftacError
+
+
+class ConfigError(SoftacError, ValueError):
+    """A bad config key or value; the message names the key."""
+
+
+DEFAULT_ENV = "InvertedPendulum-v5"
+FALLBACK_PRESET = "default"
+
+
+def _f(default: Any, doc: str) -> Any:
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata={"doc": doc})
+    return field(default=default, metadata={"doc": doc})
+
+
+@dataclass
+class SACConfig:
+    # environment and run
+    env_id: str = _f(DEFAULT_ENV, "Gymnasium id (or module:EnvId) to train on")
+    total_steps: int = _f(20_000, "environment steps (transitions, summed over vector envs) to train for")
+    seed: int = _f(0, "seed for networks, exploration, replay sampling and environments")
+    n_envs: int = _f(1, "environments stepped together (a vector env)")
+    device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
+    # replay
+    buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
+    batch_size: int = _f(256, "transitions per gradient step")
+    learning_starts: int = _f(100, "environment steps of uniform random actions before learning")
+    # algorithm
+    gamma: float = _f(0.99, "discount factor")
+    tau: float = _f(0.005, "Polyak coefficient for target critics (1 = hard copy)")
+    target_update_interval: int = _f(1, "gradient steps between target-critic updates")
+    gradient_steps: int = _f(1, "gradient steps per vector-env step (all fused in one jitted call)")
+    policy_frequency: int = _f(1, "critic updates per actor/alpha update round; each round does this many actor updates (CleanRL's delayed update)")
+    n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum")
+    hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
+    activation: str = _f("relu", "hidden activation: relu, tanh, elu or gelu")
+    init: str = _f("default", "weight init: default (fan-in uniform, as PyTorch) or orthogonal")
+    actor_lr: float = _f(3e-4, "Adam learning rate of the actor")
+    critic_lr: float = _f(3e-4, "Adam learning rate of the critics")
+    alpha_lr: float = _f(3e-4, "Adam learning rate of log(alpha)")
+    autotune_alpha: bool = _f(True, "learn the entropy coefficient on log(alpha) (Haarnoja et al. 2018b)")
+    alpha: float = _f(1.0, "entropy coefficient: fixed value, or the initial one when autotuned")
+    target_entropy: Any = _f("auto", "entropy target when autotuned; auto = -|A|")
+    log_std_min: float = _f(-20.0, "lower bound of the actor's log std")
+    log_std_max: float = _f(2.0, "upper bound of the actor's log std")
+    log_std_mode: str = _f("clamp", "how log std is bounded: clamp (SB3) or tanh (CleanRL's squash)")
+    # evaluation, logs, checkpoints
+    eval_interval: int = _f(5_000, "environment steps between deterministic evaluations (0 disables)")
+    eval_episodes: int = _f(10, "episodes per evaluation")
+    log_interval: int = _f(1_000, "environment steps between progress.csv rows")
+    checkpoint_interval: int = _f(10_000, "environment steps between checkpoints/last writes (0: only at the end)")
+
+    # ---- construction -------------------------------------------------
+
+    @classmethod
+    def field_docs(cls) -> dict[str, str]:
+        return {f.name: f.metadata["doc"] for f in fields(cls)}
+
+    @classmethod
+    def preset(cls, name: str, env_id: str | None = None) -> "SACConfig":
+        """The named preset (an env id or `sb3`, `cleanrl`, `default`)."""
+        values = load_preset(name)
+        cfg = cls()
+        if env_id is not None:
+            values["env_id"] = env_id
+        elif "env_id" not in values and name in preset_names() and name not in GENERIC_PRESETS:
+            values["env_id"] = name
+        return cfg.replace(**values)
+
+    @classmethod
+    def for_env(cls, env_id: str | None) -> "SACConfig":
+        """The env's own preset when there is one, else the fallback preset."""
+        env_id = env_id or DEFAULT_ENV
+        name = env_id if env_id in preset_names() else FALLBACK_PRESET
+        return cls.preset(name, env_id=env_id)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "SACConfig":
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config file not found: {path}") from None
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"cannot read config file {path}: {str(exc).splitlines()[0]}") from None
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(f"config file {path} must hold a mapping of key: value")
+        data = {k: v for k, v in data.items() if k not in _RECORD_ONLY_KEYS}
+        base = cls.for_env(data.get("env_id"))
+        return base.replace(**data)
+
+    def replace(self, **values: Any) -> "SACConfig":
+        known = {f.name: f for f in fields(self)}
+        coerced = {}
+        for key, value in values.items():
+            if key not in known:
+                raise ConfigError(_unknown_key_message(key, list(known)))
+            coerced[key] = _coerce(key, known[key], value)
+        cfg = dataclasses.replace(self, **coerced)
+        cfg.validate()
+        return cfg
+
+    def with_overrides(self, pairs: list[str]) -> "SACConfig":
+        """Apply `KEY=VALUE` strings (values parsed as YAML scalars)."""
+        values = {}
+        for pair in pairs:
+            if "=" not in pair:
+                raise ConfigError(f"--set expects KEY=VALUE, got '{pair}'")
+            key, raw = pair.split("=", 1)
+            key = key.strip().replace("-", "_")
+            try:
+                values[key] = yaml.safe_load(raw) if raw.strip() else raw
+            except yaml.YAMLError:
+                values[key] = raw
+        return self.replace(**values)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    # ---- validation ---------------------------------------------------
+
+    def validate(self) -> None:
+        def need(ok: bool, key: str, what: str) -> None:
+            if not ok:
+                raise ConfigError(f"{key}={getattr(self, key)!r}: {what}")
+
+        need(bool(self.env_id.strip()), "env_id", "must name an environment")
+        need(self.total_steps >= 0, "total_steps", "must be >= 0")
+        need(self.n_envs >= 1, "n_envs", "must be >= 1")
+        need(self.n_envs <= 1024, "n_envs", "must be <= 1024")
+        need(self.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")
+        need(self.buffer_size >= 1, "buffer_size", "must be >= 1")
+        need(self.batch_size >= 1, "batch_size", "must be >= 1")
+        need(self.learning_starts >= 0, "learning_starts", "must be >= 0")
+        need(0.0 <= self.gamma <= 1.0, "gamma", "must be in [0, 1]")
+        need(0.0 < self.tau <= 1.0, "tau", "must be in (0, 1]")
+        need(self.target_update_interval >= 1, "target_update_interval", "must be >= 1")
+        need(self.gradient_steps >= 0, "gradient_steps", "must be >= 0")
+        need(self.gradient_steps <= 10_000, "gradient_steps", "must be <= 10000")
+        need(self.policy_frequency >= 1, "policy_frequency", "must be >= 1")
+        need(1 <= self.n_critics <= 100, "n_critics", "must be between 1 and 100")
+        need(len(self.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
+        need(all(1 <= h <= 65_536 for h in self.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
+        need(self.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
+        need(self.init in ("default", "orthogonal"), "init", "must be default or orthogonal")
+        for key in ("actor_lr", "critic_lr", "alpha_lr"):
+            need(0.0 < getattr(self, key) < 1.0, key, "must be in (0, 1)")
+        need(self.alpha > 0.0 if self.autotune_alpha else self.alpha >= 0.0, "alpha",
+             "must be > 0 (>= 0 when fixed)")
+        need(self.target_entropy == "auto" or isinstance(self.target_entropy, float), "target_entropy",
+             "must be auto or a number")
+        need(self.log_std_min < self.log_std_max, "log_std_min", "must be below log_std_max")
+        need(self.log_std_mode in ("clamp", "tanh"), "log_std_mode", "must be clamp or tanh")
+        need(self.eval_interval >= 0, "eval_interval", "must be >= 0 (0 disables)")
+        need(self.eval_episodes >= 1, "eval_episodes", "must be >= 1")
+        need(self.log_interval >= 1, "log_interval", "must be >= 1")
+        need(self.checkpoint_interval >= 0, "checkpoint_interval", "must be >= 0")
+
+
+ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
+GENERIC_PRESETS = ("default", "sb3", "cleanrl")
+# keys written to config.yaml for the record; ignored when the file is read back
+_RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy")
+
+
+def _unknown_key_message(key: str, known: list[str]) -> str:
+    close = difflib.get_close_matches(key, known, n=1)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    return f"unknown config key '{key}'{hint}"
+
+
+def _coerce(key: str, f: dataclasses.Field, value: Any) -> Any:
+    default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+    bad = ConfigError(f"{key}={value!r}: expected {_type_name(default)}")
+    if key == "target_entropy":
+        if isinstance(value, str) and value.strip().lower() == "auto" or value is None:
+            return "auto"
+        value = _as_float(value, bad)
+        return value
+    if isinstance(default, bool):
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "yes", "no", "1", "0", "on", "off"):
+            return value.lower() in ("true", "yes", "1", "on")
+        if isinstance(value, int) and value in (0, 1):
+            return bool(value)
+        raise bad
+    if isinstance(default, int):
+        if isinstance(value, bool):
+            raise bad
+        if isinstance(value, int):
+            return value
+        if isinstance(value, float) and value.is_integer() and math.isfinite(value):
+            return int(value)
+        if isinstance(value, str):
+            try:
+                as_float = float(value.replace("_", ""))
+            except ValueError:
+                raise bad from None
+            if math.isfinite(as_float) and as_float.is_integer():
+                return int(as_float)
+        raise bad
+    if isinstance(default, float):
+        return _as_float(value, bad)
+    if isinstance(default, list):
+        return _as_int_list(value, bad)
+    if isinstance(default, str):
+        if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            return str(value).strip()
+        raise bad
+    raise bad
+
+
+def _as_float(value: Any, bad: ConfigError) -> float:
+    if isinstance(value, bool):
+        raise bad
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise bad from None
+    if not math.isfinite(out):
+        raise bad
+    return out
+
+
+def _as_int_list(value: Any, bad: ConfigError) -> list[int]:
+    if isinstance(value, int) and not isinstance(value, bool):
+        return [value]
+    if isinstance(value, str):
+        parts = [p for p in value.replace("x", ",").replace("[", "").replace("]", "").split(",") if p.strip()]
+        try:
+            return [int(p) for p in parts]
+        except ValueError:
+            raise bad from None
+    if isinstance(value, (list, tuple)) and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        return list(value)
+    raise bad
+
+
+def _type_name(default: Any) -> str:
+    if isinstance(default, bool):
+        return "true or false"
+    if isinstance(default, int):
+        return "an integer"
+    if isinstance(default, float):
+        return "a finite number"
+    if isinstance(default, list):
+        return "a list of integers like 256,256"
+    return "a string"
+
+
+# ---- presets ------------------------------------------------------------
+
+def _preset_dir():
+    return resources.files("softac") / "presets"
+
+
+def preset_names() -> list[str]:
+    return sorted(p.name[: -len(".yaml")] for p in _preset_dir().iterdir() if p.name.endswith(".yaml"))
+
+
+def load_preset(name: str) -> dict[str, Any]:
+    names = preset_names()
+    if name not in names:
+        close = difflib.get_close_matches(name, names, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ConfigError(f"unknown preset '{name}'{hint}; `softac presets` lists them")
+    text = (_preset_dir() / f"{name}.yaml").read_text()
+    data = yaml.safe_load(text) or {}
+    return dict(data)
+
+
+def preset_summary(name: str) -> str:
+    """The first comment line of a preset file: what it is for."""
+    text = (_preset_dir() / f"{name}.yaml").read_text()
+    for line in text.splitlines():
+        if line.startswith("#"):
+            return line.lstrip("# ").strip()
+    return ""

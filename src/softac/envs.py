@@ -1,0 +1,287 @@
+"""Environments: make them from an id or an instance, check their spaces, step several together.
+
+`EnvPool` is softac's own vector env. It steps its envs one after the other
+(as Gymnasium's SyncVectorEnv does) but resets a finished env itself, so the
+true final observation is always at hand for the replay buffer, whatever
+Gymnasium 1.x's vector autoreset mode would have done. It can also save and
+restore its envs' exact state (MuJoCo integration state, RNGs, time-limit
+counters), which exact resume needs.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import importlib
+import io
+import contextlib
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+
+from softac.errors import SoftacError
+
+EnvSource = Any  # a Gymnasium id string or a gym.Env instance
+
+
+class EnvError(SoftacError):
+    pass
+
+
+def env_name(source: EnvSource) -> str:
+    if isinstance(source, str):
+        return source
+    spec = getattr(source, "spec", None)
+    return spec.id if spec is not None else type(getattr(source, "unwrapped", source)).__name__
+
+
+def resolve_env_id(env_id: str) -> str:
+    """Check that `env_id` is registered, importing `module` first for `module:EnvId`."""
+    env_id = env_id.strip()
+    if ":" in env_id:
+        module, _, name = env_id.partition(":")
+        try:
+            importlib.import_module(module)
+        except Exception as exc:  # any import failure is the user's module, not ours
+            raise EnvError(f"cannot import module '{module}' for env '{env_id}': {exc}") from None
+        env_id = name
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry.keys()), n=3, cutoff=0.6)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise EnvError(f"unknown environment id '{env_id}'{hint}")
+    return env_id
+
+
+def make_env(source: EnvSource, render_mode: str | None = None) -> gym.Env:
+    """A fresh env from an id, or the given instance itself."""
+    if isinstance(source, gym.Env):
+        return _flatten_obs_if_needed(source)
+    if not isinstance(source, str):
+        raise EnvError(f"expected a Gymnasium env id or gym.Env instance, got {type(source).__name__}")
+    env_id = resolve_env_id(source)
+    kwargs = {"render_mode": render_mode} if render_mode else {}
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):
+            env = gym.make(env_id, **kwargs)
+    except Exception as exc:
+        raise EnvError(f"cannot make env '{env_id}': {type(exc).__name__}: {exc}".splitlines()[0]) from None
+    return _flatten_obs_if_needed(env)
+
+
+def copy_env(source: EnvSource, render_mode: str | None = None) -> gym.Env:
+    """Another env like `source`: made again from its id or spec, else a deep copy."""
+    if isinstance(source, str):
+        return make_env(source, render_mode)
+    spec = getattr(source, "spec", None)
+    if spec is not None:
+        try:
+            return _flatten_obs_if_needed(gym.make(spec, **({"render_mode": render_mode} if render_mode else {})))
+        except Exception:
+            pass
+    try:
+        return _flatten_obs_if_needed(copy.deepcopy(source))
+    except Exception as exc:
+        raise EnvError(f"cannot make a second copy of env {env_name(source)} ({exc}); register it with "
+                       "gymnasium.register and pass its id instead") from None
+
+
+def _flatten_obs_if_needed(env: gym.Env) -> gym.Env:
+    space = env.observation_space
+    if isinstance(space, gym.spaces.Box) and len(space.shape) == 1:
+        return env
+    try:
+        gym.spaces.flatdim(space)
+    except Exception:
+        raise EnvError(f"env {env_name(env)}: observation space {space} cannot be flattened to a vector") from None
+    return gym.wrappers.FlattenObservation(env)
+
+
+@dataclass(frozen=True)
+class SpaceInfo:
+    obs_dim: int
+    act_dim: int
+    low: np.ndarray
+    high: np.ndarray
+
+
+def check_spaces(env: gym.Env) -> SpaceInfo:
+    """SAC needs a bounded 1-D Box action space; say clearly when it is not one."""
+    name = env_name(env)
+    space = env.action_space
+    if not isinstance(space, gym.spaces.Box):
+        raise EnvError(f"env {name} has a {type(space).__name__} action space; SAC needs a continuous Box space")
+    if len(space.shape) != 1:
+        raise EnvError(f"env {name} has a {len(space.shape)}-D action Box {space.shape}; SAC here needs a 1-D Box")
+    low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
+        raise EnvError(f"env {name} has an unbounded action space; SAC needs finite low/high bounds "
+                       "(wrap it with gymnasium.wrappers.ClipAction or RescaleAction)")
+    if np.any(high <= low):
+        raise EnvError(f"env {name} has action bounds with high <= low")
+    obs_dim = int(np.prod(env.observation_space.shape))
+    return SpaceInfo(obs_dim, int(space.shape[0]), low.astype(np.float32), high.astype(np.float32))
+
+
+# ---- exact env state, for resume -----------------------------------------------
+
+def _time_limit(env: gym.Env) -> gym.wrappers.TimeLimit | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, gym.wrappers.TimeLimit):
+            return env
+        env = env.env
+    return None
+
+
+def _mujoco_parts(env: gym.Env):
+    raw = env.unwrapped
+    if hasattr(raw, "model") and hasattr(raw, "data"):
+        try:
+            import mujoco
+        except ImportError:
+            return None
+        if isinstance(raw.model, mujoco.MjModel):
+            return mujoco, raw.model, raw.data
+    return None
+
+
+def get_env_state(env: gym.Env) -> tuple[dict, np.ndarray | None]:
+    """(JSON-able metadata, physics state array or None) that restore this env exactly."""
+    raw = env.unwrapped
+    meta: dict[str, Any] = {"kind": "none"}
+    physics = None
+    parts = _mujoco_parts(env)
+    if parts is not None:
+        mujoco, model, data = parts
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(model, spec), np.float64)
+        mujoco.mj_getState(model, data, physics, spec)
+        meta["kind"] = "mujoco"
+    elif isinstance(getattr(raw, "state", None), np.ndarray):
+        physics = np.array(raw.state)
+        meta["kind"] = "state_attr"
+    rng = getattr(raw, "_np_random", None)
+    meta["np_random"] = rng.bit_generator.state if rng is not None else None
+    limit = _time_limit(env)
+    meta["elapsed_steps"] = getattr(limit, "_elapsed_steps", None) if limit else None
+    return meta, physics
+
+
+def set_env_state(env: gym.Env, meta: dict, physics: np.ndarray | None) -> bool:
+    """Restore what `get_env_state` captured; False when this env cannot be restored exactly."""
+    raw = env.unwrapped
+    if meta["kind"] == "mujoco" and physics is not None and _mujoco_parts(env) is not None:
+        mujoco, model, data = _mujoco_parts(env)
+        mujoco.mj_setState(model, data, np.asarray(physics, np.float64), mujoco.mjtState.mjSTATE_INTEGRATION)
+        mujoco.mj_forward(model, data)
+    elif meta["kind"] == "state_attr" and physics is not None:
+        raw.state = np.array(physics)
+    else:
+        return False
+    if meta.get("np_random") is not None and getattr(raw, "_np_random", None) is not None:
+        raw._np_random.bit_generator.state = meta["np_random"]
+    limit = _time_limit(env)
+    if limit is not None and meta.get("elapsed_steps") is not None:
+        limit._elapsed_steps = meta["elapsed_steps"]
+    return True
+
+
+# ---- several envs stepped together ---------------------------------------------
+
+@dataclass
+class StepResult:
+    next_obs: np.ndarray  # the true next observation (the final one where an episode ended)
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    finished: list[tuple[int, float, int]]  # (env index, episode return, episode length)
+
+
+class EnvPool:
+    def __init__(self, make: Callable[[int], gym.Env], n: int, seed: int, name: str):
+        self.name = name
+        self.envs = [make(i) for i in range(n)]
+        self.seed = seed
+        self.n = n
+        self.obs = np.zeros((n, int(np.prod(self.envs[0].observation_space.shape))), np.float32)
+        self.episode_return = np.zeros(n, np.float64)
+        self.episode_length = np.zeros(n, np.int64)
+        self.resets = np.zeros(n, np.int64)  # resets so far per env: each reset gets its own seed
+
+    def _reset_one(self, i: int, step: int) -> None:
+        # a distinct seed per (env, reset), so an episode's start does not depend on the others
+        seed = (self.seed * 1_000_003 + i * 7919 + int(self.resets[i])) % (2**31)
+        try:
+            obs, _ = self.envs[i].reset(seed=seed)
+        except Exception as exc:
+            raise EnvError(f"env {self.name} raised in reset at step {step}: {type(exc).__name__}: {exc}") from None
+        self.obs[i] = np.asarray(obs, np.float32).reshape(-1)
+        self.resets[i] += 1
+        self.episode_return[i] = 0.0
+        self.episode_length[i] = 0
+
+    def reset(self, step: int = 0) -> np.ndarray:
+        for i in range(self.n):
+            self._reset_one(i, step)
+        return self.obs
+
+    def step(self, actions: np.ndarray, step: int) -> StepResult:
+        n = self.n
+        next_obs = np.empty_like(self.obs)
+        rewards = np.empty(n, np.float32)
+        terminated = np.empty(n, bool)
+        truncated = np.empty(n, bool)
+        finished = []
+        for i, env in enumerate(self.envs):
+            try:
+                obs, reward, term, trunc, _ = env.step(actions[i])
+            except Exception as exc:
+                raise EnvError(f"env {self.name} raised in step at step {step}: "
+                               f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
+            next_obs[i] = np.asarray(obs, np.float32).reshape(-1)
+            rewards[i], terminated[i], truncated[i] = reward, term, trunc
+            self.episode_return[i] += float(reward)
+            self.episode_length[i] += 1
+        if not (np.all(np.isfinite(next_obs)) and np.all(np.isfinite(rewards))):
+            what = "observation" if not np.all(np.isfinite(next_obs)) else "reward"
+            raise EnvError(f"env {self.name} returned a non-finite {what} at step {step}")
+        self.obs = next_obs.copy()
+        for i in np.flatnonzero(terminated | truncated):
+            finished.append((int(i), float(self.episode_return[i]), int(self.episode_length[i])))
+            self._reset_one(int(i), step)
+        return StepResult(next_obs, rewards, terminated, truncated, finished)
+
+    def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        metas, arrays = [], {"obs": self.obs.copy()}
+        for i, env in enumerate(self.envs):
+            meta, physics = get_env_state(env)
+            metas.append(meta)
+            if physics is not None:
+                arrays[f"physics_{i}"] = physics
+        meta = {"envs": metas, "resets": self.resets.tolist(),
+                "episode_return": self.episode_return.tolist(), "episode_length": self.episode_length.tolist()}
+        return meta, arrays
+
+    def set_state(self, meta: dict, arrays: dict[str, np.ndarray], step: int) -> bool:
+        """Restore every env; returns False (and starts fresh episodes) where that is impossible."""
+        if len(meta["envs"]) != self.n:
+            raise SoftacError(f"checkpoint has {len(meta['envs'])} envs but n_envs={self.n}")
+        self.resets = np.asarray(meta["resets"], np.int64)
+        exact = True
+        for i, env in enumerate(self.envs):
+            env.reset(seed=0)  # Gymnasium requires a reset before step; the state is overwritten next
+            if not set_env_state(env, meta["envs"][i], arrays.get(f"physics_{i}")):
+                exact = False
+        if exact:
+            self.obs = np.asarray(arrays["obs"], np.float32).copy()
+            self.episode_return = np.asarray(meta["episode_return"], np.float64)
+            self.episode_length = np.asarray(meta["episode_length"], np.int64)
+        else:
+            self.reset(step)
+        return exact
+
+    def close(self) -> None:
+        for env in self.envs:
+            with contextlib.suppress(Exception):
+                env.close()

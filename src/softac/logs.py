@@ -1,0 +1,155 @@
+"""What a run writes as it goes: the run directory's CSV files, TensorBoard events, and progress."""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
+                    "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
+EPISODE_COLUMNS = ["step", "return", "length"]
+EVAL_COLUMNS = ["step", "mean_return", "std_return", "episodes"]
+
+
+class CsvLog:
+    """Appends rows to a CSV file; on resume drops rows past the checkpoint's step."""
+
+    def __init__(self, path: Path, columns: list[str], keep_until_step: int | None = None):
+        self.path = path
+        self.columns = columns
+        if keep_until_step is not None and path.exists():
+            self._truncate_after(keep_until_step)
+        new = not path.exists() or path.stat().st_size == 0
+        self.file = open(path, "a", newline="")
+        self.writer = csv.writer(self.file)
+        if new:
+            self.writer.writerow(columns)
+            self.file.flush()
+
+    def _truncate_after(self, step: int) -> None:
+        with open(self.path, newline="") as f:
+            rows = list(csv.reader(f))
+        if not rows:
+            return
+        kept = [rows[0]] + [r for r in rows[1:] if r and _as_int(r[0]) is not None and _as_int(r[0]) <= step]
+        with open(self.path, "w", newline="") as f:
+            csv.writer(f).writerows(kept)
+
+    def write(self, row: dict[str, Any]) -> None:
+        self.writer.writerow([_fmt(row.get(c, "")) for c in self.columns])
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def _as_int(text: str) -> int | None:
+    try:
+        return int(float(text))
+    except ValueError:
+        return None
+
+
+def _fmt(value: Any) -> Any:
+    if isinstance(value, float):
+        return "" if math.isnan(value) else f"{value:.6g}"
+    return value
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+class RunLogger:
+    """progress.csv, episodes.csv, eval.csv and tb/ of one run directory."""
+
+    def __init__(self, run_dir: Path, resume_step: int | None = None):
+        self.run_dir = run_dir
+        self.progress = CsvLog(run_dir / "progress.csv", PROGRESS_COLUMNS, resume_step)
+        self.episodes = CsvLog(run_dir / "episodes.csv", EPISODE_COLUMNS, resume_step)
+        self.evals = CsvLog(run_dir / "eval.csv", EVAL_COLUMNS, resume_step)
+        self.tb = None
+        try:
+            from tensorboardX import SummaryWriter
+
+            self.tb = SummaryWriter(str(run_dir / "tb"), flush_secs=10)
+        except Exception:  # TensorBoard events are a convenience; never fail a run over them
+            self.tb = None
+
+    def scalars(self, prefix: str, values: dict[str, Any], step: int) -> None:
+        if self.tb is None:
+            return
+        for k, v in values.items():
+            if isinstance(v, (int, float)) and not (isinstance(v, float) and math.isnan(v)) and k != "step":
+                self.tb.add_scalar(f"{prefix}/{k}", v, step)
+
+    def close(self) -> None:
+        for log in (self.progress, self.episodes, self.evals):
+            log.close()
+        if self.tb is not None:
+            self.tb.close()
+
+
+def write_config(run_dir: Path, config: dict[str, Any], extra: dict[str, Any]) -> None:
+    from softac.checkpoint import write_atomic
+
+    data = dict(config)
+    data.update(extra)
+    write_atomic(run_dir / "config.yaml", yaml.safe_dump(data, sort_keys=False).encode())
+
+
+class Progress:
+    """A tqdm bar on a terminal; plain log lines every `every_s` seconds otherwise."""
+
+    def __init__(self, start: int, end: int, enabled: bool | None = None, every_s: float = 10.0):
+        self.start, self.end = start, end
+        self.tty = sys.stderr.isatty() if enabled is None else enabled
+        self.every_s = every_s
+        self.t0 = time.perf_counter()
+        self.last_line = self.t0
+        self.bar = None
+        self.info: dict[str, str] = {}
+        if self.tty:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=end - start, unit="step", dynamic_ncols=True, file=sys.stderr,
+                            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_fmt}{postfix}]")
+
+    def update(self, step: int, **info: Any) -> None:
+        for k, v in info.items():
+            if v is not None:
+                self.info[k] = f"{v:.1f}" if isinstance(v, float) else str(v)
+        if self.bar is not None:
+            self.bar.n = step - self.start
+            self.bar.set_postfix(self.info, refresh=False)
+            self.bar.update(0)
+            return
+        now = time.perf_counter()
+        if now - self.last_line >= self.every_s:
+            self.last_line = now
+            self.line(step)
+
+    def line(self, step: int) -> None:
+        elapsed = time.perf_counter() - self.t0
+        rate = (step - self.start) / elapsed if elapsed > 0 else 0.0
+        eta = (self.end - step) / rate if rate > 0 else float("inf")
+        extra = " ".join(f"{k}={v}" for k, v in self.info.items())
+        eta_s = f"{eta:.0f}s" if math.isfinite(eta) else "?"
+        print(f"step {step}/{self.end} | {rate:.0f} steps/s | eta {eta_s} | {extra}", file=sys.stderr, flush=True)
+
+    def close(self, step: int) -> None:
+        if self.bar is not None:
+            self.bar.n = step - self.start
+            self.bar.refresh()
+            self.bar.close()
+        else:
+            self.line(step)

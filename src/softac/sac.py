@@ -1,0 +1,242 @@
+"""Soft Actor-Critic, the algorithm (Haarnoja et al. 2018a, 2018b).
+
+Reads top to bottom: the policy (a tanh-squashed Gaussian), the critic loss,
+the actor loss, the entropy-coefficient loss, the target update, then one
+jitted `update` that fuses `gradient_steps` of all of them with `lax.scan`.
+
+Actions inside the algorithm live in [-1, 1]^|A|; `ActionScaler` maps them to
+the env's bounds (asymmetric bounds too). Log-probabilities are densities in
+that normalised space, as in Stable-Baselines3, so the default entropy target
+-|A| means the same thing for every env.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from softac.config import SACConfig
+from softac.networks import critics_apply, init_actor, init_critics, mlp
+
+LOG_2 = float(np.log(2.0))
+LOG_SQRT_2PI = float(0.5 * np.log(2.0 * np.pi))
+
+
+class Batch(NamedTuple):
+    obs: jax.Array
+    actions: jax.Array  # normalised to [-1, 1]
+    rewards: jax.Array
+    next_obs: jax.Array  # the true next observation, also at the end of an episode
+    terminated: jax.Array  # 1.0 only for true terminal states: time-limit truncation still bootstraps
+
+
+class SACState(NamedTuple):
+    actor: Any
+    critic: Any
+    target_critic: Any
+    log_alpha: jax.Array
+    actor_opt: Any
+    critic_opt: Any
+    alpha_opt: Any
+    key: jax.Array
+    n_updates: jax.Array  # gradient steps taken so far
+
+
+# ---- the policy -----------------------------------------------------------
+
+def bound_log_std(raw: jax.Array, lo: float, hi: float, mode: str) -> jax.Array:
+    if mode == "tanh":  # CleanRL: squash smoothly into [lo, hi]
+        return lo + 0.5 * (hi - lo) * (jnp.tanh(raw) + 1.0)
+    return jnp.clip(raw, lo, hi)  # SB3
+
+
+def log_one_minus_tanh_sq(u: jax.Array) -> jax.Array:
+    """log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)), exact and stable for large |u|.
+
+    The naive form log(1 - tanh(u)^2 + eps) saturates once tanh(u) rounds to 1
+    (SAC paper appendix C; the form used by TF-Probability's TanhBijector).
+    """
+    return 2.0 * (LOG_2 - u - jax.nn.softplus(-2.0 * u))
+
+
+def squashed_gaussian_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
+    """log density of a = tanh(u), u ~ N(mean, exp(log_std)^2), summed over action dims."""
+    z = (u - mean) * jnp.exp(-log_std)
+    gaussian = -0.5 * z**2 - log_std - LOG_SQRT_2PI
+    return jnp.sum(gaussian - log_one_minus_tanh_sq(u), axis=-1)
+
+
+@dataclass(frozen=True)
+class Policy:
+    activation: str
+    log_std_min: float
+    log_std_max: float
+    log_std_mode: str
+
+    def mean_and_log_std(self, actor: Any, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        mean, raw_log_std = jnp.split(mlp(actor, obs, self.activation), 2, axis=-1)
+        return mean, bound_log_std(raw_log_std, self.log_std_min, self.log_std_max, self.log_std_mode)
+
+    def sample(self, actor: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """A reparameterised action in [-1, 1] and its log-probability."""
+        mean, log_std = self.mean_and_log_std(actor, obs)
+        u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
+        return jnp.tanh(u), squashed_gaussian_log_prob(u, mean, log_std)
+
+    def deterministic(self, actor: Any, obs: jax.Array) -> jax.Array:
+        return jnp.tanh(self.mean_and_log_std(actor, obs)[0])
+
+
+class ActionScaler:
+    """Maps [-1, 1] to the env's [low, high] and back, per dimension."""
+
+    def __init__(self, low: np.ndarray, high: np.ndarray):
+        self.low = np.asarray(low, np.float32)
+        self.high = np.asarray(high, np.float32)
+        self.scale = (self.high - self.low) / 2.0
+        self.bias = (self.high + self.low) / 2.0
+
+    def to_env(self, normalised: np.ndarray) -> np.ndarray:
+        return np.clip(self.bias + self.scale * normalised, self.low, self.high)
+
+    def to_normalised(self, env_action: np.ndarray) -> np.ndarray:
+        return np.clip((np.asarray(env_action, np.float32) - self.bias) / self.scale, -1.0, 1.0)
+
+
+# ---- the learner ------------------------------------------------------------
+
+def polyak(target: Any, online: Any, tau: float) -> Any:
+    """target <- tau * online + (1 - tau) * target."""
+    return jax.tree_util.tree_map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+
+
+class SACFunctions(NamedTuple):
+    init: Callable[[jax.Array], SACState]
+    update: Callable[[SACState, Batch], tuple[SACState, dict]]
+    act: Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+    act_deterministic: Callable[[Any, jax.Array], jax.Array]
+    policy: Policy
+    target_entropy: float
+
+
+def build(config: SACConfig, obs_dim: int, act_dim: int) -> SACFunctions:
+    """The jitted SAC functions for one config and one pair of space sizes."""
+    c = config
+    policy = Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode)
+    target_entropy = -float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy)
+    actor_tx = optax.adam(c.actor_lr)
+    critic_tx = optax.adam(c.critic_lr)
+    alpha_tx = optax.adam(c.alpha_lr)
+
+    def q_values(critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
+        return critics_apply(critic, obs, actions, c.activation)
+
+    def init(key: jax.Array) -> SACState:
+        actor_key, critic_key, key = jax.random.split(key, 3)
+        actor = init_actor(actor_key, obs_dim, act_dim, c.hidden_sizes, c.init)
+        critic = init_critics(critic_key, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics)
+        log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
+        return SACState(
+            actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
+            actor_opt=actor_tx.init(actor), critic_opt=critic_tx.init(critic), alpha_opt=alpha_tx.init(log_alpha),
+            key=key, n_updates=jnp.zeros((), jnp.int32),
+        )
+
+    def alpha_of(state: SACState) -> jax.Array:
+        return jnp.exp(state.log_alpha) if c.autotune_alpha else jnp.asarray(c.alpha, jnp.float32)
+
+    # Critic: soft Bellman target with the minimum over target critics (clipped double Q).
+    # Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps.
+    def critic_loss(critic: Any, state: SACState, batch: Batch, key: jax.Array) -> tuple[jax.Array, dict]:
+        next_actions, next_log_prob = policy.sample(state.actor, batch.next_obs, key)
+        next_q = jnp.min(q_values(state.target_critic, batch.next_obs, next_actions), axis=0)
+        next_v = next_q - alpha_of(state) * next_log_prob
+        target = jax.lax.stop_gradient(batch.rewards + c.gamma * (1.0 - batch.terminated) * next_v)
+        q = q_values(critic, batch.obs, batch.actions)
+        loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
+        return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, c.n_critics - 1)])}
+
+    # Actor: maximise E[min_i Q_i(s, a) - alpha log pi(a|s)]. Gradients flow to the actor only.
+    def actor_loss(actor: Any, critic: Any, alpha: jax.Array, obs: jax.Array, key: jax.Array):
+        actions, log_prob = policy.sample(actor, obs, key)
+        q = jnp.min(q_values(critic, obs, actions), axis=0)
+        return jnp.mean(alpha * log_prob - q), log_prob
+
+    # Entropy coefficient: learned on log(alpha) so alpha stays positive (Haarnoja et al. 2018b, sec. 5).
+    def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array) -> jax.Array:
+        return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
+
+    def critic_step(state: SACState, batch: Batch, key: jax.Array) -> tuple[SACState, dict]:
+        grads, metrics = jax.grad(critic_loss, has_aux=True)(state.critic, state, batch, key)
+        updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
+        return state._replace(critic=optax.apply_updates(state.critic, updates), critic_opt=critic_opt), metrics
+
+    def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array) -> tuple[SACState, dict]:
+        alpha = alpha_of(state)
+        (loss, log_prob), grads = jax.value_and_grad(actor_loss, has_aux=True)(
+            state.actor, state.critic, alpha, obs, key)
+        updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
+        state = state._replace(actor=optax.apply_updates(state.actor, updates), actor_opt=actor_opt)
+        a_loss = alpha_loss(state.log_alpha, log_prob)
+        if c.autotune_alpha:
+            grad = jax.grad(alpha_loss)(state.log_alpha, log_prob)
+            updates, alpha_opt = alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
+            state = state._replace(log_alpha=optax.apply_updates(state.log_alpha, updates), alpha_opt=alpha_opt)
+        return state, {"actor_loss": loss, "alpha_loss": a_loss, "log_prob_mean": jnp.mean(log_prob)}
+
+    # CleanRL's delayed policy update: every `policy_frequency` critic steps, that many actor
+    # steps (same batch, fresh noise), so actor and critic take the same number of steps overall.
+    def policy_round(state: SACState, obs: jax.Array, key: jax.Array) -> tuple[SACState, dict]:
+        metrics = None
+        for k in jax.random.split(key, c.policy_frequency):
+            state, metrics = actor_and_alpha_step(state, obs, k)
+        return state, metrics
+
+    def gradient_step(carry: tuple[SACState, dict], batch: Batch):
+        state, policy_metrics = carry
+        key, critic_key, actor_key = jax.random.split(state.key, 3)
+        state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key)
+        n = state.n_updates + 1
+        if c.policy_frequency == 1:
+            state, policy_metrics = policy_round(state, batch.obs, actor_key)
+        else:
+            state, policy_metrics = jax.lax.cond(
+                n % c.policy_frequency == 0,
+                lambda s: policy_round(s, batch.obs, actor_key),
+                lambda s: (s, policy_metrics),
+                state,
+            )
+        do_target = (n % c.target_update_interval) == 0
+        target = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(do_target, new, old),
+            polyak(state.target_critic, state.critic, c.tau), state.target_critic)
+        state = state._replace(target_critic=target, n_updates=n)
+        return (state, policy_metrics), critic_metrics
+
+    def update(state: SACState, batches: Batch) -> tuple[SACState, dict]:
+        """`batches` has a leading axis of gradient steps; all of them run in this one call."""
+        zero = jnp.zeros((), jnp.float32)
+        start = {"actor_loss": zero, "alpha_loss": zero, "log_prob_mean": zero}
+        (state, policy_metrics), critic_metrics = jax.lax.scan(gradient_step, (state, start), batches)
+        metrics = {k: jnp.mean(v) for k, v in critic_metrics.items()}
+        metrics.update(policy_metrics)
+        metrics["alpha"] = alpha_of(state)
+        return state, metrics
+
+    def act(actor: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        key, sample_key = jax.random.split(key)
+        return policy.sample(actor, obs, sample_key)[0], key
+
+    return SACFunctions(
+        init=jax.jit(init),
+        update=jax.jit(update, donate_argnums=0),
+        act=jax.jit(act),
+        act_deterministic=jax.jit(policy.deterministic),
+        policy=policy,
+        target_entropy=target_entropy,
+    )
