@@ -213,4 +213,8 @@ class SAC:
             self.pool_started = True  # restored below, not reset
             _, pool = self.training_parts()
             env_arrays = {k[len("envs/"):]: v for k, v in arrays.items() if k.startswith("envs/")}
-            self.exact_env_restore = pool.set_state(meta["envs"], env_arrays, self.num_steps)
+            if not pool.set_state(meta["envs"], env_arrays, self.num_steps):
+                import warnings
+
+                warnings.warn(f"env {pool.name} cannot save its state, so resumed training starts fresh episodes "
+                              "(give its class save_state()/load_state() for an exact resume)", stacklevel=2)

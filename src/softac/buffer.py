@@ -49,12 +49,7 @@ class ReplayBuffer:
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8):
         self.capacity = int(capacity)
         self.obs_dim, self.act_dim = obs_dim, act_dim
-        need = self.capacity * self.bytes_per_transition(obs_dim, act_dim)
-        have = available_memory_bytes()
-        if need > memory_fraction * have:
-            raise BufferMemoryError(
-                f"replay buffer of {self.capacity:,} transitions needs {_human(need)} but only "
-                f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
+        self.check_memory(self.capacity, obs_dim, act_dim, memory_fraction)
         self.obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.next_obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.actions = np.zeros((self.capacity, act_dim), np.float32)
@@ -62,6 +57,16 @@ class ReplayBuffer:
         self.terminated = np.zeros((self.capacity,), np.float32)
         self.pos = 0
         self.size = 0
+
+    @classmethod
+    def check_memory(cls, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8) -> None:
+        """Refuse, before allocating anything, a buffer the machine cannot hold."""
+        need = capacity * cls.bytes_per_transition(obs_dim, act_dim)
+        have = available_memory_bytes()
+        if need > memory_fraction * have:
+            raise BufferMemoryError(
+                f"replay buffer of {capacity:,} transitions needs {_human(need)} but only "
+                f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
 
     @staticmethod
     def bytes_per_transition(obs_dim: int, act_dim: int) -> int:

@@ -108,6 +108,8 @@ def _default_run_dir(config) -> Path:
 def cmd_train(args: argparse.Namespace) -> int:
     from softac import checkpoint as ckpt
     from softac.agent import SAC
+    from softac.buffer import ReplayBuffer
+    from softac.trainer import check_new_run_dir
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -128,15 +130,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     else:
         config = _resolve_train_config(args)
         run = Path(args.out) if args.out else _default_run_dir(config)
-        if (run / "checkpoints").exists() and any((run / "checkpoints").iterdir()):
-            raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
-        if run.exists() and not run.is_dir():
-            raise SoftacError(f"--out {run} exists and is not a directory")
+        check_new_run_dir(run)  # before JAX starts: a clash should fail fast
         agent = SAC(config)
-        try:
-            run.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
+        ReplayBuffer.check_memory(config.buffer_size, agent.spaces.obs_dim, agent.spaces.act_dim)
         steps = config.total_steps
         print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}", file=sys.stderr)
     summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)

@@ -5,7 +5,9 @@
 true final observation is always at hand for the replay buffer, whatever
 Gymnasium 1.x's vector autoreset mode would have done. It can also save and
 restore its envs' exact state (MuJoCo integration state, RNGs, time-limit
-counters), which exact resume needs.
+counters), which exact resume needs: MuJoCo envs, envs with a NumPy `state`
+attribute (classic control), and any env whose unwrapped class has
+`save_state() -> np.ndarray` and `load_state(array)`.
 """
 
 from __future__ import annotations
@@ -152,7 +154,10 @@ def get_env_state(env: gym.Env) -> tuple[dict, np.ndarray | None]:
     meta: dict[str, Any] = {"kind": "none"}
     physics = None
     parts = _mujoco_parts(env)
-    if parts is not None:
+    if callable(getattr(raw, "save_state", None)) and callable(getattr(raw, "load_state", None)):
+        physics = np.asarray(raw.save_state(), np.float64)
+        meta["kind"] = "protocol"
+    elif parts is not None:
         mujoco, model, data = parts
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         physics = np.empty(mujoco.mj_stateSize(model, spec), np.float64)
@@ -171,7 +176,9 @@ def get_env_state(env: gym.Env) -> tuple[dict, np.ndarray | None]:
 def set_env_state(env: gym.Env, meta: dict, physics: np.ndarray | None) -> bool:
     """Restore what `get_env_state` captured; False when this env cannot be restored exactly."""
     raw = env.unwrapped
-    if meta["kind"] == "mujoco" and physics is not None and _mujoco_parts(env) is not None:
+    if meta["kind"] == "protocol" and physics is not None and callable(getattr(raw, "load_state", None)):
+        raw.load_state(np.array(physics))
+    elif meta["kind"] == "mujoco" and physics is not None and _mujoco_parts(env) is not None:
         mujoco, model, data = _mujoco_parts(env)
         mujoco.mj_setState(model, data, np.asarray(physics, np.float64), mujoco.mjtState.mjSTATE_INTEGRATION)
         mujoco.mj_forward(model, data)

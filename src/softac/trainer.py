@@ -62,6 +62,14 @@ def _check_finite(metrics: dict[str, float], step: int) -> None:
                           "(try lower learning rates); the last good checkpoint is kept")
 
 
+def check_new_run_dir(run: Path) -> None:
+    """A new run never writes over another run's checkpoints."""
+    if run.exists() and not run.is_dir():
+        raise SoftacError(f"run directory {run} exists and is not a directory")
+    if (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir()):
+        raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
+
+
 def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
           progress: bool | None = None) -> dict[str, Any]:
     cfg = agent.config
@@ -73,6 +81,13 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
     end_step = start_step + steps
     n_envs, act_dim = cfg.n_envs, agent.spaces.act_dim
     run = Path(run_dir) if run_dir is not None else None
+    if run is not None:
+        if start_step == 0:
+            check_new_run_dir(run)
+        try:
+            run.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
     logger = RunLogger(run, resume_step=start_step) if run is not None else None
     if run is not None:
         from softac.agent import _versions

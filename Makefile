@@ -1,0 +1,32 @@
+# The two commands of the README: `make demo` and `make test`. Both set up .venv when needed.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.softac-installed
+DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
+
+.PHONY: demo test test-fast venv clean-venv
+
+venv: $(STAMP)
+
+# base install only (JAX from PyPI, no PyTorch); the test extra adds pytest
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[test]"
+	@touch $@
+
+demo: $(STAMP)
+	$(BIN)/softac train --target-return 1000 --out $(DEMO)
+	$(BIN)/softac eval $(DEMO) --episodes 10
+	@echo "demo run: $(DEMO) (progress.csv, eval.csv, checkpoints/, tb/)"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+# unit tests only: skips the learning tests
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,41 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).parent
+sys.path.insert(0, str(TESTS))
+
+import softac_test_envs  # noqa: E402,F401  (registers the test envs)
+
+from softac.config import SACConfig  # noqa: E402
+
+TINY = dict(hidden_sizes=[32, 32], batch_size=32, learning_starts=200, buffer_size=5000,
+            eval_interval=0, log_interval=100, checkpoint_interval=0, eval_episodes=2)
+
+
+def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig:
+    return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
+
+
+def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, **popen) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "softac", *args], capture_output=True, text=True,
+                          timeout=timeout, env=env, cwd=cwd, **popen)
+
+
+def assert_clean_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
+    """Exit 2, one line on stderr, no traceback, naming each fragment."""
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+
+
+@pytest.fixture
+def tiny():
+    return tiny_config

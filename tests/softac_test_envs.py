@@ -1,0 +1,73 @@
+"""Small envs for tests, registered on import (use them as `softac_test_envs:ID`)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+
+class DriftEnv(gym.Env):
+    """1-D position pushed by the action; terminates when |x| > 0.3, truncated by a time limit.
+
+    The action space is asymmetric, [-1, 3], and the reward is best at action 1.
+    The observation carries the step count, so a final observation always
+    differs from the observation after reset.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, low: float = -1.0, high: float = 3.0):
+        self.action_space = gym.spaces.Box(np.float32(low), np.float32(high), (1,), np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
+        self.x = 0.0
+        self.t = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = float(self.np_random.uniform(-0.1, 0.1))
+        self.t = 0
+        return self._obs(), {}
+
+    def save_state(self):  # softac's protocol for exact resume of a custom env
+        return np.array([self.x, self.t], np.float64)
+
+    def load_state(self, state):
+        self.x, self.t = float(state[0]), int(state[1])
+
+    def _obs(self):
+        return np.array([self.x, self.t], np.float32)
+
+    def step(self, action):
+        a = float(np.asarray(action).reshape(-1)[0])
+        self.x += 0.05 * (a - 1.0) + float(self.np_random.normal(0, 0.01))
+        self.t += 1
+        reward = 1.0 - (a - 1.0) ** 2
+        terminated = abs(self.x) > 0.3
+        return self._obs(), reward, terminated, False, {}
+
+
+class UnboundedEnv(DriftEnv):
+    def __init__(self):
+        super().__init__()
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+
+
+class BrokenStepEnv(DriftEnv):
+    def step(self, action):
+        if self.t >= 30:
+            raise RuntimeError("simulator exploded")
+        return super().step(action)
+
+
+class NanObsEnv(DriftEnv):
+    def step(self, action):
+        obs, r, term, trunc, info = super().step(action)
+        if self.t >= 30:
+            obs = obs * np.nan
+        return obs, r, term, trunc, info
+
+
+gym.register("Drift-v0", entry_point=DriftEnv, max_episode_steps=25)
+gym.register("Unbounded-v0", entry_point=UnboundedEnv, max_episode_steps=25)
+gym.register("BrokenStep-v0", entry_point=BrokenStepEnv, max_episode_steps=100)
+gym.register("NanObs-v0", entry_point=NanObsEnv, max_episode_steps=100)

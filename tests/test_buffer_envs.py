@@ -1,0 +1,117 @@
+"""Replay buffer and env pool: truncation bootstraps, termination does not, true final observations."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from softac.buffer import BufferMemoryError, ReplayBuffer
+from softac.envs import EnvError, EnvPool, check_spaces, make_env, resolve_env_id
+
+
+def test_buffer_wraps_and_roundtrips():
+    buf = ReplayBuffer(5, obs_dim=2, act_dim=1)
+    for i in range(3):
+        buf.add(np.full((2, 2), i), np.full((2, 1), i), np.full(2, i), np.full((2, 2), i + 1), np.zeros(2))
+    assert len(buf) == 5 and buf.pos == 1
+    assert buf.rewards.tolist() == [2, 0, 1, 1, 2]  # the oldest rows were overwritten first
+    copy = ReplayBuffer(5, 2, 1)
+    copy.load_state_dict(buf.state_dict())
+    for name in ReplayBuffer.FIELDS:
+        np.testing.assert_array_equal(getattr(copy, name), getattr(buf, name))
+    assert (copy.pos, copy.size) == (buf.pos, buf.size)
+    batch = buf.sample(np.random.default_rng(0), 4, n_batches=3)
+    assert batch["obs"].shape == (3, 4, 2) and batch["terminated"].shape == (3, 4)
+
+
+def test_buffer_larger_than_memory_is_refused():
+    with pytest.raises(BufferMemoryError, match="buffer_size"):
+        ReplayBuffer(10**13, obs_dim=100, act_dim=10)
+
+
+def _pool(env_id="softac_test_envs:Drift-v0", n=1):
+    return EnvPool(lambda i: make_env(env_id), n, seed=0, name=env_id)
+
+
+def test_truncation_keeps_true_final_obs_and_is_not_terminal():
+    pool = _pool()
+    pool.reset()
+    for t in range(25):  # the time limit is 25 and action 1 keeps x still
+        result = pool.step(np.array([[1.0]], np.float32), t)
+    assert result.truncated[0] and not result.terminated[0]
+    assert result.next_obs[0, 1] == 25  # the final observation (step counter 25)
+    assert pool.obs[0, 1] == 0  # the pool already moved on to a fresh episode
+    assert result.finished == [(0, pytest.approx(25.0), 25)]
+
+
+def test_termination_is_terminal():
+    pool = _pool()
+    pool.reset()
+    for t in range(25):
+        result = pool.step(np.array([[-1.0]], np.float32), t)  # x falls by 0.1 a step: |x| > 0.3 by step ~4
+        if result.terminated[0]:
+            break
+    assert result.terminated[0] and abs(result.next_obs[0, 0]) > 0.3
+
+
+def test_training_stores_terminated_and_truncated_apart(tiny):
+    from softac.agent import SAC
+
+    agent = SAC(tiny(learning_starts=10_000, n_envs=2))
+    agent.learn(600, progress=False)
+    buf = agent.buffer
+    x, t = buf.next_obs[: len(buf), 0], buf.next_obs[: len(buf), 1]
+    term = buf.terminated[: len(buf)]
+    truncated_rows = (t == 25) & (np.abs(x) <= 0.3)
+    assert truncated_rows.any() and term[truncated_rows].max() == 0.0
+    assert (term == 1.0).any() and np.all(np.abs(x[term == 1.0]) > 0.3)
+    # the stored next_obs continues obs within an episode, never the reset one at its end
+    assert np.all(t[truncated_rows] == buf.obs[: len(buf), 1][truncated_rows] + 1)
+
+
+def test_unknown_env_suggests_close_names():
+    with pytest.raises(EnvError, match="did you mean InvertedPendulum-v5"):
+        resolve_env_id("InvertedPendulm-v5")
+
+
+def test_module_env_id_imports_the_module():
+    assert resolve_env_id("softac_test_envs:Drift-v0") == "Drift-v0"
+    with pytest.raises(EnvError, match="cannot import module"):
+        resolve_env_id("no_such_module_xyz:Drift-v0")
+
+
+def test_spaces_are_checked():
+    with pytest.raises(EnvError, match="Discrete action space"):
+        check_spaces(make_env("CartPole-v1"))
+    with pytest.raises(EnvError, match="unbounded"):
+        check_spaces(make_env("softac_test_envs:Unbounded-v0"))
+    info = check_spaces(make_env("softac_test_envs:Drift-v0"))
+    assert (info.low.tolist(), info.high.tolist()) == ([-1.0], [3.0])
+
+
+def test_env_errors_name_env_and_step():
+    pool = _pool("softac_test_envs:BrokenStep-v0")
+    pool.reset()
+    with pytest.raises(EnvError, match=r"BrokenStep-v0 raised in step at step 30: RuntimeError: simulator exploded"):
+        for t in range(40):
+            pool.step(np.array([[1.0]], np.float32), t)
+    pool = _pool("softac_test_envs:NanObs-v0")
+    pool.reset()
+    with pytest.raises(EnvError, match="non-finite observation at step 29"):
+        for t in range(40):
+            pool.step(np.array([[1.0]], np.float32), t)
+
+
+def test_mujoco_state_restores_exactly():
+    a, b = _pool("InvertedPendulum-v5"), _pool("InvertedPendulum-v5")
+    a.reset()
+    b.reset()
+    rng = np.random.default_rng(0)
+    for t in range(7):
+        a.step(rng.uniform(-1, 1, (1, 1)).astype(np.float32), t)
+    meta, arrays = a.get_state()
+    assert b.set_state(meta, arrays, 7)
+    for t in range(30):
+        act = rng.uniform(-1, 1, (1, 1)).astype(np.float32)
+        ra, rb = a.step(act, t), b.step(act, t)
+        np.testing.assert_array_equal(ra.next_obs, rb.next_obs)
+        np.testing.assert_array_equal(ra.rewards, rb.rewards)

@@ -1,0 +1,147 @@
+"""The `softac` command: outputs, exit codes, one-line errors, resume, signals."""
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import TESTS, assert_clean_error, run_cli
+
+TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "buffer_size=5000",
+             "log_interval=100", "eval_episodes=2"]
+
+
+def _metric_rows(path):
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    return [{k: v for k, v in r.items() if k not in ("time_s", "fps")} for r in rows]
+
+
+def test_train_writes_the_run_directory_and_eval_json(tmp_path):
+    run = tmp_path / "run"
+    r = run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "600", "--out", str(run),
+                "--no-progress", *TINY_SETS, "eval_interval=300")
+    assert r.returncode == 0, r.stderr
+    for name in ("config.yaml", "progress.csv", "episodes.csv", "eval.csv", "tb", "checkpoints/last/meta.json",
+                 "checkpoints/best/meta.json"):
+        assert (run / name).exists(), name
+    header = (run / "progress.csv").read_text().splitlines()[0].split(",")
+    assert header == ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
+                      "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
+    assert [row["step"] for row in _metric_rows(run / "eval.csv")] == ["300", "600"]
+    assert "Drift-v0" in (run / "config.yaml").read_text()
+
+    r = run_cli("eval", str(run), "--episodes", "3", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert {"mean_return", "std_return", "episodes", "returns", "lengths"} <= set(out)
+    assert out["episodes"] == 3 and len(out["returns"]) == 3
+    r = run_cli("eval", str(run), "--episodes", "2", "--stochastic", "--checkpoint", "last")
+    assert r.returncode == 0 and "stochastic" in r.stdout
+
+
+def test_cli_resume_equals_one_run_on_mujoco(tmp_path):
+    sets = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=300", "buffer_size=5000",
+            "log_interval=200", "eval_interval=0"]
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert run_cli("train", "--steps", "1000", "--out", str(straight), "--no-progress", *sets).returncode == 0
+    assert run_cli("train", "--steps", "600", "--out", str(split), "--no-progress", *sets).returncode == 0
+    r = run_cli("train", "--resume", str(split), "--steps", "400", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    a = np.load(next((straight / "checkpoints" / "last").glob("arrays-*.npz")))
+    b = np.load(next((split / "checkpoints" / "last").glob("arrays-*.npz")))
+    assert set(a.files) == set(b.files)
+    for name in a.files:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    rows_a = _metric_rows(straight / "progress.csv")
+    rows_b = [r for r in _metric_rows(split / "progress.csv") if int(r["step"]) % 200 == 0]
+    assert rows_a == rows_b
+
+
+def test_resume_without_steps_finishes_the_configured_total(tmp_path):
+    run = tmp_path / "run"
+    r = run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "300", "--out", str(run), "--no-progress",
+                *TINY_SETS, "eval_interval=0")
+    assert r.returncode == 0
+    r = run_cli("train", "--resume", str(run), "--no-progress")  # total_steps is 300: nothing left to do
+    assert r.returncode == 0 and "training 0 more steps" in r.stderr
+
+
+def test_sigterm_writes_a_checkpoint_and_exits_130(tmp_path):
+    import os
+
+    run = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(TESTS))
+    proc = subprocess.Popen([sys.executable, "-m", "softac", "train", "--env", "softac_test_envs:Drift-v0",
+                             "--steps", "1000000", "--out", str(run), "--no-progress", *TINY_SETS,
+                             "eval_interval=0", "checkpoint_interval=0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.time() + 120
+    while not (run / "progress.csv").exists() or len((run / "progress.csv").read_text().splitlines()) < 4:
+        assert time.time() < deadline and proc.poll() is None
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted at step" in err and "Traceback" not in err
+    r = run_cli("train", "--resume", str(run), "--steps", "100", "--no-progress")
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("args,fragments", [
+    (["train", "--env", "InvertedPendulm-v5"], ["unknown environment id", "did you mean InvertedPendulum-v5"]),
+    (["train", "--env", "CartPole-v1"], ["Discrete action space"]),
+    (["train", "--env", "softac_test_envs:Unbounded-v0"], ["unbounded action space"]),
+    (["train", "--env", "nosuchmodule_abc:Foo-v0"], ["cannot import module"]),
+    (["train", "--set", "batch_szie=3"], ["unknown config key 'batch_szie'", "batch_size"]),
+    (["train", "--set", "gamma=2"], ["gamma"]),
+    (["train", "--set", "hidden_sizes=wide"], ["hidden_sizes"]),
+    (["train", "--preset", "nope"], ["unknown preset 'nope'"]),
+    (["train", "--config", "/nonexistent/c.yaml"], ["config file not found"]),
+    (["train", "--steps", "-5"], ["--steps"]),
+    (["train", "--set", "buffer_size=100000000000"], ["replay buffer", "available"]),
+    (["train", "--resume", "/nonexistent/run"], ["no such run or checkpoint"]),
+    (["eval", "/nonexistent/run"], ["no such run or checkpoint"]),
+    (["eval", ".", "--episodes", "x"], ["--episodes"]),
+    (["bogus"], ["invalid choice"]),
+])
+def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
+    assert_clean_error(run_cli(*args, cwd=tmp_path), *fragments)
+
+
+def test_checkpoint_problems_are_clean_errors(tmp_path):
+    run = tmp_path / "run"
+    assert run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "250", "--out", str(run),
+                   "--no-progress", *TINY_SETS, "eval_interval=0").returncode == 0
+    # the same --out again must not overwrite the run
+    assert_clean_error(run_cli("train", "--env", "softac_test_envs:Drift-v0", "--out", str(run)), "already holds a run")
+    # resume with a changed config is refused
+    assert_clean_error(run_cli("train", "--resume", str(run), "--set", "gamma=0.9"), "drop --set")
+    last = run / "checkpoints" / "last"
+    arrays = next(last.glob("arrays-*.npz"))
+    data = arrays.read_bytes()
+    arrays.write_bytes(data[: len(data) // 2])  # truncated
+    assert_clean_error(run_cli("eval", str(last)), "corrupt checkpoint")
+    arrays.write_bytes(data)
+    meta = json.loads((last / "meta.json").read_text())
+    (last / "meta.json").write_text(json.dumps(dict(meta, format_version=99)))
+    assert_clean_error(run_cli("eval", str(last)), "newer than this softac")
+    (last / "meta.json").write_text("{not json")
+    assert_clean_error(run_cli("eval", str(last)), "corrupt checkpoint")
+    (last / "meta.json").write_text(json.dumps({"format": "something-else"}))
+    assert_clean_error(run_cli("eval", str(last)), "not a softac checkpoint")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_clean_error(run_cli("eval", str(empty)), "holds no checkpoint")
+
+
+def test_presets_lists_every_preset():
+    r = run_cli("presets")
+    assert r.returncode == 0
+    for name in ("InvertedPendulum-v5", "InvertedPendulum-v4", "Pusher-v5", "sb3", "cleanrl", "default"):
+        assert name in r.stdout

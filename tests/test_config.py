@@ -1,0 +1,90 @@
+"""SACConfig: presets, overrides, validation with the key named."""
+
+import pytest
+
+from softac.config import ConfigError, SACConfig, preset_names
+
+
+def test_presets_exist_and_load():
+    names = preset_names()
+    for required in ("InvertedPendulum-v5", "InvertedPendulum-v4", "Pusher-v5", "sb3", "cleanrl", "default"):
+        assert required in names
+        SACConfig.preset(required)
+
+
+def test_env_presets_set_their_env_and_generic_presets_keep_it():
+    assert SACConfig.preset("Pusher-v5").env_id == "Pusher-v5"
+    assert SACConfig.preset("sb3").env_id == "InvertedPendulum-v5"
+    assert SACConfig.preset("sb3", env_id="Pusher-v5").env_id == "Pusher-v5"
+    assert SACConfig.for_env("Hopper-v5").env_id == "Hopper-v5"  # falls back to the default preset
+
+
+def test_cleanrl_preset_has_cleanrl_defaults():
+    c = SACConfig.preset("cleanrl")
+    assert (c.critic_lr, c.actor_lr, c.learning_starts, c.policy_frequency) == (1e-3, 3e-4, 5000, 2)
+    assert (c.log_std_min, c.log_std_max, c.log_std_mode) == (-5.0, 2.0, "tanh")
+
+
+def test_sb3_preset_has_sb3_defaults():
+    c = SACConfig.preset("sb3")
+    assert (c.batch_size, c.learning_starts, c.hidden_sizes, c.tau, c.buffer_size) == (256, 100, [256, 256], 0.005,
+                                                                                       1_000_000)
+
+
+def test_overrides_parse_types():
+    c = SACConfig().with_overrides(["batch_size=64", "hidden_sizes=128,64", "gamma=0.95", "autotune_alpha=false",
+                                    "target_entropy=-3", "total_steps=1e4", "device=cpu"])
+    assert (c.batch_size, c.hidden_sizes, c.gamma, c.autotune_alpha) == (64, [128, 64], 0.95, False)
+    assert c.target_entropy == -3.0 and c.total_steps == 10_000
+    assert SACConfig().with_overrides(["hidden_sizes=[32, 32]"]).hidden_sizes == [32, 32]
+    assert SACConfig().with_overrides(["hidden_sizes=256x256"]).hidden_sizes == [256, 256]
+
+
+@pytest.mark.parametrize("pair,fragment", [
+    ("batch_szie=3", "did you mean batch_size"),
+    ("nonsense=1", "unknown config key 'nonsense'"),
+    ("batch_size=abc", "batch_size"),
+    ("batch_size=0", "batch_size"),
+    ("gamma=1.5", "gamma"),
+    ("tau=0", "tau"),
+    ("actor_lr=-1", "actor_lr"),
+    ("hidden_sizes=a,b", "hidden_sizes"),
+    ("log_std_min=5", "log_std_min"),
+    ("device=tpu9", "device"),
+    ("gamma=nan", "gamma"),
+    ("n_envs=2.5", "n_envs"),
+    ("autotune_alpha=maybe", "autotune_alpha"),
+    ("target_entropy=high", "target_entropy"),
+    ("novalue", "KEY=VALUE"),
+])
+def test_bad_overrides_name_the_key(pair, fragment):
+    with pytest.raises(ConfigError, match=fragment):
+        SACConfig().with_overrides([pair])
+
+
+def test_unknown_preset_suggests():
+    with pytest.raises(ConfigError, match="did you mean Pusher-v5"):
+        SACConfig.preset("Pusher-v4")
+
+
+def test_yaml_file_roundtrip(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("env_id: Pusher-v5\nbatch_size: 64\nversions: {jax: '0'}\n")
+    c = SACConfig.from_yaml(path)
+    assert c.env_id == "Pusher-v5" and c.batch_size == 64
+    path.write_text("batch_size: [1\n")
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        SACConfig.from_yaml(path)
+    path.write_text("bogus_key: 1\n")
+    with pytest.raises(ConfigError, match="bogus_key"):
+        SACConfig.from_yaml(path)
+
+
+def test_every_field_is_documented():
+    docs = SACConfig.field_docs()
+    assert all(docs.values())
+    for key in ("total_steps", "seed", "n_envs", "buffer_size", "batch_size", "learning_starts", "gamma", "tau",
+                "target_update_interval", "gradient_steps", "policy_frequency", "hidden_sizes", "actor_lr",
+                "critic_lr", "alpha_lr", "autotune_alpha", "alpha", "target_entropy", "log_std_min", "log_std_max",
+                "n_critics", "eval_interval", "eval_episodes", "checkpoint_interval", "device"):
+        assert key in docs

@@ -1,0 +1,158 @@
+"""The SAC maths: squashed-Gaussian log-prob, log-std bounds, action rescaling, Polyak, the update."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softac import sac
+from softac.config import SACConfig
+
+
+def squashed_cdf(a, mean, std):
+    """P(tanh(U) <= a) for U ~ N(mean, std^2): an independent route to the density."""
+    return 0.5 * (1.0 + math.erf((math.atanh(a) - mean) / (std * math.sqrt(2.0))))
+
+
+@pytest.mark.parametrize("mean,log_std", [(0.0, 0.0), (0.7, -0.5), (-1.5, 0.8), (2.5, -1.5)])
+def test_log_prob_matches_numerical_density(mean, log_std):
+    std = math.exp(log_std)
+    h = 1e-6
+    for a in np.linspace(-0.995, 0.995, 41):
+        numerical = (squashed_cdf(a + h, mean, std) - squashed_cdf(a - h, mean, std)) / (2 * h)
+        if numerical < 1e-8:
+            continue
+        u = jnp.array([[math.atanh(a)]], jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        ours = float(sac.squashed_gaussian_log_prob(u, jnp.array([[mean]]), jnp.array([[log_std]]))[0])
+        assert ours == pytest.approx(math.log(numerical), abs=2e-3), a
+
+
+def test_log_prob_density_integrates_to_one():
+    a = np.linspace(-1 + 1e-7, 1 - 1e-7, 400_001)
+    u = jnp.asarray(np.arctanh(a)[:, None], jnp.float32)
+    logp = np.asarray(sac.squashed_gaussian_log_prob(u, jnp.full_like(u, 0.4), jnp.full_like(u, -0.3)))
+    assert np.trapezoid(np.exp(logp), a) == pytest.approx(1.0, abs=2e-3)
+
+
+def test_log_prob_is_finite_where_tanh_saturates():
+    u = jnp.array([[-40.0], [-12.0], [12.0], [40.0]])
+    logp = sac.squashed_gaussian_log_prob(u, jnp.zeros_like(u), jnp.zeros_like(u))
+    assert np.all(np.isfinite(np.asarray(logp)))
+    # the exact form keeps growing like 2|u| where the naive log(1 - tanh^2 + 1e-6) is stuck at log(1e-6)
+    assert float(sac.log_one_minus_tanh_sq(jnp.array(40.0))) == pytest.approx(2 * (math.log(2) - 40), rel=1e-5)
+
+
+def test_log_prob_sums_over_action_dims():
+    u = jnp.array([[0.3, -0.2]])
+    mean, log_std = jnp.array([[0.1, 0.0]]), jnp.array([[-0.2, 0.4]])
+    both = float(sac.squashed_gaussian_log_prob(u, mean, log_std)[0])
+    each = sum(float(sac.squashed_gaussian_log_prob(u[:, i:i + 1], mean[:, i:i + 1], log_std[:, i:i + 1])[0])
+               for i in range(2))
+    assert both == pytest.approx(each, rel=1e-5)
+
+
+def test_log_std_bounds():
+    raw = jnp.linspace(-50, 50, 101)
+    clamped = sac.bound_log_std(raw, -5.0, 2.0, "clamp")
+    squashed = sac.bound_log_std(raw, -5.0, 2.0, "tanh")
+    for bounded in (clamped, squashed):
+        assert float(bounded.min()) >= -5.0 and float(bounded.max()) <= 2.0
+    assert float(sac.bound_log_std(jnp.array(0.0), -5.0, 2.0, "tanh")) == pytest.approx(-1.5)
+    assert float(sac.bound_log_std(jnp.array(1.0), -5.0, 2.0, "clamp")) == 1.0
+
+
+def test_action_rescaling_with_asymmetric_bounds():
+    scaler = sac.ActionScaler(np.array([-1.0, 0.0, -10.0]), np.array([3.0, 10.0, -2.0]))
+    np.testing.assert_allclose(scaler.to_env(-np.ones(3)), [-1.0, 0.0, -10.0])
+    np.testing.assert_allclose(scaler.to_env(np.ones(3)), [3.0, 10.0, -2.0])
+    np.testing.assert_allclose(scaler.to_env(np.zeros(3)), [1.0, 5.0, -6.0])
+    x = np.random.default_rng(0).uniform(-1, 1, (100, 3)).astype(np.float32)
+    np.testing.assert_allclose(scaler.to_normalised(scaler.to_env(x)), x, atol=1e-6)
+    assert np.all(scaler.to_env(np.full(3, 1.5)) <= scaler.high)
+
+
+def test_polyak_update():
+    target = {"w": jnp.zeros(3)}
+    online = {"w": jnp.ones(3) * 2.0}
+    np.testing.assert_allclose(sac.polyak(target, online, 0.1)["w"], 0.2 * np.ones(3), rtol=1e-6)
+    np.testing.assert_allclose(sac.polyak(target, online, 1.0)["w"], online["w"])
+
+
+def _batch(rng, n_steps, batch, obs_dim, act_dim, terminated=0.0):
+    return sac.Batch(
+        obs=jnp.asarray(rng.normal(size=(n_steps, batch, obs_dim)), jnp.float32),
+        actions=jnp.asarray(rng.uniform(-1, 1, (n_steps, batch, act_dim)), jnp.float32),
+        rewards=jnp.asarray(rng.normal(size=(n_steps, batch)), jnp.float32),
+        next_obs=jnp.asarray(rng.normal(size=(n_steps, batch, obs_dim)), jnp.float32),
+        terminated=jnp.full((n_steps, batch), terminated, jnp.float32),
+    )
+
+
+def _leaves(tree):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+def test_update_moves_targets_by_tau_every_interval():
+    cfg = SACConfig().replace(hidden_sizes=[16], tau=0.5, target_update_interval=2, batch_size=8)
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(jax.random.PRNGKey(0))
+    before = _leaves(state.target_critic)
+    rng = np.random.default_rng(0)
+    state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
+    for a, b in zip(before, _leaves(state.target_critic)):
+        np.testing.assert_array_equal(a, b)  # 1 update: interval 2 not reached
+    online_before = _leaves(state.critic)
+    prev_target = _leaves(state.target_critic)
+    state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
+    # after the second update: target = 0.5 * online(after step 2) + 0.5 * old target
+    for t_old, online, t_new in zip(prev_target, _leaves(state.critic), _leaves(state.target_critic)):
+        np.testing.assert_allclose(t_new, 0.5 * online + 0.5 * t_old, rtol=1e-5, atol=1e-6)
+    assert any(not np.array_equal(a, b) for a, b in zip(online_before, _leaves(state.critic)))
+    assert int(state.n_updates) == 2
+
+
+def test_gradient_steps_fuse_in_one_call():
+    cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, gradient_steps=5)
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(jax.random.PRNGKey(0))
+    state, metrics = fns.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
+    assert int(state.n_updates) == 5
+    assert set(metrics) >= {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"}
+
+
+def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
+    rng = np.random.default_rng(0)
+    fixed = sac.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
+    state, metrics = fixed.update(fixed.init(jax.random.PRNGKey(0)), _batch(rng, 3, 8, 3, 2))
+    assert float(metrics["alpha"]) == pytest.approx(0.2)
+    tuned = sac.build(SACConfig().replace(hidden_sizes=[16], alpha=0.5), 3, 2)
+    state, metrics = tuned.update(tuned.init(jax.random.PRNGKey(0)), _batch(rng, 3, 8, 3, 2))
+    assert float(metrics["alpha"]) != pytest.approx(0.5)
+    assert tuned.target_entropy == -2.0
+
+
+def test_terminated_transitions_do_not_bootstrap():
+    """With gamma=1 and terminated=1 the critic's target is the reward alone."""
+    cfg = SACConfig().replace(hidden_sizes=[16], gamma=1.0, critic_lr=0.05, batch_size=16)
+    fns = sac.build(cfg, 2, 1)
+    state = fns.init(jax.random.PRNGKey(1))
+    rng = np.random.default_rng(1)
+    batch = _batch(rng, 1, 16, 2, 1, terminated=1.0)
+    batch = batch._replace(rewards=jnp.full((1, 16), 3.0), next_obs=batch.next_obs * 100.0)
+    batches = sac.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
+    state, metrics = fns.update(state, batches)
+    assert float(metrics["q1_mean"]) == pytest.approx(3.0, abs=0.15)
+
+
+def test_delayed_policy_updates_and_critic_ensemble():
+    cfg = SACConfig.preset("cleanrl").replace(hidden_sizes=[16], n_critics=3, init="orthogonal")
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(jax.random.PRNGKey(0))
+    assert jax.tree_util.tree_leaves(state.critic)[0].shape[0] == 3
+    actor_before = _leaves(state.actor)
+    state, _ = fns.update(state, _batch(np.random.default_rng(0), 1, 8, 3, 2))
+    assert all(np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))  # step 1: no actor step
+    state, _ = fns.update(state, _batch(np.random.default_rng(1), 1, 8, 3, 2))
+    assert any(not np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))
