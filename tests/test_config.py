@@ -88,3 +88,11 @@ def test_every_field_is_documented():
                 "critic_lr", "alpha_lr", "autotune_alpha", "alpha", "target_entropy", "log_std_min", "log_std_max",
                 "n_critics", "eval_interval", "eval_episodes", "checkpoint_interval", "device"):
         assert key in docs
+
+
+def test_readme_documents_every_key():
+    from pathlib import Path
+
+    readme = (Path(__file__).parent.parent / "README.md").read_text()
+    for key, doc in SACConfig.field_docs().items():
+        assert f"| `{key}` |" in readme and doc in readme, key
