@@ -97,7 +97,7 @@ def _leaves(tree):
 def test_update_moves_targets_by_tau_every_interval():
     cfg = SACConfig().replace(hidden_sizes=[16], tau=0.5, target_update_interval=2, batch_size=8)
     fns = sac.build(cfg, 3, 2)
-    state = fns.init(jax.random.PRNGKey(0))
+    state = fns.init(0)
     before = _leaves(state.target_critic)
     rng = np.random.default_rng(0)
     state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
@@ -116,7 +116,7 @@ def test_update_moves_targets_by_tau_every_interval():
 def test_gradient_steps_fuse_in_one_call():
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, gradient_steps=5)
     fns = sac.build(cfg, 3, 2)
-    state = fns.init(jax.random.PRNGKey(0))
+    state = fns.init(0)
     state, metrics = fns.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
     assert int(state.n_updates) == 5
     assert set(metrics) >= {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"}
@@ -125,10 +125,10 @@ def test_gradient_steps_fuse_in_one_call():
 def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     rng = np.random.default_rng(0)
     fixed = sac.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
-    state, metrics = fixed.update(fixed.init(jax.random.PRNGKey(0)), _batch(rng, 3, 8, 3, 2))
+    state, metrics = fixed.update(fixed.init(0), _batch(rng, 3, 8, 3, 2))
     assert float(metrics["alpha"]) == pytest.approx(0.2)
     tuned = sac.build(SACConfig().replace(hidden_sizes=[16], alpha=0.5), 3, 2)
-    state, metrics = tuned.update(tuned.init(jax.random.PRNGKey(0)), _batch(rng, 3, 8, 3, 2))
+    state, metrics = tuned.update(tuned.init(0), _batch(rng, 3, 8, 3, 2))
     assert float(metrics["alpha"]) != pytest.approx(0.5)
     assert tuned.target_entropy == -2.0
 
@@ -137,7 +137,7 @@ def test_terminated_transitions_do_not_bootstrap():
     """With gamma=1 and terminated=1 the critic's target is the reward alone."""
     cfg = SACConfig().replace(hidden_sizes=[16], gamma=1.0, critic_lr=0.05, batch_size=16)
     fns = sac.build(cfg, 2, 1)
-    state = fns.init(jax.random.PRNGKey(1))
+    state = fns.init(1)
     rng = np.random.default_rng(1)
     batch = _batch(rng, 1, 16, 2, 1, terminated=1.0)
     batch = batch._replace(rewards=jnp.full((1, 16), 3.0), next_obs=batch.next_obs * 100.0)
@@ -149,7 +149,7 @@ def test_terminated_transitions_do_not_bootstrap():
 def test_delayed_policy_updates_and_critic_ensemble():
     cfg = SACConfig.preset("cleanrl").replace(hidden_sizes=[16], n_critics=3, init="orthogonal")
     fns = sac.build(cfg, 3, 2)
-    state = fns.init(jax.random.PRNGKey(0))
+    state = fns.init(0)
     assert jax.tree_util.tree_leaves(state.critic)[0].shape[0] == 3
     actor_before = _leaves(state.actor)
     state, _ = fns.update(state, _batch(np.random.default_rng(0), 1, 8, 3, 2))

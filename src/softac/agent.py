@@ -38,7 +38,7 @@ class SAC:
     """A Soft Actor-Critic agent for one env (an id or a gym.Env instance)."""
 
     def __init__(self, config: SACConfig | None = None, env: EnvSource | None = None):
-        import jax
+        import jax.numpy as jnp
 
         if config is None:
             config = SACConfig.for_env(env if isinstance(env, str) else None)
@@ -61,13 +61,12 @@ class SAC:
 
         from softac import sac
 
-        self.fns = sac.build(config, self.spaces.obs_dim, self.spaces.act_dim)
+        self.fns = sac.build(config, self.spaces.obs_dim, self.spaces.act_dim, self.spaces.low, self.spaces.high)
         self.scaler = sac.ActionScaler(self.spaces.low, self.spaces.high)
-        root = jax.random.PRNGKey(config.seed)
-        init_key, act_key, predict_key = jax.random.split(root, 3)
-        self.state = self.fns.init(init_key)
-        self.act_key = act_key  # exploration noise while training
-        self.predict_key = predict_key  # stochastic predict() / evaluation, kept apart from training
+        self.state = self.fns.init(config.seed)
+        keys = np.random.default_rng([config.seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)
+        self.act_key = jnp.asarray(keys[0])  # exploration noise while training
+        self.predict_key = jnp.asarray(keys[1])  # stochastic predict() / evaluation, kept apart from training
         self.rng = np.random.default_rng(config.seed)  # replay sampling and warm-up actions
         self.num_steps = 0
         self.num_episodes = 0
@@ -101,18 +100,16 @@ class SAC:
 
     def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray:
         """Env-scaled action(s) for one observation or a batch of them."""
-        import jax.numpy as jnp
-
         obs = np.asarray(obs, np.float32)
         single = obs.ndim <= 1
         batch = obs.reshape(1, -1) if single else obs.reshape(obs.shape[0], -1)
         if batch.shape[1] != self.spaces.obs_dim:
             raise SoftacError(f"observation has {batch.shape[1]} values; this agent expects {self.spaces.obs_dim}")
         if deterministic:
-            normalised = self.fns.act_deterministic(self.state.actor, jnp.asarray(batch))
+            actions = self.scaler.to_env(np.asarray(self.fns.act_deterministic(self.state.actor, batch)))
         else:
-            normalised, self.predict_key = self.fns.act(self.state.actor, jnp.asarray(batch), self.predict_key)
-        actions = self.scaler.to_env(np.asarray(normalised))
+            _, actions, self.predict_key = self.fns.act(self.state.actor, batch, self.predict_key)
+            actions = np.asarray(actions)
         return actions[0] if single else actions
 
     # ---- training ---------------------------------------------------------------

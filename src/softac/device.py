@@ -9,6 +9,31 @@ from softac.errors import SoftacError
 _chosen: str | None = None
 
 
+def compile_cache_dir() -> str | None:
+    """Where compiled XLA programs are kept between processes (SOFTAC_COMPILE_CACHE=off disables)."""
+    setting = os.environ.get("SOFTAC_COMPILE_CACHE", "")
+    if setting.lower() in ("off", "0", "no", "false"):
+        return None
+    if setting:
+        return setting
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "softac", "jax")
+
+
+def _enable_compile_cache(jax) -> None:
+    # a second run of the same config loads its compiled update instead of compiling it again
+    # (seconds saved per process start; JAX's persistent compilation cache)
+    path = compile_cache_dir()
+    if path is None:
+        return
+    try:
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    except Exception:  # a read-only home or an older JAX: run without the cache
+        pass
+
+
 def select_device(device: str) -> str:
     """Returns the platform in use: 'cpu' or 'gpu'. The first call in a process decides."""
     global _chosen
@@ -16,6 +41,7 @@ def select_device(device: str) -> str:
     import jax
 
     if _chosen is None:
+        _enable_compile_cache(jax)
         if device == "cpu":
             jax.config.update("jax_platforms", "cpu")
         elif device == "gpu":

@@ -116,16 +116,17 @@ def polyak(target: Any, online: Any, tau: float) -> Any:
 
 
 class SACFunctions(NamedTuple):
-    init: Callable[[jax.Array], SACState]
+    init: Callable[[int], SACState]
     update: Callable[[SACState, Batch], tuple[SACState, dict]]
-    act: Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+    act: Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]]
     act_deterministic: Callable[[Any, jax.Array], jax.Array]
     policy: Policy
     target_entropy: float
 
 
-def build(config: SACConfig, obs_dim: int, act_dim: int) -> SACFunctions:
-    """The jitted SAC functions for one config and one pair of space sizes."""
+def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None = None,
+          high: np.ndarray | None = None) -> SACFunctions:
+    """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1])."""
     c = config
     policy = Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode)
     target_entropy = -float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy)
@@ -136,16 +137,22 @@ def build(config: SACConfig, obs_dim: int, act_dim: int) -> SACFunctions:
     def q_values(critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
         return critics_apply(critic, obs, actions, c.activation)
 
-    def init(key: jax.Array) -> SACState:
-        actor_key, critic_key, key = jax.random.split(key, 3)
-        actor = init_actor(actor_key, obs_dim, act_dim, c.hidden_sizes, c.init)
-        critic = init_critics(critic_key, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics)
+    def assemble(actor: Any, critic: Any, key: jax.Array) -> SACState:
         log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
         return SACState(
-            actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
+            actor=actor, critic=critic, target_critic=jax.tree_util.tree_map(jnp.copy, critic), log_alpha=log_alpha,
             actor_opt=actor_tx.init(actor), critic_opt=critic_tx.init(critic), alpha_opt=alpha_tx.init(log_alpha),
             key=key, n_updates=jnp.zeros((), jnp.int32),
         )
+
+    assemble = jax.jit(assemble)  # one compiled call (cached across processes) instead of dozens of eager ops
+
+    def init(seed: int) -> SACState:
+        rng = np.random.default_rng([seed, 0x5AC])
+        actor = init_actor(rng, obs_dim, act_dim, c.hidden_sizes, c.init)
+        critic = init_critics(rng, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics)
+        key = rng.integers(0, 2**32, 2, dtype=np.uint32)  # a raw PRNGKey
+        return assemble(actor, critic, key)
 
     def alpha_of(state: SACState) -> jax.Array:
         return jnp.exp(state.log_alpha) if c.autotune_alpha else jnp.asarray(c.alpha, jnp.float32)
@@ -228,12 +235,17 @@ def build(config: SACConfig, obs_dim: int, act_dim: int) -> SACFunctions:
         metrics["alpha"] = alpha_of(state)
         return state, metrics
 
-    def act(actor: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    scaler = ActionScaler(np.full(act_dim, -1.0) if low is None else low, np.ones(act_dim) if high is None else high)
+
+    def act(actor: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """(action in [-1, 1], the same action in env bounds, next key): one call per env step."""
         key, sample_key = jax.random.split(key)
-        return policy.sample(actor, obs, sample_key)[0], key
+        action = policy.sample(actor, obs, sample_key)[0]
+        env_action = jnp.clip(scaler.bias + scaler.scale * action, scaler.low, scaler.high)
+        return action, env_action, key
 
     return SACFunctions(
-        init=jax.jit(init),
+        init=init,
         update=jax.jit(update, donate_argnums=0),
         act=jax.jit(act),
         act_deterministic=jax.jit(policy.deterministic),

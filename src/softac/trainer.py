@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from softac import checkpoint as ckpt
@@ -25,6 +24,7 @@ from softac.logs import Progress, RunLogger, write_config
 from softac.sac import Batch
 
 RECENT_EPISODES = 20  # episodes behind return_mean in progress.csv and the progress bar
+SHOW_EVERY = 100  # env steps between progress-bar refreshes
 
 
 def crossed(before: int, after: int, interval: int) -> bool:
@@ -106,6 +106,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
     time0 = agent.train_time_s
     steps_at_last_log, time_at_last_log = start_step, wall0
     logged_at: int | None = None
+    next_show = start_step
     stopped_early = False
 
     def elapsed() -> float:
@@ -128,7 +129,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
         if eval_envs is None:
             eval_envs = [agent.make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
         actor = agent.state.actor
-        stats = run_episodes(lambda obs: scaler.to_env(np.asarray(fns.act_deterministic(actor, jnp.asarray(obs)))),
+        stats = run_episodes(lambda obs: scaler.to_env(np.asarray(fns.act_deterministic(actor, obs))),
                              agent.make_env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET, envs=eval_envs,
                              should_stop=lambda: stop.requested)
         ts["last_eval"] = stats["mean_return"]
@@ -170,10 +171,11 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                 obs = pool.obs
                 if before < cfg.learning_starts:
                     actions = agent.rng.uniform(-1.0, 1.0, (n_envs, act_dim)).astype(np.float32)
-                else:
-                    actions, agent.act_key = fns.act(agent.state.actor, jnp.asarray(obs), agent.act_key)
-                    actions = np.asarray(actions)
-                result = pool.step(scaler.to_env(actions), before)
+                    env_actions = scaler.to_env(actions)
+                else:  # NumPy goes straight into the jitted call: jnp.asarray would cost more than the env step
+                    actions, env_actions, agent.act_key = fns.act(agent.state.actor, obs, agent.act_key)
+                    actions, env_actions = np.asarray(actions), np.asarray(env_actions)
+                result = pool.step(env_actions, before)
                 buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated)
                 agent.num_steps = after = before + n_envs
                 for _, episode_return, length in result.finished:
@@ -195,7 +197,9 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                         stopped_early = True
                 if crossed(before, after, cfg.checkpoint_interval) or (stopped_early and run is not None):
                     save_checkpoint("last", with_buffer=True)
-                show.update(after, ret=float(np.mean(recent)) if recent else None, eval=ts["last_eval"])
+                if after >= next_show or stopped_early:  # the bar redraws at most every SHOW_EVERY steps
+                    next_show = after + SHOW_EVERY
+                    show.update(after, ret=float(np.mean(recent)) if recent else None, eval=ts["last_eval"])
                 if stopped_early:
                     break
 
