@@ -72,7 +72,8 @@ def test_resume_without_steps_finishes_the_configured_total(tmp_path):
     assert r.returncode == 0 and "training 0 more steps" in r.stderr
 
 
-def test_sigterm_writes_a_checkpoint_and_exits_130(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
     import os
 
     run = tmp_path / "run"
@@ -85,7 +86,7 @@ def test_sigterm_writes_a_checkpoint_and_exits_130(tmp_path):
     while not (run / "progress.csv").exists() or len((run / "progress.csv").read_text().splitlines()) < 4:
         assert time.time() < deadline and proc.poll() is None
         time.sleep(0.2)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "interrupted at step" in err and "Traceback" not in err
