@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.softac-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-fast venv clean-venv
+.PHONY: demo test test-fast docs venv clean-venv
 
 venv: $(STAMP)
 
@@ -27,6 +27,10 @@ test: $(STAMP)
 # unit tests only: skips the learning tests
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
+
+# the README's config table comes from SACConfig
+docs: $(STAMP)
+	$(BIN)/python scripts/write_config_table.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -156,3 +156,16 @@ def test_delayed_policy_updates_and_critic_ensemble():
     assert all(np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))  # step 1: no actor step
     state, _ = fns.update(state, _batch(np.random.default_rng(1), 1, 8, 3, 2))
     assert any(not np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))
+
+
+def test_bfloat16_matmuls_stay_close_to_float32():
+    f32 = sac.build(SACConfig().replace(hidden_sizes=[64, 64]), 3, 2)
+    bf16 = sac.build(SACConfig().replace(hidden_sizes=[64, 64], matmul_dtype="bfloat16"), 3, 2)
+    state = f32.init(0)
+    obs = jnp.asarray(np.random.default_rng(0).normal(size=(32, 3)), jnp.float32)
+    a32, a16 = f32.act_deterministic(state.actor, obs), bf16.act_deterministic(state.actor, obs)
+    assert a16.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(a16), np.asarray(a32), atol=2e-2)
+    new_state, metrics = bf16.update(bf16.init(0), _batch(np.random.default_rng(0), 2, 8, 3, 2))
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+    assert jax.tree_util.tree_leaves(new_state.actor)[0].dtype == jnp.float32  # parameters stay f32

@@ -49,12 +49,19 @@ def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: fl
     return layers
 
 
-def mlp(params: Params, x: jax.Array, activation: str) -> jax.Array:
+def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
+    if matmul_dtype == "float32":
+        return x @ layer["w"] + layer["b"]
+    # mixed precision: bf16 inputs, f32 accumulation and f32 parameters (AMX/AVX-512 BF16 run this ~2.4x faster)
+    dt = jnp.dtype(matmul_dtype)
+    return jnp.dot(x.astype(dt), layer["w"].astype(dt), preferred_element_type=jnp.float32) + layer["b"]
+
+
+def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32") -> jax.Array:
     act = ACTIVATIONS[activation]
     for layer in params[:-1]:
-        x = act(x @ layer["w"] + layer["b"])
-    last = params[-1]
-    return x @ last["w"] + last["b"]
+        x = act(dense(x, layer, matmul_dtype))
+    return dense(x, params[-1], matmul_dtype)
 
 
 def init_actor(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str) -> Params:
@@ -70,8 +77,9 @@ def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: l
     return jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *critics)
 
 
-def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str) -> jax.Array:
+def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
+                  matmul_dtype: str = "float32") -> jax.Array:
     """Q-values of every critic: shape [n_critics, batch]."""
     x = jnp.concatenate([obs, actions], axis=-1)
-    q = jax.vmap(lambda p: mlp(p, x, activation))(params)
+    q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype))(params)
     return q[..., 0]

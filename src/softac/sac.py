@@ -77,9 +77,10 @@ class Policy:
     log_std_min: float
     log_std_max: float
     log_std_mode: str
+    matmul_dtype: str = "float32"
 
     def mean_and_log_std(self, actor: Any, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        mean, raw_log_std = jnp.split(mlp(actor, obs, self.activation), 2, axis=-1)
+        mean, raw_log_std = jnp.split(mlp(actor, obs, self.activation, self.matmul_dtype), 2, axis=-1)
         return mean, bound_log_std(raw_log_std, self.log_std_min, self.log_std_max, self.log_std_mode)
 
     def sample(self, actor: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -128,14 +129,14 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
           high: np.ndarray | None = None) -> SACFunctions:
     """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1])."""
     c = config
-    policy = Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode)
+    policy = Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, c.matmul_dtype)
     target_entropy = -float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy)
     actor_tx = optax.adam(c.actor_lr)
     critic_tx = optax.adam(c.critic_lr)
     alpha_tx = optax.adam(c.alpha_lr)
 
     def q_values(critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
-        return critics_apply(critic, obs, actions, c.activation)
+        return critics_apply(critic, obs, actions, c.activation, c.matmul_dtype)
 
     def assemble(actor: Any, critic: Any, key: jax.Array) -> SACState:
         log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
