@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.softac-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-fast docs venv clean-venv
+.PHONY: demo test test-fast bench docs venv clean-venv
 
 venv: $(STAMP)
 
@@ -27,6 +27,17 @@ test: $(STAMP)
 # unit tests only: skips the learning tests
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
+
+# softac vs Stable-Baselines3 vs SBX on this machine; torch 2.13.0 (CPU build) goes in first so that
+# no CUDA packages are pulled. BENCH_ARGS adds options, e.g. BENCH_ARGS="--repeats 5".
+BENCH_STAMP := $(VENV)/.softac-bench-installed
+$(BENCH_STAMP): $(STAMP)
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e ".[test,bench]"
+	@touch $@
+
+bench: $(BENCH_STAMP)
+	$(BIN)/softac bench --solve $(BENCH_ARGS)
 
 # the README's config table comes from SACConfig
 docs: $(STAMP)

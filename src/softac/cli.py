@@ -78,6 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
     sub.add_parser("presets", help="list presets")
+
+    from softac.bench import add_arguments
+
+    add_arguments(sub.add_parser("bench", help="throughput and seconds-to-solve, side by side with SB3 and SBX"))
     return parser
 
 
@@ -175,7 +179,13 @@ def cmd_presets(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets}
+def cmd_bench(args: argparse.Namespace) -> int:
+    from softac.bench import main_from_args
+
+    return main_from_args(args)
+
+
+COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench}
 
 
 def main(argv: list[str] | None = None) -> int:

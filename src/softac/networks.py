@@ -49,12 +49,39 @@ def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: fl
     return layers
 
 
+@jax.custom_vjp
+def bf16_matmul(x: jax.Array, w: jax.Array) -> jax.Array:
+    """x @ w with bf16 inputs and f32 accumulation, in the forward and in both backward matmuls.
+
+    Plain autodiff of a bf16 dot would run the two backward dots in f32 (the cotangent is f32),
+    losing most of the gain: 256^3 runs at ~320 GFLOP/s in bf16 vs ~130 in f32 on this AMX CPU.
+    """
+    return jnp.dot(x.astype(jnp.bfloat16), w.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
+
+
+def _bf16_matmul_fwd(x: jax.Array, w: jax.Array):
+    x16, w16 = x.astype(jnp.bfloat16), w.astype(jnp.bfloat16)
+    return jnp.dot(x16, w16, preferred_element_type=jnp.float32), (x16, w16)
+
+
+def _bf16_matmul_bwd(residuals, g: jax.Array):
+    x16, w16 = residuals
+    g16 = g.astype(jnp.bfloat16)
+    dx = jnp.dot(g16, w16.T, preferred_element_type=jnp.float32)
+    dw = jnp.dot(x16.T, g16, preferred_element_type=jnp.float32)
+    return dx, dw
+
+
+bf16_matmul.defvjp(_bf16_matmul_fwd, _bf16_matmul_bwd)
+
+
 def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
-    if matmul_dtype == "float32":
-        return x @ layer["w"] + layer["b"]
-    # mixed precision: bf16 inputs, f32 accumulation and f32 parameters (AMX/AVX-512 BF16 run this ~2.4x faster)
-    dt = jnp.dtype(matmul_dtype)
-    return jnp.dot(x.astype(dt), layer["w"].astype(dt), preferred_element_type=jnp.float32) + layer["b"]
+    # mixed precision only where the FLOPs are: hidden-to-hidden layers. The input and output
+    # layers are thin (a few columns), cost little, and keep full precision for obs and Q-values.
+    w = layer["w"]
+    if matmul_dtype == "float32" or min(w.shape[-2:]) < 16:
+        return x @ w + layer["b"]
+    return bf16_matmul(x, w) + layer["b"]
 
 
 def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32") -> jax.Array:

@@ -1,0 +1,299 @@
+"""`softac bench`: softac, Stable-Baselines3 and SBX side by side, in one run, on this machine.
+
+Two measurements, each framework in its own fresh process, one after the other:
+
+- throughput: training steps/s at Stable-Baselines3's SAC defaults (softac's `sb3` preset:
+  256x256 networks, batch 256, one update per env step), timed between step `warmup` and
+  `warmup + steps`, so start-up and compilation are excluded;
+- seconds to solve: a whole training process, from its start to its exit, until the deterministic
+  evaluation (10 episodes, every 1000 steps) reaches the target. softac runs its default command
+  (`softac train --target-return R`); the peers run at their defaults with an EvalCallback. Both
+  the whole-process wall time and the training time without evaluation are reported.
+
+Peers need the `[bench]` extra (`make bench` installs it, torch 2.13.0 CPU first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from softac.errors import SoftacError
+
+FRAMEWORKS = ("softac", "sb3", "sbx")
+PEER_MODULES = {"sb3": "stable_baselines3", "sbx": "sbx"}
+
+
+# ---- workers: each runs in its own process and prints one JSON line -----------------
+
+def _peer_sac(framework: str):
+    if framework == "sb3":
+        import torch
+        from stable_baselines3 import SAC
+
+        torch.set_num_threads(os.cpu_count() or 1)
+        return SAC, {"device": "cpu"}
+    from sbx import SAC
+
+    return SAC, {}
+
+
+def _throughput_peer(framework: str, env_id: str, warmup: int, steps: int, seed: int) -> dict[str, Any]:
+    import gymnasium as gym
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    SAC, kwargs = _peer_sac(framework)
+
+    class Clock(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.t_start = None
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps == warmup:
+                self.t_start = time.perf_counter()
+            return True
+
+    clock = Clock()
+    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+    model.learn(warmup + steps, callback=clock)
+    elapsed = time.perf_counter() - clock.t_start
+    return {"steps_per_s": steps / elapsed}
+
+
+def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, overrides: list[str]) -> dict[str, Any]:
+    from softac.agent import SAC
+    from softac.config import SACConfig
+
+    config = SACConfig.preset("sb3", env_id=env_id).replace(seed=seed, eval_interval=0, buffer_size=warmup + steps)
+    agent = SAC(config.with_overrides(overrides))
+    agent.learn(warmup, progress=False)
+    t0 = time.perf_counter()
+    agent.learn(steps, progress=False)
+    return {"steps_per_s": steps / (time.perf_counter() - t0)}
+
+
+def _solve_peer(framework: str, env_id: str, seed: int, target: float, max_steps: int) -> dict[str, Any]:
+    import gymnasium as gym
+    from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
+
+    SAC, kwargs = _peer_sac(framework)
+
+    class TimedEval(EvalCallback):
+        eval_s = 0.0
+
+        def _on_step(self) -> bool:
+            t0 = time.perf_counter()
+            result = super()._on_step()
+            self.eval_s += time.perf_counter() - t0
+            return result
+
+    stop = StopTrainingOnRewardThreshold(reward_threshold=target, verbose=0)
+    evaluator = TimedEval(gym.make(env_id), eval_freq=1000, n_eval_episodes=10, deterministic=True,
+                          callback_on_new_best=stop, verbose=0)
+    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+    t0 = time.perf_counter()
+    model.learn(max_steps, callback=evaluator)
+    total = time.perf_counter() - t0
+    return {"steps": int(model.num_timesteps), "solved": bool(evaluator.best_mean_reward >= target),
+            "train_s": total - evaluator.eval_s, "best_eval": float(evaluator.best_mean_reward)}
+
+
+def worker(argv: list[str]) -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("kind", choices=["throughput", "solve"])
+    p.add_argument("framework", choices=FRAMEWORKS)
+    p.add_argument("--env", default="InvertedPendulum-v5")
+    p.add_argument("--warmup", type=int, default=500)
+    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--target", type=float, default=1000.0)
+    p.add_argument("--max-steps", type=int, default=50_000)
+    p.add_argument("--set", dest="overrides", nargs="*", default=[])
+    a = p.parse_args(argv)
+    if a.kind == "throughput":
+        if a.framework == "softac":
+            out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)
+        else:
+            out = _throughput_peer(a.framework, a.env, a.warmup, a.steps, a.seed)
+    else:
+        out = _solve_peer(a.framework, a.env, a.seed, a.target, a.max_steps)
+    print(json.dumps(out), flush=True)
+
+
+# ---- the driver ------------------------------------------------------------------------
+
+def _run(args: list[str], timeout: float) -> tuple[dict[str, Any] | None, float, str]:
+    t0 = time.perf_counter()
+    try:
+        r = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return None, time.perf_counter() - t0, f"timed out after {timeout:.0f}s"
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        lines = (r.stderr or r.stdout).strip().splitlines()
+        return None, wall, lines[-1] if lines else f"exit {r.returncode}"
+    for line in reversed(r.stdout.strip().splitlines()):
+        if line.startswith("{"):
+            return json.loads(line), wall, ""
+    return {}, wall, ""
+
+
+def _solve_softac(env_id: str, seed: int, target: float, timeout: float) -> tuple[dict[str, Any] | None, float, str]:
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Path(tmp) / "run"
+        out, wall, err = _run(["-m", "softac", "train", "--env", env_id, "--seed", str(seed), "--target-return",
+                               str(target), "--out", str(run), "--no-progress"], timeout)
+        if out is None:
+            return None, wall, err
+        rows = (run / "eval.csv").read_text().splitlines()[1:]
+        last = rows[-1].split(",") if rows else ["0", "nan"]
+        evals = [float(r.split(",")[1]) for r in rows]
+        progress = (run / "progress.csv").read_text().splitlines()[1:]
+        train_s = float(progress[-1].split(",")[1]) if progress else float("nan")
+        return {"steps": int(last[0]), "solved": float(last[1]) >= target, "best_eval": max(evals, default=float("nan")),
+                "train_s": train_s}, wall, ""
+
+
+def available_frameworks(requested: list[str]) -> tuple[list[str], list[str]]:
+    import importlib.util
+
+    ok, missing = [], []
+    for name in requested:
+        module = PEER_MODULES.get(name)
+        (ok if module is None or importlib.util.find_spec(module) else missing).append(name)
+    return ok, missing
+
+
+def _machine() -> str:
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repeats: int, solve_seeds: list[int],
+              target: float, max_steps: int, timeout: float, overrides: list[str], log=print) -> dict[str, Any]:
+    result: dict[str, Any] = {"machine": _machine(), "env": env_id, "throughput": {}, "solve": {}}
+    log(f"machine: {result['machine']}")
+    log(f"throughput at SB3's SAC defaults on {env_id}: {steps} steps after {warmup} warm-up steps, "
+        f"median of {repeats}")
+    for _ in range(repeats):  # interleaved, so drift of the machine hits every framework alike
+        for fw in frameworks:
+            extra = ["--set", *overrides] if (fw == "softac" and overrides) else []
+            out, _, err = _run(["-m", "softac.bench", "throughput", fw, "--env", env_id, "--warmup", str(warmup),
+                                "--steps", str(steps), *extra], timeout)
+            entry = result["throughput"].setdefault(fw, {"runs": []})
+            if out is None:
+                entry["error"] = err
+                log(f"  {fw}: failed: {err}")
+            else:
+                entry["runs"].append(round(out["steps_per_s"], 1))
+    for fw, entry in result["throughput"].items():
+        if entry["runs"]:
+            entry["median_steps_per_s"] = statistics.median(entry["runs"])
+    base = result["throughput"].get("softac", {}).get("median_steps_per_s")
+    for fw, entry in result["throughput"].items():
+        if "median_steps_per_s" in entry:
+            ratio = f"  softac/{fw} = {base / entry['median_steps_per_s']:.2f}x" if base and fw != "softac" else ""
+            log(f"  {fw:<7} {entry['median_steps_per_s']:8.1f} steps/s  (runs {entry['runs']}){ratio}")
+            if base and fw != "softac":
+                entry["softac_ratio"] = round(base / entry["median_steps_per_s"], 2)
+
+    if solve_seeds:
+        log(f"seconds to solve {env_id} (deterministic eval mean >= {target:g}, 10 episodes every 1000 steps), "
+            f"seeds {solve_seeds}")
+        for fw in frameworks:
+            runs = []
+            for seed in solve_seeds:
+                if fw == "softac":
+                    out, wall, err = _solve_softac(env_id, seed, target, timeout)
+                else:
+                    out, wall, err = _run(["-m", "softac.bench", "solve", fw, "--env", env_id, "--seed", str(seed),
+                                           "--target", str(target), "--max-steps", str(max_steps)], timeout)
+                if out is None:
+                    runs.append({"seed": seed, "error": err, "wall_s": round(wall, 1)})
+                    log(f"  {fw} seed {seed}: failed: {err}")
+                    continue
+                out = {"seed": seed, "wall_s": round(wall, 1), **{k: (round(v, 1) if isinstance(v, float) else v)
+                                                                   for k, v in out.items()}}
+                runs.append(out)
+                log(f"  {fw:<7} seed {seed}: {'solved' if out['solved'] else 'NOT solved'} at {out['steps']} steps, "
+                    f"{out['wall_s']:.1f}s whole process, {out['train_s']:.1f}s training without eval")
+            ok = [r for r in runs if "error" not in r]
+            summary: dict[str, Any] = {"runs": runs, "solved": sum(r["solved"] for r in ok), "seeds": len(runs)}
+            if ok:
+                summary["median_wall_s"] = statistics.median(r["wall_s"] for r in ok)
+                summary["median_train_s"] = statistics.median(r["train_s"] for r in ok)
+                summary["median_steps"] = statistics.median(r["steps"] for r in ok)
+                log(f"  {fw:<7} median {summary['median_wall_s']:.1f}s whole process, "
+                    f"{summary['median_train_s']:.1f}s training, {summary['median_steps']:.0f} steps; "
+                    f"solved {summary['solved']}/{summary['seeds']}")
+            result["solve"][fw] = summary
+    return result
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--env", default="InvertedPendulum-v5")
+    p.add_argument("--frameworks", default=",".join(FRAMEWORKS), help="comma list of softac,sb3,sbx")
+    p.add_argument("--steps", type=int, default=2000, help="timed training steps per throughput run")
+    p.add_argument("--warmup", type=int, default=500, help="untimed steps first (compile, learning_starts)")
+    p.add_argument("--repeats", type=int, default=3, help="throughput runs per framework (median reported)")
+    p.add_argument("--solve", action="store_true", help="also measure seconds to solve")
+    p.add_argument("--solve-seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--target", type=float, default=1000.0)
+    p.add_argument("--max-steps", type=int, default=50_000, help="peers' step budget when solving")
+    p.add_argument("--timeout", type=float, default=1800.0, help="seconds before one measurement is abandoned")
+    p.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="override softac's sb3-preset config for the throughput runs (e.g. matmul_dtype=bfloat16)")
+    p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+
+
+def main_from_args(args: argparse.Namespace) -> int:
+    requested = [f.strip() for f in args.frameworks.split(",") if f.strip()]
+    unknown = [f for f in requested if f not in FRAMEWORKS]
+    if unknown or not requested:
+        raise SoftacError(f"--frameworks takes a comma list of {', '.join(FRAMEWORKS)}; got {args.frameworks!r}")
+    for name in ("steps", "warmup", "repeats"):
+        if getattr(args, name) < (0 if name == "warmup" else 1):
+            raise SoftacError(f"--{name} must be positive")
+    if "softac" in requested and args.warmup < 300:
+        raise SoftacError("--warmup must be >= 300 (the sb3 preset starts learning at step 100)")
+    frameworks, missing = available_frameworks(requested)
+    if missing:
+        raise SoftacError(f"{', '.join(missing)} not installed: `make bench` installs the [bench] extra "
+                          "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
+    from softac.envs import resolve_env_id
+
+    resolve_env_id(args.env)
+    log = (lambda *a: print(*a, file=sys.stderr, flush=True)) if args.json else (lambda *a: print(*a, flush=True))
+    overrides = [pair for group in args.overrides for pair in group]
+    if overrides:
+        from softac.config import SACConfig
+
+        SACConfig.preset("sb3").with_overrides(overrides)  # bad keys fail here, before minutes of benchmarking
+    result = run_bench(frameworks, args.env, args.warmup, args.steps, args.repeats,
+                       args.solve_seeds if args.solve else [], args.target, args.max_steps, args.timeout, overrides,
+                       log=log)
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    worker(sys.argv[1:])

@@ -1,0 +1,30 @@
+"""`softac bench`: argument checking and a tiny softac-only run (speed itself is never asserted)."""
+
+import importlib.util
+import json
+
+import pytest
+
+from conftest import assert_clean_error, run_cli
+
+
+def test_bench_rejects_unknown_frameworks():
+    assert_clean_error(run_cli("bench", "--frameworks", "softac,rllib"), "--frameworks")
+
+
+def test_bench_rejects_bad_overrides():
+    assert_clean_error(run_cli("bench", "--frameworks", "softac", "--set", "batch_szie=3"), "batch_szie")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("stable_baselines3") is not None, reason="the [bench] extra is installed")
+def test_bench_without_peers_says_how_to_install():
+    assert_clean_error(run_cli("bench", "--frameworks", "softac,sb3"), "make bench")
+
+
+def test_bench_softac_only_reports_json():
+    r = run_cli("bench", "--frameworks", "softac", "--steps", "60", "--warmup", "300", "--repeats", "1", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["env"] == "InvertedPendulum-v5"
+    assert out["throughput"]["softac"]["median_steps_per_s"] > 0
+    assert "softac" in r.stderr  # the human-readable table goes to stderr with --json
