@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.softac-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-fast bench docs venv clean-venv
+.PHONY: demo test test-fast bench docs venv clean-venv render-deps system-deps
 
 venv: $(STAMP)
 
@@ -16,12 +16,41 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[test]"
 	@touch $@
 
-demo: $(STAMP)
+# Debian packages, installed when missing and we may (root, or passwordless sudo):
+# libosmesa6 lets MuJoCo render headless where EGL does not work; chromium runs the report test.
+APT := $(shell if [ "$$(id -u)" = 0 ]; then echo apt-get; elif sudo -n true 2>/dev/null; then echo "sudo apt-get"; fi)
+define apt_install
+	@missing="$(strip $(1))"; \
+	if [ -n "$$missing" ]; then \
+	  if [ -n "$(APT)" ] && command -v apt-get >/dev/null 2>&1; then \
+	    echo "installing Debian packages: $$missing"; \
+	    $(APT) update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive $(APT) install -y -qq --no-install-recommends $$missing >/dev/null; \
+	  else echo "note: cannot install $$missing (not root, no apt-get); tests that need them skip"; fi; \
+	fi
+endef
+NEED_OSMESA   = $(shell ldconfig -p 2>/dev/null | grep -q libOSMesa || echo libosmesa6)
+NEED_CHROMIUM = $(shell command -v chromium >/dev/null 2>&1 || echo chromium)
+
+render-deps:
+	$(call apt_install,$(NEED_OSMESA))
+
+system-deps:
+	$(call apt_install,$(NEED_OSMESA) $(NEED_CHROMIUM))
+
+demo: $(STAMP) render-deps
 	$(BIN)/softac train --target-return 1000 --out $(DEMO)
 	$(BIN)/softac eval $(DEMO) --episodes 10
-	@echo "demo run: $(DEMO) (progress.csv, eval.csv, checkpoints/, tb/)"
+	$(BIN)/softac baselines --env InvertedPendulum-v5 --out $(DEMO)
+	$(BIN)/softac plot $(DEMO)
+	-$(BIN)/softac video $(DEMO)
+	$(BIN)/softac report $(DEMO)
+	@echo ""
+	@echo "demo run:  $(DEMO)"
+	@echo "  plots:   $(DEMO)/plots/learning_curve.png, $(DEMO)/plots/metrics.png"
+	@echo "  video:   $$(ls $(DEMO)/videos/*.mp4 2>/dev/null || echo 'none (rendering unavailable)')"
+	@echo "  report:  $(DEMO)/report.html"
 
-test: $(STAMP)
+test: $(STAMP) system-deps
 	$(BIN)/python -m pytest -q
 
 # unit tests only: skips the learning tests

@@ -20,8 +20,9 @@ def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig
     return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
 
 
-def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, **popen) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra: dict | None = None,
+            **popen) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env_extra or {}))
     return subprocess.run([sys.executable, "-m", "softac", *args], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=cwd, **popen)
 

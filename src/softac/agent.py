@@ -78,8 +78,8 @@ class SAC:
 
     # ---- parts made on first use ----------------------------------------------
 
-    def make_env(self, render_mode: str | None = None):
-        return copy_env(self.env_source, render_mode)
+    def make_env(self, render_mode: str | None = None, **kwargs: Any):
+        return copy_env(self.env_source, render_mode, **kwargs)
 
     def training_parts(self) -> tuple[ReplayBuffer, EnvPool]:
         if self.buffer is None:

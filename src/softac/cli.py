@@ -64,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", metavar="DIR", help="continue the run in DIR exactly where it stopped")
     t.add_argument("--target-return", type=_finite_float, metavar="R",
                    help="stop once the deterministic eval mean reaches R")
+    t.add_argument("--video", action="store_true", help="record the final policy to RUN/videos at the end")
     bar = t.add_mutually_exclusive_group()
     bar.add_argument("--progress", dest="progress", action="store_true", default=None, help="force the progress bar")
     bar.add_argument("--no-progress", dest="progress", action="store_false", help="plain log lines instead")
@@ -78,6 +79,29 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
     sub.add_parser("presets", help="list presets")
+
+    pl = sub.add_parser("plot", help="learning curve and metric grid; several runs: mean and 95% CI across seeds")
+    pl.add_argument("runs", nargs="+", metavar="RUN")
+    pl.add_argument("--out", help="output folder (default RUN/plots; required for several runs)")
+
+    v = sub.add_parser("video", help="render the agent to an MP4 (headless: EGL or OSMesa)")
+    v.add_argument("path", metavar="RUN_OR_CKPT")
+    v.add_argument("--out", help="MP4 file (default RUN/videos/stepN-returnR.mp4)")
+    v.add_argument("--episodes", type=_positive_int, default=1)
+    v.add_argument("--stochastic", action="store_true")
+    v.add_argument("--checkpoint", choices=["best", "last"])
+    v.add_argument("--max-steps", type=_positive_int, help="stop each episode after this many steps")
+
+    rp = sub.add_parser("report", help="one self-contained HTML page for a run")
+    rp.add_argument("run", metavar="RUN")
+    rp.add_argument("--out", help="HTML file (default RUN/report.html)")
+
+    b = sub.add_parser("baselines", help="random, zero and heuristic policies' returns")
+    b.add_argument("--env", default="InvertedPendulum-v5")
+    b.add_argument("--episodes", type=_positive_int, default=10)
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--out", metavar="RUN", help="also write RUN/baselines.json (plots and reports draw it)")
+    b.add_argument("--json", action="store_true")
 
     from softac.bench import add_arguments
 
@@ -111,6 +135,10 @@ def _default_run_dir(config) -> Path:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from softac import checkpoint as ckpt
+    if args.video:  # MuJoCo picks its GL backend when first imported: choose it now, fail early
+        from softac.video import choose_gl_backend
+
+        choose_gl_backend()
     from softac.agent import SAC
     from softac.buffer import ReplayBuffer
     from softac.trainer import check_new_run_dir
@@ -140,6 +168,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         steps = config.total_steps
         print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}", file=sys.stderr)
     summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
+    if args.video:
+        _record_video(run, which=None, out=None, episodes=1, deterministic=True)
     last = summary["last_eval"]
     solved = " (target reached)" if summary["stopped_early"] else ""
     eval_text = f"; last eval mean return {last:.1f}" if last is not None else ""
@@ -168,6 +198,78 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _record_video(path: Path, which: str | None, out: str | None, episodes: int, deterministic: bool,
+                  max_steps: int | None = None) -> dict[str, Any]:
+    from softac.video import choose_gl_backend
+
+    choose_gl_backend()  # first: it probes backends in subprocesses, before JAX starts its threads
+
+    from softac import checkpoint as ckpt
+    from softac.agent import SAC
+    from softac.video import default_video_path, record
+
+    directory = ckpt.resolve(path, which)
+    agent = SAC.load(directory)
+    target = Path(out) if out else default_video_path(Path(path), agent.num_steps)
+    if target.suffix.lower() != ".mp4":
+        raise SoftacError(f"--out must name an .mp4 file, got {target}")
+    result = record(agent, target, episodes=episodes, deterministic=deterministic, max_steps=max_steps)
+    if out is None:  # put the return in the file name
+        named = default_video_path(Path(path), agent.num_steps, result["mean_return"])
+        Path(result["path"]).replace(named)
+        result["path"] = str(named)
+    print(f"video: {result['path']} ({len(result['returns'])} episode(s), return "
+          f"{', '.join(f'{r:.1f}' for r in result['returns'])})", file=sys.stderr)
+    return result
+
+
+def cmd_video(args: argparse.Namespace) -> int:
+    if args.episodes < 1:
+        raise SoftacError("--episodes must be >= 1")
+    _record_video(Path(args.path), args.checkpoint, args.out, args.episodes, not args.stochastic, args.max_steps)
+    return EXIT_OK
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from softac.plots import plot_runs
+
+    written = plot_runs([Path(r) for r in args.runs], Path(args.out) if args.out else None)
+    for path in written:
+        print(path)
+    return EXIT_OK
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from softac.report import build_report
+
+    run = Path(args.run)
+    if not run.is_dir():
+        raise SoftacError(f"no such run directory: {run}")
+    print(build_report(run, Path(args.out) if args.out else None))
+    return EXIT_OK
+
+
+def cmd_baselines(args: argparse.Namespace) -> int:
+    from softac.baselines import run_baselines
+
+    if args.episodes < 1:
+        raise SoftacError("--episodes must be >= 1")
+    if args.out and not Path(args.out).is_dir():
+        raise SoftacError(f"--out {args.out} is not a run directory")
+    result = run_baselines(args.env, episodes=args.episodes, seed=args.seed)
+    if args.out:
+        from softac.checkpoint import write_atomic
+
+        write_atomic(Path(args.out) / "baselines.json", json.dumps(result, indent=1).encode())
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for name, stats in result["baselines"].items():
+            print(f"{result['env_id']} {name:<9} mean return {stats['mean_return']:9.2f} +- "
+                  f"{stats['std_return']:.2f} over {stats['episodes']} episodes")
+    return EXIT_OK
+
+
 def cmd_presets(args: argparse.Namespace) -> int:
     from softac.config import GENERIC_PRESETS, preset_names, preset_summary
 
@@ -185,7 +287,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return main_from_args(args)
 
 
-COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench}
+COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench, "plot": cmd_plot,
+            "video": cmd_video, "report": cmd_report, "baselines": cmd_baselines}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -56,14 +56,15 @@ def resolve_env_id(env_id: str) -> str:
     return env_id
 
 
-def make_env(source: EnvSource, render_mode: str | None = None) -> gym.Env:
-    """A fresh env from an id, or the given instance itself."""
+def make_env(source: EnvSource, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
+    """A fresh env from an id, or the given instance itself. kwargs go to gym.make (e.g. width)."""
     if isinstance(source, gym.Env):
         return _flatten_obs_if_needed(source)
     if not isinstance(source, str):
         raise EnvError(f"expected a Gymnasium env id or gym.Env instance, got {type(source).__name__}")
     env_id = resolve_env_id(source)
-    kwargs = {"render_mode": render_mode} if render_mode else {}
+    if render_mode:
+        kwargs["render_mode"] = render_mode
     try:
         with contextlib.redirect_stderr(io.StringIO()):
             env = gym.make(env_id, **kwargs)
@@ -72,14 +73,16 @@ def make_env(source: EnvSource, render_mode: str | None = None) -> gym.Env:
     return _flatten_obs_if_needed(env)
 
 
-def copy_env(source: EnvSource, render_mode: str | None = None) -> gym.Env:
+def copy_env(source: EnvSource, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
     """Another env like `source`: made again from its id or spec, else a deep copy."""
     if isinstance(source, str):
-        return make_env(source, render_mode)
+        return make_env(source, render_mode, **kwargs)
     spec = getattr(source, "spec", None)
     if spec is not None:
+        if render_mode:
+            kwargs["render_mode"] = render_mode
         try:
-            return _flatten_obs_if_needed(gym.make(spec, **({"render_mode": render_mode} if render_mode else {})))
+            return _flatten_obs_if_needed(gym.make(spec, **kwargs))
         except Exception:
             pass
     try:

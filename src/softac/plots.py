@@ -1,0 +1,260 @@
+"""Figures from run directories: learning curves, the 2x3 metric grid, multi-seed comparisons.
+
+Everything reads the run directory's CSV files, so it works on finished, running and
+interrupted runs alike, with Matplotlib's non-interactive Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from softac.errors import SoftacError
+from softac.logs import read_csv
+
+METRIC_GRID = [  # (column, title), the notebooks' 2x3 grid
+    ("critic_loss", "critic loss"),
+    ("actor_loss", "actor loss"),
+    ("alpha", "entropy coefficient (alpha)"),
+    (("q1_mean", "q2_mean"), "Q1 / Q2 mean"),
+    ("log_prob_mean", "log-prob mean"),
+    ("alpha_loss", "alpha loss"),
+]
+BASELINE_STYLES = {"random": ":", "zero": "-.", "heuristic": "--"}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _floats(rows: list[dict[str, str]], key: str) -> np.ndarray:
+    out = []
+    for r in rows:
+        try:
+            out.append(float(r.get(key, "") or "nan"))
+        except ValueError:
+            out.append(float("nan"))
+    return np.asarray(out, float)
+
+
+def moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over up to `window` values (shorter at the start, so the curve starts at step 0)."""
+    if len(values) == 0:
+        return values
+    csum = np.cumsum(np.insert(values, 0, 0.0))
+    idx = np.arange(1, len(values) + 1)
+    start = np.maximum(idx - window, 0)
+    return (csum[idx] - csum[start]) / (idx - start)
+
+
+def run_label(run: Path) -> str:
+    config = load_run_config(run)
+    return f"{config.get('env_id', '?')} seed {config.get('seed', '?')}"
+
+
+def load_run_config(run: Path) -> dict[str, Any]:
+    path = run / "config.yaml"
+    if not path.exists():
+        raise SoftacError(f"{run} is not a softac run directory (no config.yaml)")
+    try:
+        return yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError:
+        raise SoftacError(f"{path} is unreadable") from None
+
+
+def load_baselines(run: Path) -> dict[str, Any] | None:
+    path = run / "baselines.json"
+    if path.exists():
+        try:
+            return json.loads(path.read_text()).get("baselines")
+        except (json.JSONDecodeError, AttributeError):
+            return None
+    return None
+
+
+def _draw_baselines(ax, baselines: dict[str, Any] | None) -> None:
+    for name, stats in (baselines or {}).items():
+        ax.axhline(stats["mean_return"], color="grey", lw=1.2, ls=BASELINE_STYLES.get(name, ":"),
+                   label=f"{name} baseline ({stats['mean_return']:.1f})")
+
+
+def plot_learning_curve(run: Path, out: Path, baselines: dict[str, Any] | None = None) -> Path:
+    plt = _pyplot()
+    episodes = read_csv(run / "episodes.csv")
+    evals = read_csv(run / "eval.csv")
+    fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
+    if episodes:
+        steps, returns = _floats(episodes, "step"), _floats(episodes, "return")
+        window = max(1, min(50, len(returns) // 10 or 1))
+        ax.plot(steps, returns, color="tab:blue", alpha=0.25, lw=0.8, label="training episode return")
+        ax.plot(steps, moving_average(returns, window), color="tab:blue", lw=2,
+                label=f"moving average ({window} episodes)")
+    if evals:
+        steps, mean, std = _floats(evals, "step"), _floats(evals, "mean_return"), _floats(evals, "std_return")
+        ax.errorbar(steps, mean, yerr=std, color="tab:orange", marker="o", ms=4, capsize=3, lw=1.5,
+                    label="deterministic evaluation (mean ± std)")
+    _draw_baselines(ax, baselines)
+    if not episodes and not evals:
+        ax.text(0.5, 0.5, "no episodes finished yet", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episode return")
+    ax.set_title(f"Learning curve: {run_label(run)}")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=9)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_metric_grid(run: Path, out: Path) -> Path:
+    plt = _pyplot()
+    rows = [r for r in read_csv(run / "progress.csv") if r.get("critic_loss")]
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), constrained_layout=True)
+    steps = _floats(rows, "step")
+    for ax, (column, title) in zip(axes.flat, METRIC_GRID):
+        columns = column if isinstance(column, tuple) else (column,)
+        marker = "o" if len(rows) < 30 else None  # few rows: show where the points are
+        for i, name in enumerate(columns):
+            ax.plot(steps, _floats(rows, name), lw=1.5, marker=marker, ms=3, color=f"C{i}",
+                    label=name.replace("_mean", "").upper() if len(columns) > 1 else None)
+        if len(columns) > 1:
+            ax.legend(fontsize=9)
+        alpha = _floats(rows, "alpha") if column == "alpha" and rows else None
+        if alpha is not None and np.nanmin(alpha) > 0 and np.nanmax(alpha) / np.nanmin(alpha) > 10:
+            ax.set_yscale("log")  # alpha often falls by orders of magnitude
+        if not rows:
+            ax.text(0.5, 0.5, "no updates logged yet", ha="center", va="center", transform=ax.transAxes)
+        ax.set_title(title)
+        ax.set_xlabel("environment steps")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Training metrics: {run_label(run)}", fontsize=13)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def _config_key(config: dict[str, Any]) -> str:
+    """What tells configurations apart: everything but the seed and bookkeeping."""
+    ignore = {"seed", "versions", "resolved_target_entropy", "total_steps", "device"}
+    return json.dumps({k: v for k, v in sorted(config.items()) if k not in ignore}, sort_keys=True, default=str)
+
+
+def _describe_differences(configs: list[dict[str, Any]]) -> list[str]:
+    keys = sorted({k for c in configs for k in c if k not in ("seed", "versions", "resolved_target_entropy")})
+    varying = [k for k in keys if len({json.dumps(c.get(k), default=str) for c in configs}) > 1]
+    labels = []
+    for c in configs:
+        parts = [f"{k}={c.get(k)}" for k in varying]
+        labels.append(", ".join(parts) if parts else str(c.get("env_id", "runs")))
+    return labels
+
+
+def aligned_eval_curves(runs: list[Path]) -> tuple[np.ndarray, np.ndarray]:
+    """Eval mean returns of several runs on a common step grid (linear interpolation, no extrapolation)."""
+    curves = []
+    for run in runs:
+        rows = read_csv(run / "eval.csv")
+        if rows:
+            curves.append((_floats(rows, "step"), _floats(rows, "mean_return")))
+    if not curves:
+        return np.array([]), np.zeros((0, 0))
+    grid = np.unique(np.concatenate([s for s, _ in curves]))
+    values = np.full((len(curves), len(grid)), np.nan)
+    for i, (s, v) in enumerate(curves):
+        inside = (grid >= s.min()) & (grid <= s.max())
+        values[i, inside] = np.interp(grid[inside], s, v)
+    return grid, values
+
+
+def t_critical_95(n: int) -> float:
+    """Two-sided 95% Student-t quantile for n samples (n - 1 degrees of freedom)."""
+    table = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262,
+             10: 2.228, 12: 2.179, 15: 2.131, 20: 2.086, 30: 2.042}
+    dof = max(n - 1, 1)
+    if dof in table:
+        return table[dof]
+    known = sorted(table)
+    if dof > known[-1]:
+        return 1.96
+    above = min(k for k in known if k > dof)
+    below = max(k for k in known if k < dof)
+    return table[below] + (table[above] - table[below]) * (dof - below) / (above - below)
+
+
+def mean_and_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column: mean, and the 95% confidence interval's half width (Student t over seeds)."""
+    n = np.sum(~np.isnan(values), axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.nanmean(values, axis=0)
+        std = np.nanstd(values, axis=0, ddof=1) if values.shape[0] > 1 else np.zeros(values.shape[1])
+        half = np.array([t_critical_95(int(k)) if k > 1 else 0.0 for k in n]) * np.nan_to_num(std) / np.sqrt(
+            np.maximum(n, 1))
+    return mean, half, n
+
+
+def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | None = None) -> Path:
+    """Mean and 95% CI across seeds, one colour per configuration."""
+    plt = _pyplot()
+    configs = [load_run_config(r) for r in runs]
+    groups: dict[str, list[int]] = {}
+    for i, c in enumerate(configs):
+        groups.setdefault(_config_key(c), []).append(i)
+    labels = _describe_differences([configs[idx[0]] for idx in groups.values()])
+    fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
+    for colour, (label, members) in enumerate(zip(labels, groups.values())):
+        grid, values = aligned_eval_curves([runs[i] for i in members])
+        if len(grid) == 0:
+            continue
+        mean, half, n = mean_and_ci(values)
+        ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({len(members)} seeds)")
+        if len(members) > 1:
+            ax.fill_between(grid, mean - half, mean + half, color=f"C{colour}", alpha=0.2)
+    _draw_baselines(ax, baselines)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("deterministic eval return")
+    ax.set_title("Evaluation return: mean and 95% confidence band across seeds")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=9)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_runs(runs: list[Path], out_dir: Path | None = None) -> list[Path]:
+    """All figures for one or more runs; returns the files written."""
+    for run in runs:
+        if not run.is_dir():
+            raise SoftacError(f"no such run directory: {run}")
+        load_run_config(run)
+    written = []
+    if len(runs) == 1:
+        run = runs[0]
+        out = out_dir or run / "plots"
+        out.mkdir(parents=True, exist_ok=True)
+        baselines = load_baselines(run)
+        written.append(plot_learning_curve(run, out / "learning_curve.png", baselines))
+        written.append(plot_metric_grid(run, out / "metrics.png"))
+    else:
+        if out_dir is None:
+            raise SoftacError("plotting several runs needs --out DIR")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        written.append(plot_comparison(runs, out_dir / "comparison.png", load_baselines(runs[0])))
+        for run in runs:
+            sub = out_dir / run.name
+            sub.mkdir(exist_ok=True)
+            written.append(plot_learning_curve(run, sub / "learning_curve.png", load_baselines(run)))
+    return written
+
+
+def finite_or_none(x: float) -> float | None:
+    return x if isinstance(x, float) and math.isfinite(x) else None

@@ -1,0 +1,133 @@
+"""Videos of an agent: MuJoCo rendered offscreen (EGL or OSMesa, chosen automatically) to MP4.
+
+MuJoCo picks its OpenGL backend from MUJOCO_GL when it is first imported, so
+`choose_gl_backend()` must run before any MuJoCo env is made in the process.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from softac.errors import SoftacError
+
+GL_BACKENDS = ("egl", "osmesa")
+NO_GL_MESSAGE = ("headless rendering found neither EGL nor OSMesa: install Debian's libegl1 (with a Mesa or NVIDIA "
+                 "driver) or libosmesa6 (apt-get install libosmesa6), or set MUJOCO_GL")
+_PROBE = ("import os, sys; os.environ['MUJOCO_GL'] = sys.argv[1]; import mujoco; "
+          "ctx = mujoco.GLContext(16, 16); ctx.make_current(); ctx.free()")
+
+
+def gl_backend_works(backend: str) -> bool:
+    try:
+        r = subprocess.run([sys.executable, "-c", _PROBE, backend], capture_output=True, timeout=60)
+    except (subprocess.TimeoutExpired, OSError):
+        return False
+    return r.returncode == 0
+
+
+def choose_gl_backend() -> str:
+    """MUJOCO_GL as set by the user, else the first backend that can make a context here."""
+    chosen = os.environ.get("MUJOCO_GL")
+    if chosen:
+        return chosen
+    if "mujoco" in sys.modules:  # too late to choose for this process; keep what MuJoCo picked
+        return "preset"
+    for backend in GL_BACKENDS:
+        if gl_backend_works(backend):
+            os.environ["MUJOCO_GL"] = backend
+            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+            return backend
+    raise SoftacError(NO_GL_MESSAGE)
+
+
+def _label(frame: np.ndarray, text: str) -> np.ndarray:
+    from PIL import Image, ImageDraw, ImageFont
+
+    image = Image.fromarray(frame)
+    draw = ImageDraw.Draw(image)
+    try:
+        font = ImageFont.load_default(size=max(14, frame.shape[0] // 24))
+    except TypeError:  # Pillow < 10.1 has no sized default font
+        font = ImageFont.load_default()
+    box = draw.textbbox((8, 6), text, font=font)
+    draw.rectangle((box[0] - 4, box[1] - 3, box[2] + 4, box[3] + 3), fill=(0, 0, 0))
+    draw.text((8, 6), text, fill=(255, 255, 255), font=font)
+    return np.asarray(image)
+
+
+def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True, seed: int | None = None,
+           width: int = 640, height: int = 480, max_steps: int | None = None) -> dict[str, Any]:
+    """Render `episodes` episodes of `agent` into one MP4 at `out`; returns returns and lengths."""
+    import imageio.v2 as imageio
+
+    from softac.envs import EnvError
+    from softac.evaluation import EVAL_SEED_OFFSET
+
+    seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
+    try:
+        env = agent.make_env(render_mode="rgb_array", width=width, height=height)
+    except EnvError:
+        env = agent.make_env(render_mode="rgb_array")
+    if env.render_mode != "rgb_array":
+        raise SoftacError(f"env {agent.config.env_id} cannot render rgb_array frames")
+    fps = int(env.metadata.get("render_fps") or 30)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.partial{out.suffix}")
+    returns, lengths = [], []
+    try:
+        writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
+                                    ffmpeg_log_level="error", format="FFMPEG")
+        try:
+            for episode in range(episodes):
+                obs, _ = env.reset(seed=seed + episode)
+                total, steps, done = 0.0, 0, False
+                while not done:
+                    frame = _render(env)
+                    writer.append_data(_label(frame, f"episode {episode + 1}/{episodes}  step {steps}  "
+                                                     f"return {total:.1f}"))
+                    action = agent.predict(np.asarray(obs, np.float32).reshape(-1), deterministic=deterministic)
+                    obs, reward, terminated, truncated, _ = env.step(action)
+                    total += float(reward)
+                    steps += 1
+                    done = terminated or truncated or (max_steps is not None and steps >= max_steps)
+                final = _label(_render(env), f"episode {episode + 1}/{episodes}  step {steps}  return {total:.1f}")
+                for _ in range(fps // 2):  # hold the last frame half a second, return visible
+                    writer.append_data(final)
+                returns.append(total)
+                lengths.append(steps)
+        finally:
+            writer.close()
+        os.replace(tmp, out)
+    finally:
+        env.close()
+        if tmp.exists():
+            tmp.unlink()
+    return {"path": str(out), "returns": returns, "lengths": lengths, "fps": fps,
+            "mean_return": float(np.mean(returns))}
+
+
+def _render(env) -> np.ndarray:
+    try:
+        frame = env.render()
+    except Exception as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SoftacError(f"rendering failed ({message}); {NO_GL_MESSAGE}") from None
+    if frame is None:
+        raise SoftacError("the env returned no frame; it may not support rgb_array rendering")
+    return np.asarray(frame, np.uint8)
+
+
+def default_video_path(run_or_ckpt: Path, step: int, mean_return: float | None = None) -> Path:
+    from softac.checkpoint import is_checkpoint
+
+    base = run_or_ckpt
+    if is_checkpoint(run_or_ckpt) and run_or_ckpt.parent.name == "checkpoints":
+        base = run_or_ckpt.parent.parent
+    name = f"step{step}" + (f"-return{mean_return:.0f}" if mean_return is not None else "") + ".mp4"
+    return base / "videos" / name

@@ -1,0 +1,170 @@
+"""What a person looks at: plots, videos, the HTML report, baselines."""
+
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from conftest import assert_clean_error, run_cli
+
+SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "buffer_size=5000",
+        "log_interval=100", "eval_interval=200", "eval_episodes=2"]
+
+
+@pytest.fixture(scope="module")
+def pendulum_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "pendulum"
+    r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", *SETS)
+    assert r.returncode == 0, r.stderr
+    return run
+
+
+def _png_size(path):
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return im.size
+
+
+def test_plot_single_run(pendulum_run):
+    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--out", str(pendulum_run))
+    assert r.returncode == 0, r.stderr
+    r = run_cli("plot", str(pendulum_run))
+    assert r.returncode == 0, r.stderr
+    for name in ("learning_curve.png", "metrics.png"):
+        path = pendulum_run / "plots" / name
+        assert path.exists() and path.stat().st_size > 10_000
+        w, h = _png_size(path)
+        assert w >= 900 and h >= 500
+
+
+def test_plot_several_runs_groups_configs(tmp_path):
+    runs = []
+    for seed in (0, 1):
+        for tau in ("0.01", "0.05"):
+            run = tmp_path / f"tau{tau}-s{seed}"
+            r = run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "400", "--seed", str(seed),
+                        "--out", str(run), "--no-progress", *SETS, f"tau={tau}")
+            assert r.returncode == 0, r.stderr
+            runs.append(str(run))
+    out = tmp_path / "cmp"
+    r = run_cli("plot", *runs, "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert (out / "comparison.png").stat().st_size > 10_000
+    assert len(list(out.glob("*/learning_curve.png"))) == 4
+    assert_clean_error(run_cli("plot", *runs), "--out")
+
+
+def test_confidence_band_maths():
+    from softac.plots import aligned_eval_curves, mean_and_ci, moving_average, t_critical_95
+
+    values = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
+    mean, half, n = mean_and_ci(values)
+    np.testing.assert_allclose(mean, [3.0, 4.0])
+    np.testing.assert_allclose(half, [t_critical_95(3) * 2.0 / np.sqrt(3)] * 2)
+    assert t_critical_95(2) == pytest.approx(12.706) and t_critical_95(1000) == pytest.approx(1.96)
+    np.testing.assert_allclose(moving_average(np.array([1.0, 3.0, 5.0, 7.0]), 2), [1.0, 2.0, 4.0, 6.0])
+    assert aligned_eval_curves([])[0].size == 0
+
+
+def test_baselines_json_and_heuristics():
+    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)["baselines"]
+    assert set(out) == {"random", "zero", "heuristic"}
+    assert out["heuristic"]["mean_return"] == 1000.0  # the hand-written controller balances the pole
+    assert out["random"]["mean_return"] < 100
+    r = run_cli("baselines", "--env", "Pusher-v5", "--episodes", "4", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)["baselines"]
+    assert out["heuristic"]["mean_return"] > out["zero"]["mean_return"] > out["random"]["mean_return"]
+    r = run_cli("baselines", "--env", "softac_test_envs:Drift-v0", "--episodes", "2", "--json")
+    assert set(json.loads(r.stdout)["baselines"]) == {"random", "zero"}  # no heuristic for an unknown env
+    assert_clean_error(run_cli("baselines", "--env", "CartPole-v1"), "Discrete action space")
+
+
+def test_video_is_an_mp4_with_the_return_in_its_name(pendulum_run):
+    r = run_cli("video", str(pendulum_run), "--max-steps", "60")
+    assert r.returncode == 0, r.stderr
+    videos = list((pendulum_run / "videos").glob("step*-return*.mp4"))
+    assert len(videos) == 1
+    import imageio.v2 as imageio
+
+    reader = imageio.get_reader(videos[0])
+    frames = [f for _, f in zip(range(5), reader)]
+    reader.close()
+    assert frames[0].shape == (480, 640, 3) and max(f.mean() for f in frames) > 1.0
+    out = pendulum_run / "custom.mp4"
+    r = run_cli("video", str(pendulum_run), "--out", str(out), "--episodes", "2", "--max-steps", "20")
+    assert r.returncode == 0 and out.stat().st_size > 1000
+    assert_clean_error(run_cli("video", str(pendulum_run), "--out", str(pendulum_run / "x.gif")), ".mp4")
+
+
+def test_video_without_any_gl_backend_names_the_packages(pendulum_run):
+    r = run_cli("video", str(pendulum_run), "--max-steps", "5", env_extra={"MUJOCO_GL": "osmesa",
+                                                                            "PYOPENGL_PLATFORM": "osmesa",
+                                                                            "LD_LIBRARY_PATH": "/nonexistent"})
+    if r.returncode == 0:
+        pytest.skip("OSMesa is installed here, so this machine cannot show the missing-backend error")
+    assert_clean_error(r, "libosmesa6")
+
+
+def _chromium():
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def test_report_is_self_contained_and_renders_in_chromium(pendulum_run, tmp_path):
+    r = run_cli("report", str(pendulum_run))
+    assert r.returncode == 0, r.stderr
+    page = (pendulum_run / "report.html").read_text()
+    assert "http://" not in page and "https://" not in page  # no network requests
+    assert page.count("data:image/png;base64,") >= 2 and "data:video/mp4;base64," in page
+    for text in ("Evaluations", "Baselines", "Configuration", "Versions and machine", "heuristic"):
+        assert text in page
+    chromium = _chromium()
+    if chromium is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing in CI: `make test` should have installed it")
+        pytest.skip("chromium not installed (make test installs it)")
+    result = subprocess.run(
+        [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         f"--user-data-dir={tmp_path / 'profile'}", "--enable-logging=stderr", "--v=0",
+         "--virtual-time-budget=10000", "--dump-dom", (pendulum_run / "report.html").as_uri()],
+        capture_output=True, text=True, timeout=120)
+    dom = result.stdout
+    assert 'data-images-loaded="2"' in dom and 'data-images-total="2"' in dom, dom[:300]
+    assert 'data-errors="0"' in dom
+    console_errors = [line for line in result.stderr.splitlines() if "CONSOLE" in line and "ERROR" in line]
+    assert not console_errors, console_errors
+    shot = tmp_path / "report.png"
+    subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                    f"--user-data-dir={tmp_path / 'profile2'}", "--window-size=1200,2400",
+                    f"--screenshot={shot}", (pendulum_run / "report.html").as_uri()],
+                   capture_output=True, timeout=120)
+    assert shot.exists() and shot.stat().st_size > 20_000
+
+
+def test_report_and_plot_errors(tmp_path):
+    assert_clean_error(run_cli("report", str(tmp_path / "missing")), "no such run directory")
+    assert_clean_error(run_cli("plot", str(tmp_path)), "not a softac run directory")
+
+
+def test_gl_backend_choice(monkeypatch):
+    import softac.video as video
+
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.setattr(video, "gl_backend_works", lambda backend: False)
+    monkeypatch.setattr(video.sys, "modules", {k: v for k, v in video.sys.modules.items() if k != "mujoco"})
+    with pytest.raises(video.SoftacError, match="libosmesa6"):
+        video.choose_gl_backend()
+    monkeypatch.setattr(video, "gl_backend_works", lambda backend: backend == "osmesa")
+    assert video.choose_gl_backend() == "osmesa" and os.environ["MUJOCO_GL"] == "osmesa"
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    assert video.choose_gl_backend() == "egl"  # the user's choice wins
