@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -81,8 +82,10 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
     tmp = out.with_name(f".{out.stem}.partial{out.suffix}")
     returns, lengths = [], []
     try:
-        writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
-                                    ffmpeg_log_level="error", format="FFMPEG")
+        with warnings.catch_warnings():  # imageio starts ffmpeg with fork+exec, which is safe beside JAX's threads
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
+                                        ffmpeg_log_level="error", format="FFMPEG")
         try:
             for episode in range(episodes):
                 obs, _ = env.reset(seed=seed + episode)
