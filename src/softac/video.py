@@ -81,11 +81,11 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.partial{out.suffix}")
     returns, lengths = [], []
+    # imageio starts ffmpeg (fork+exec of a binary) on the first frame: safe beside JAX's threads
+    warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
     try:
-        with warnings.catch_warnings():  # imageio starts ffmpeg with fork+exec, which is safe beside JAX's threads
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-            writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
-                                        ffmpeg_log_level="error", format="FFMPEG")
+        writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
+                                    ffmpeg_log_level="error", format="FFMPEG")
         try:
             for episode in range(episodes):
                 obs, _ = env.reset(seed=seed + episode)
