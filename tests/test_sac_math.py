@@ -169,3 +169,17 @@ def test_bfloat16_matmuls_stay_close_to_float32():
     new_state, metrics = bf16.update(bf16.init(0), _batch(np.random.default_rng(0), 2, 8, 3, 2))
     assert all(np.isfinite(float(v)) for v in metrics.values())
     assert jax.tree_util.tree_leaves(new_state.actor)[0].dtype == jnp.float32  # parameters stay f32
+
+
+def test_critic_layer_norm_normalises_hidden_features():
+    from softac.networks import critics_apply, init_critics, layer_norm
+
+    h = layer_norm(jnp.asarray(np.random.default_rng(0).normal(3.0, 5.0, (4, 64)), jnp.float32))
+    np.testing.assert_allclose(np.asarray(h.mean(-1)), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(h.std(-1)), 1.0, atol=1e-3)
+    params = init_critics(np.random.default_rng(0), 3, 2, [32, 32], "default", 2)
+    obs, act = jnp.ones((5, 3)) * 1000.0, jnp.zeros((5, 2))
+    plain = critics_apply(params, obs, act, "relu")
+    normed = critics_apply(params, obs, act, "relu", normalize=True)
+    assert normed.shape == plain.shape == (2, 5)
+    assert float(jnp.abs(normed).max()) < 0.1 * float(jnp.abs(plain).max())  # huge inputs stay bounded

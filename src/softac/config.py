@@ -52,6 +52,7 @@ class SACConfig:
     gradient_steps: int = _f(1, "gradient steps per vector-env step (all fused in one jitted call)")
     policy_frequency: int = _f(1, "critic updates per actor/alpha update round; each round does this many actor updates (CleanRL's delayed update)")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum")
+    critic_layer_norm: bool = _f(False, "LayerNorm before each hidden activation of the critics (RLPD; for high gradient_steps)")
     hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
     activation: str = _f("relu", "hidden activation: relu, tanh, elu or gelu")
     init: str = _f("default", "weight init: default (fan-in uniform, as PyTorch) or orthogonal")

@@ -84,10 +84,20 @@ def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
     return bf16_matmul(x, w) + layer["b"]
 
 
-def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32") -> jax.Array:
+def layer_norm(x: jax.Array, eps: float = 1e-5) -> jax.Array:
+    mean = jnp.mean(x, axis=-1, keepdims=True)
+    var = jnp.mean(jnp.square(x - mean), axis=-1, keepdims=True)
+    return (x - mean) * jax.lax.rsqrt(var + eps)
+
+
+def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
+        normalize: bool = False) -> jax.Array:
+    """`normalize` puts a LayerNorm (no affine) before each hidden activation (Ball et al. 2023, RLPD):
+    it keeps critics stable at high update-to-data ratios."""
     act = ACTIVATIONS[activation]
     for layer in params[:-1]:
-        x = act(dense(x, layer, matmul_dtype))
+        h = dense(x, layer, matmul_dtype)
+        x = act(layer_norm(h) if normalize else h)
     return dense(x, params[-1], matmul_dtype)
 
 
@@ -105,8 +115,8 @@ def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: l
 
 
 def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
-                  matmul_dtype: str = "float32") -> jax.Array:
+                  matmul_dtype: str = "float32", normalize: bool = False) -> jax.Array:
     """Q-values of every critic: shape [n_critics, batch]."""
     x = jnp.concatenate([obs, actions], axis=-1)
-    q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype))(params)
+    q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype, normalize))(params)
     return q[..., 0]

@@ -136,7 +136,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     alpha_tx = optax.adam(c.alpha_lr)
 
     def q_values(critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
-        return critics_apply(critic, obs, actions, c.activation, c.matmul_dtype)
+        return critics_apply(critic, obs, actions, c.activation, c.matmul_dtype, c.critic_layer_norm)
 
     def assemble(actor: Any, critic: Any, key: jax.Array) -> SACState:
         log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
