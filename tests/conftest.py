@@ -40,3 +40,13 @@ def assert_clean_error(result: subprocess.CompletedProcess, *fragments: str) -> 
 @pytest.fixture
 def tiny():
     return tiny_config
+
+
+def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
+    """A failure during training: exit 2, no traceback, the error as the last line (after progress lines)."""
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert "Traceback" not in result.stderr
+    last = [line for line in result.stderr.splitlines() if line.strip()][-1]
+    assert last.startswith("softac: error: "), last
+    for fragment in fragments:
+        assert fragment in last, (fragment, last)

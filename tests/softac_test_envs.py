@@ -67,7 +67,43 @@ class NanObsEnv(DriftEnv):
         return obs, r, term, trunc, info
 
 
+class NanRewardEnv(DriftEnv):
+    def step(self, action):
+        obs, r, term, trunc, info = super().step(action)
+        return obs, (float("nan") if self.t >= 30 else r), term, trunc, info
+
+
+class BrokenResetEnv(DriftEnv):
+    resets = 0
+
+    def reset(self, *, seed=None, options=None):
+        BrokenResetEnv.resets += 1
+        if BrokenResetEnv.resets > 3:
+            raise OSError("simulator license expired")
+        return super().reset(seed=seed, options=options)
+
+
+class HugeRewardEnv(DriftEnv):
+    """Finite but absurd rewards: the critic's loss overflows to inf."""
+
+    def step(self, action):
+        obs, r, term, trunc, info = super().step(action)
+        return obs, 3e38, term, trunc, info
+
+
+class SlowEnv(DriftEnv):
+    def step(self, action):
+        import time
+
+        time.sleep(0.002)
+        return super().step(action)
+
+
 gym.register("Drift-v0", entry_point=DriftEnv, max_episode_steps=25)
 gym.register("Unbounded-v0", entry_point=UnboundedEnv, max_episode_steps=25)
 gym.register("BrokenStep-v0", entry_point=BrokenStepEnv, max_episode_steps=100)
 gym.register("NanObs-v0", entry_point=NanObsEnv, max_episode_steps=100)
+gym.register("NanReward-v0", entry_point=NanRewardEnv, max_episode_steps=100)
+gym.register("BrokenReset-v0", entry_point=BrokenResetEnv, max_episode_steps=10)
+gym.register("HugeReward-v0", entry_point=HugeRewardEnv, max_episode_steps=25)
+gym.register("Slow-v0", entry_point=SlowEnv, max_episode_steps=25)

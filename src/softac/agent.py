@@ -34,6 +34,26 @@ def _versions() -> dict[str, str]:
     return out
 
 
+def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5) -> None:
+    """Refuse networks and batches the machine cannot hold, before allocating anything."""
+    from softac.buffer import _human, available_memory_bytes
+
+    def mlp_params(sizes: list[int]) -> int:
+        return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
+
+    actor = mlp_params([obs_dim, *config.hidden_sizes, 2 * act_dim])
+    critics = config.n_critics * mlp_params([obs_dim + act_dim, *config.hidden_sizes, 1])
+    parameters = 4 * (3 * actor + 4 * critics)  # weights + Adam moments; critics also have targets
+    # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases)
+    activations = 4 * config.batch_size * sum(config.hidden_sizes) * (4 * config.n_critics + 4)
+    batch = 4 * config.batch_size * config.gradient_steps * (2 * obs_dim + act_dim + 2)
+    need, have = parameters + activations + batch, available_memory_bytes()
+    if need > fraction * have:
+        raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "
+                          f"batch_size={config.batch_size}) but only {_human(have)} is available; "
+                          "lower hidden_sizes or batch_size")
+
+
 class SAC:
     """A Soft Actor-Critic agent for one env (an id or a gym.Env instance)."""
 
@@ -59,6 +79,7 @@ class SAC:
         else:
             self.env_source = probe  # the (possibly flattened) user instance
 
+        check_model_memory(config, self.spaces.obs_dim, self.spaces.act_dim)
         from softac import sac
 
         self.fns = sac.build(config, self.spaces.obs_dim, self.spaces.act_dim, self.spaces.low, self.spaces.high)

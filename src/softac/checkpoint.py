@@ -90,7 +90,7 @@ def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarr
         if old.name != name:
             with contextlib.suppress(OSError):
                 old.unlink()
-    for stale in directory.glob(".arrays-*.tmp"):
+    for stale in [*directory.glob(".arrays-*.tmp"), *directory.glob(f".{META}.*.tmp")]:
         with contextlib.suppress(OSError):
             stale.unlink()
     return directory

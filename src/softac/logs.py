@@ -33,13 +33,20 @@ class CsvLog:
             self.file.flush()
 
     def _truncate_after(self, step: int) -> None:
+        """Keep the header and the whole rows up to `step`: a kill can leave a half-written last row."""
+        import io
+
+        from softac.checkpoint import write_atomic
+
         with open(self.path, newline="") as f:
             rows = list(csv.reader(f))
         if not rows:
             return
-        kept = [rows[0]] + [r for r in rows[1:] if r and _as_int(r[0]) is not None and _as_int(r[0]) <= step]
-        with open(self.path, "w", newline="") as f:
-            csv.writer(f).writerows(kept)
+        whole = [r for r in rows[1:] if len(r) == len(self.columns) and _as_int(r[0]) is not None]
+        kept = [self.columns] + [r for r in whole if _as_int(r[0]) <= step]
+        text = io.StringIO()
+        csv.writer(text).writerows(kept)
+        write_atomic(self.path, text.getvalue().encode())
 
     def write(self, row: dict[str, Any]) -> None:
         self.writer.writerow([_fmt(row.get(c, "")) for c in self.columns])

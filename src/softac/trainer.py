@@ -115,6 +115,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
     def save_checkpoint(name: str, with_buffer: bool) -> str | None:
         if run is None:
             return None
+        if last_metrics is not None:  # never replace a good checkpoint with diverged weights
+            _check_finite({k: float(v) for k, v in last_metrics.items()}, agent.num_steps)
         agent.train_time_s = elapsed()
         ts["recent_returns"] = list(recent)
         meta, arrays = agent.checkpoint_parts(include_buffer=with_buffer)
@@ -124,7 +126,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
             raise SoftacError(f"could not write checkpoint {run / 'checkpoints' / name}: {exc.strerror or exc}; "
                               "the previous checkpoint is kept") from None
 
-    def evaluate_now(step: int, stop: StopSignal) -> dict[str, Any]:
+    def evaluate_now(step: int, stop: StopSignal) -> dict[str, Any] | None:
         nonlocal eval_envs
         if eval_envs is None:
             eval_envs = [agent.make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
@@ -132,6 +134,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
         stats = run_episodes(lambda obs: scaler.to_env(np.asarray(fns.act_deterministic(actor, obs))),
                              agent.make_env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET, envs=eval_envs,
                              should_stop=lambda: stop.requested)
+        if stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
+            return None
         ts["last_eval"] = stats["mean_return"]
         ts["last_eval_step"] = step
         if logger is not None:
@@ -163,6 +167,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
 
     try:
         with StopSignal() as stop:
+            if run is not None and not (run / "checkpoints" / "last").exists():
+                save_checkpoint("last", with_buffer=True)  # from its first moment a run holds a loadable checkpoint
             while agent.num_steps < end_step:
                 if stop.requested:
                     where = save_checkpoint("last", with_buffer=True)
@@ -175,6 +181,9 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                 else:  # NumPy goes straight into the jitted call: jnp.asarray would cost more than the env step
                     actions, env_actions, agent.act_key = fns.act(agent.state.actor, obs, agent.act_key)
                     actions, env_actions = np.asarray(actions), np.asarray(env_actions)
+                    if not np.all(np.isfinite(actions)):
+                        raise SoftacError(f"training diverged at step {before}: the policy produced non-finite "
+                                          "actions; the last good checkpoint is kept")
                 result = pool.step(env_actions, before)
                 buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated)
                 agent.num_steps = after = before + n_envs
@@ -193,7 +202,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                     log_row(after)
                 if crossed(before, after, cfg.eval_interval):
                     stats = evaluate_now(after, stop)
-                    if target_return is not None and stats["mean_return"] >= target_return:
+                    if stats is not None and target_return is not None and stats["mean_return"] >= target_return:
                         stopped_early = True
                 if crossed(before, after, cfg.checkpoint_interval) or (stopped_early and run is not None):
                     save_checkpoint("last", with_buffer=True)
@@ -209,6 +218,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
             if final_step > start_step and cfg.eval_interval > 0 and ts.get("last_eval_step") != final_step:
                 evaluate_now(final_step, stop)
             save_checkpoint("last", with_buffer=True)
+            if stop.requested:
+                raise TrainingInterrupted(agent.num_steps, str(run / "checkpoints" / "last") if run else None)
     finally:
         show.close(agent.num_steps)
         agent.train_time_s = elapsed()

@@ -1,0 +1,267 @@
+"""Nothing lost: each promise of docs/reliability.md, proven by injecting the fault."""
+
+import csv
+import errno
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import TESTS, assert_clean_error, assert_training_error, run_cli, tiny_config
+
+TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "buffer_size=20000",
+             "log_interval=100", "eval_interval=0"]
+
+
+def _popen_train(*args):
+    env = dict(os.environ, PYTHONPATH=str(TESTS))
+    return subprocess.Popen([sys.executable, "-m", "softac", "train", "--no-progress", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _wait_for(predicate, proc, timeout=120.0):
+    deadline = time.time() + timeout
+    while not predicate():
+        assert proc.poll() is None, proc.communicate()[1]
+        assert time.time() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def _checkpoint_step(run):
+    return json.loads((run / "checkpoints" / "last" / "meta.json").read_text())["num_steps"]
+
+
+def _csv_rows(path):
+    with open(path, newline="") as f:
+        return list(csv.reader(f))
+
+
+def _assert_whole_files(run):
+    """Every file a reader sees is whole: CSVs have full rows, checkpoints verify and load."""
+    for name in ("progress.csv", "episodes.csv", "eval.csv"):
+        if (run / name).exists():
+            rows = _csv_rows(run / name)
+            assert all(len(r) == len(rows[0]) for r in rows[:-1]), name  # at most the row being written is cut
+    from softac.agent import SAC
+
+    return SAC.load(run, which="last")
+
+
+@pytest.mark.faults
+def test_repeated_kill_9_never_loses_more_than_a_checkpoint_interval(tmp_path):
+    run = tmp_path / "run"
+    rng = random.Random(0)
+    interval = 300
+    args = ["--env", "softac_test_envs:Drift-v0", "--steps", "1000000", "--out", str(run), *TINY_SETS,
+            f"checkpoint_interval={interval}"]
+    last_checkpoint = -1
+    for round_ in range(5):
+        proc = _popen_train(*args) if round_ == 0 else _popen_train("--resume", str(run))
+        _wait_for(lambda: (run / "checkpoints" / "last" / "meta.json").exists(), proc)
+        time.sleep(rng.uniform(1.0, 4.0))
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate()
+        agent = _assert_whole_files(run)  # loadable after every kill
+        step = _checkpoint_step(run)
+        assert agent.num_steps == step >= last_checkpoint
+        rows = _csv_rows(run / "progress.csv")[1:]
+        reached = max((int(r[0]) for r in rows if len(r) > 1 and r[0].isdigit()), default=0)
+        assert reached - step <= interval, (reached, step)  # lost at most one checkpoint interval
+        last_checkpoint = step
+    r = run_cli("train", "--resume", str(run), "--steps", "200", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    steps = [int(row[0]) for row in _csv_rows(run / "progress.csv")[1:]]
+    assert steps == sorted(set(steps))  # resumed logs hold no step twice and no half rows
+
+
+def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
+    run = tmp_path / "run"
+    proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
+                        "--set", "hidden_sizes=16", "batch_size=16", "learning_starts=50", "eval_interval=100",
+                        "eval_episodes=2000", "checkpoint_interval=0", "buffer_size=1000")
+    _wait_for(lambda: (run / "checkpoints" / "last" / "meta.json").exists(), proc)
+    time.sleep(3.0)  # 100 steps take ~0.3 s; evaluating 2000 slow episodes takes minutes
+    assert (run / "eval.csv").read_text().count("\n") == 1  # still inside the first evaluation
+    sent = time.time()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, err
+    assert time.time() - sent < 10
+    assert (run / "eval.csv").read_text().count("\n") == 1  # the cut evaluation was not recorded
+    assert _checkpoint_step(run) >= 100
+
+
+def test_sigterm_during_a_checkpoint_write_finishes_it_then_exits(tmp_path, monkeypatch):
+    from softac import checkpoint as ckpt
+    from softac.agent import SAC
+    from softac.errors import TrainingInterrupted
+
+    real_save, calls = ckpt.save, []
+
+    def save_with_signal(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives in the middle of the second write
+        return real_save(*args, **kwargs)
+
+    monkeypatch.setattr(ckpt, "save", save_with_signal)
+    agent = SAC(tiny_config(checkpoint_interval=200))
+    with pytest.raises(TrainingInterrupted):
+        agent.learn(100_000, run_dir=tmp_path / "run", progress=False)
+    assert SAC.load(tmp_path / "run", which="last").num_steps == agent.num_steps
+
+
+def test_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    from softac.agent import SAC
+    from softac.errors import SoftacError
+
+    real_savez, calls = np.savez, []
+
+    def savez_then_disk_full(file, **arrays):
+        calls.append(1)
+        if len(calls) >= 3:
+            file.write(b"partial")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_savez(file, **arrays)
+
+    monkeypatch.setattr(np, "savez", savez_then_disk_full)
+    run = tmp_path / "run"
+    agent = SAC(tiny_config(checkpoint_interval=200))
+    with pytest.raises(SoftacError, match="No space left on device; the previous checkpoint is kept"):
+        agent.learn(1000, run_dir=run, progress=False)
+    monkeypatch.setattr(np, "savez", real_savez)
+    assert SAC.load(run, which="last").num_steps == 200
+    leftovers = [p.name for p in (run / "checkpoints" / "last").iterdir() if p.name.startswith(".")]
+    assert leftovers == []
+
+
+def test_full_disk_on_a_real_small_filesystem(tmp_path):
+    mount = tmp_path / "small"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        run = mount / "run"
+        # a 20k-transition buffer of Pusher-sized rows outgrows 2 MiB after a few thousand steps
+        r = run_cli("train", "--env", "Pusher-v5", "--steps", "20000", "--out", str(run), "--no-progress",
+                    *TINY_SETS, "checkpoint_interval=1000", "learning_starts=20000", timeout=300)
+        assert_training_error(r, "could not write checkpoint", "No space left on device",
+                           "the previous checkpoint is kept")
+        from softac.agent import SAC
+
+        assert SAC.load(run, which="last").num_steps >= 0
+    finally:
+        subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+@pytest.mark.parametrize("env_id,fragment", [
+    ("NanObs-v0", "non-finite observation at step"),
+    ("NanReward-v0", "non-finite reward at step"),
+    ("BrokenStep-v0", "BrokenStep-v0 raised in step at step"),
+    ("BrokenReset-v0", "BrokenReset-v0 raised in reset at step"),
+    ("HugeReward-v0", "training diverged at step"),
+])
+def test_bad_env_or_divergence_stops_with_exit_2_and_keeps_the_checkpoint(tmp_path, env_id, fragment):
+    run = tmp_path / "run"
+    r = run_cli("train", "--env", f"softac_test_envs:{env_id}", "--steps", "3000", "--out", str(run), *TINY_SETS,
+                "checkpoint_interval=20", "--no-progress")
+    assert_training_error(r, fragment)
+    from softac.agent import SAC
+    import jax
+
+    agent = SAC.load(run, which="last")
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(agent.state))
+
+
+def test_checkpoints_never_execute_code(tmp_path):
+    from softac.agent import SAC
+
+    agent = SAC(tiny_config())
+    agent.save(tmp_path / "ckpt")
+    meta = json.loads((tmp_path / "ckpt" / "meta.json").read_text())
+    arrays = tmp_path / "ckpt" / meta["arrays_file"]
+    with open(arrays, "wb") as f:  # a pickled object array, as a malicious file would carry
+        np.savez(f, act_key=np.array([object()], dtype=object))
+    import hashlib
+
+    meta["sha256"] = hashlib.sha256(arrays.read_bytes()).hexdigest()
+    (tmp_path / "ckpt" / "meta.json").write_text(json.dumps(meta))
+    assert_clean_error(run_cli("eval", str(tmp_path / "ckpt")), "corrupt checkpoint", "cannot read")
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "meta.json").write_bytes(os.urandom(64))
+    assert_clean_error(run_cli("eval", str(tmp_path / "foreign")), "corrupt checkpoint")
+
+
+def test_same_seed_is_identical_across_processes(tmp_path):
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for run in runs:
+        r = run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "700", "--out", str(run),
+                    "--no-progress", *TINY_SETS, "eval_interval=350")
+        assert r.returncode == 0, r.stderr
+
+    def metrics(run):
+        rows = _csv_rows(run / "progress.csv")
+        keep = [i for i, c in enumerate(rows[0]) if c not in ("time_s", "fps")]
+        return [[r[i] for i in keep] for r in rows]
+
+    assert metrics(runs[0]) == metrics(runs[1])
+    for name in ("episodes.csv", "eval.csv"):
+        assert (runs[0] / name).read_text() == (runs[1] / name).read_text()
+    a = np.load(next((runs[0] / "checkpoints" / "last").glob("arrays-*.npz")))
+    b = np.load(next((runs[1] / "checkpoints" / "last").glob("arrays-*.npz")))
+    for key in a.files:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+# ---- fuzzing: any value runs or is refused with a ConfigError / exit 2, never a traceback ----
+
+from softac.config import ConfigError, SACConfig  # noqa: E402
+
+values = st.one_of(st.integers(-10**12, 10**12), st.floats(allow_nan=True, allow_infinity=True),
+                   st.booleans(), st.none(), st.text(max_size=12),
+                   st.lists(st.integers(-5, 300), max_size=4), st.sampled_from(["auto", "1e3", "256,256", "-1", ""]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(key=st.sampled_from(sorted(SACConfig.field_docs()) + ["bogus_key"]), value=values)
+def test_config_fuzz(key, value):
+    try:
+        SACConfig().replace(**{key: value})
+    except ConfigError:
+        pass
+
+
+@settings(max_examples=200, deadline=None)
+@given(key=st.sampled_from(sorted(SACConfig.field_docs())), text=st.text(max_size=16))
+def test_set_fuzz_parses_or_refuses(key, text):
+    try:
+        SACConfig().with_overrides([f"{key}={text}"])
+    except ConfigError:
+        pass
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(pairs=st.lists(st.tuples(st.sampled_from(["batch_size", "hidden_sizes", "gamma", "tau", "n_critics",
+                                                 "gradient_steps", "policy_frequency", "log_std_min", "alpha",
+                                                 "target_entropy", "n_envs", "learning_starts", "eval_episodes",
+                                                 "buffer_size", "matmul_dtype", "init", "log_std_mode"]),
+                                st.sampled_from(["0", "1", "2", "-1", "1e9", "0.5", "nan", "abc", "3,3", "[]",
+                                                 "true", "bfloat16", "orthogonal", "tanh", "auto", "1e-3"])),
+                      min_size=1, max_size=3))
+def test_cli_fuzz_runs_or_exits_2(tmp_path, pairs):
+    from softac.cli import main
+
+    out = tmp_path / f"run{random.random()}"
+    code = main(["train", "--env", "softac_test_envs:Drift-v0", "--steps", "40", "--out", str(out), "--no-progress",
+                 "--set", *[f"{k}={v}" for k, v in pairs], "--set", "learning_starts=20", "eval_interval=0"])
+    assert code in (0, 2)
