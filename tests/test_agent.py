@@ -2,6 +2,7 @@
 
 import jax
 import numpy as np
+import pytest
 
 from softac import SAC, evaluate
 from softac.checkpoint import load as load_checkpoint
@@ -26,9 +27,10 @@ def test_save_load_gives_identical_predictions(tiny, tmp_path):
     assert not meta["has_buffer"] and not any(k.startswith("buffer/") for k in arrays)
 
 
-def test_resume_is_exact(tiny, tmp_path):
-    """N+M steps in one go equals N, save, load, M (same seed, CPU)."""
-    cfg = tiny(n_envs=2, gradient_steps=2, policy_frequency=2, eval_interval=300)
+@pytest.mark.parametrize("obs_once", [False, True])
+def test_resume_is_exact(tiny, tmp_path, obs_once):
+    """N+M steps in one go equals N, save, load, M (same seed, CPU), with either replay buffer."""
+    cfg = tiny(n_envs=2, gradient_steps=2, policy_frequency=2, eval_interval=300, buffer_obs_once=obs_once)
     straight = SAC(cfg)
     straight.learn(900, run_dir=tmp_path / "straight", progress=False)
 

@@ -115,3 +115,40 @@ def test_mujoco_state_restores_exactly():
         ra, rb = a.step(act, t), b.step(act, t)
         np.testing.assert_array_equal(ra.next_obs, rb.next_obs)
         np.testing.assert_array_equal(ra.rewards, rb.rewards)
+
+
+@pytest.mark.parametrize("n_envs,capacity", [(1, 40), (3, 50), (4, 64)])
+def test_obs_once_buffer_rebuilds_the_same_transitions(n_envs, capacity):
+    """Fed the same transitions, the compact buffer reconstructs exactly what the full one stores."""
+    from softac.buffer import ObsOnceReplayBuffer
+
+    pool = EnvPool(lambda i: make_env("softac_test_envs:Drift-v0"), n_envs, seed=1, name="Drift-v0")
+    pool.reset()
+    full = ReplayBuffer(capacity, 2, 1)
+    compact = ObsOnceReplayBuffer(capacity, 2, 1, n_envs)
+    rng = np.random.default_rng(0)
+    for t in range(300):  # wraps the ring several times; episodes end by termination and truncation
+        obs = pool.obs
+        actions = rng.uniform(-1, 3, (n_envs, 1)).astype(np.float32)
+        result = pool.step(actions, t)
+        for buf in (full, compact):
+            buf.add(obs, actions, result.rewards, result.next_obs, result.terminated,
+                    result.terminated | result.truncated)
+        rows = np.flatnonzero(compact.valid[: compact.size])
+        assert len(rows) >= compact.size - n_envs - compact.final_capacity
+        np.testing.assert_array_equal(compact.obs[rows], full.obs[rows])
+        np.testing.assert_array_equal(compact.next_obs_of(rows), full.next_obs[rows])
+        np.testing.assert_array_equal(compact.terminated[rows], full.terminated[rows])
+    batch = compact.sample(np.random.default_rng(1), 16, 3)
+    assert batch["next_obs"].shape == (3, 16, 2)
+    restored = ObsOnceReplayBuffer(capacity, 2, 1, n_envs)
+    restored.load_state_dict(compact.state_dict())
+    rows = np.flatnonzero(restored.valid[: restored.size])
+    np.testing.assert_array_equal(restored.next_obs_of(rows), full.next_obs[rows])
+    from softac.buffer import buffer_bytes_per_transition
+    from softac.config import SACConfig
+
+    pusher = SACConfig.preset("Pusher-v5")
+    full_bytes = buffer_bytes_per_transition(pusher, 23, 7)
+    compact_bytes = buffer_bytes_per_transition(pusher.replace(buffer_obs_once=True), 23, 7)
+    assert full_bytes == 220 and compact_bytes == pytest.approx(133 + 92 / 8)  # one obs saved, a small side ring

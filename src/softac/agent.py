@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from softac import checkpoint as ckpt
-from softac.buffer import ReplayBuffer
+from softac.buffer import ObsOnceReplayBuffer, ReplayBuffer, buffer_bytes_per_transition, make_buffer
 from softac.config import SACConfig
 from softac.device import select_device
 from softac.envs import EnvPool, EnvSource, check_spaces, copy_env, env_name, make_env
@@ -93,18 +93,22 @@ class SAC:
         self.num_episodes = 0
         self.train_time_s = 0.0
         self.trainer_state: dict[str, Any] = {}
-        self.buffer: ReplayBuffer | None = None
+        self.buffer: ReplayBuffer | ObsOnceReplayBuffer | None = None
         self.pool: EnvPool | None = None
         self.pool_started = False
 
     # ---- parts made on first use ----------------------------------------------
 
+    @property
+    def buffer_bytes_per_transition(self) -> float:
+        return buffer_bytes_per_transition(self.config, self.spaces.obs_dim, self.spaces.act_dim)
+
     def make_env(self, render_mode: str | None = None, **kwargs: Any):
         return copy_env(self.env_source, render_mode, **kwargs)
 
-    def training_parts(self) -> tuple[ReplayBuffer, EnvPool]:
+    def training_parts(self) -> tuple[ReplayBuffer | ObsOnceReplayBuffer, EnvPool]:
         if self.buffer is None:
-            self.buffer = ReplayBuffer(self.config.buffer_size, self.spaces.obs_dim, self.spaces.act_dim)
+            self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
         if self.pool is None:
             source = self.env_source
 
@@ -224,7 +228,7 @@ class SAC:
         self.rng.bit_generator.state = meta["numpy_rng"]
         self.trainer_state = dict(meta.get("trainer") or {})
         if meta.get("has_buffer"):
-            self.buffer = ReplayBuffer(self.config.buffer_size, self.spaces.obs_dim, self.spaces.act_dim)
+            self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
             self.buffer.load_state_dict({k[len("buffer/"):]: v for k, v in arrays.items() if k.startswith("buffer/")})
         if meta.get("has_envs"):
             self.pool = None

@@ -59,9 +59,10 @@ class ReplayBuffer:
         self.size = 0
 
     @classmethod
-    def check_memory(cls, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8) -> None:
+    def check_memory(cls, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8,
+                     bytes_each: float | None = None) -> None:
         """Refuse, before allocating anything, a buffer the machine cannot hold."""
-        need = capacity * cls.bytes_per_transition(obs_dim, act_dim)
+        need = capacity * (bytes_each if bytes_each is not None else cls.bytes_per_transition(obs_dim, act_dim))
         have = available_memory_bytes()
         if need > memory_fraction * have:
             raise BufferMemoryError(
@@ -76,8 +77,8 @@ class ReplayBuffer:
         return self.size
 
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
-            next_obs: np.ndarray, terminated: np.ndarray) -> None:
-        """Add a batch of transitions (one row per vector env)."""
+            next_obs: np.ndarray, terminated: np.ndarray, done: np.ndarray | None = None) -> None:
+        """Add a batch of transitions (one row per vector env); `done` is used by ObsOnceReplayBuffer only."""
         n = len(rewards)
         idx = (self.pos + np.arange(n)) % self.capacity
         self.obs[idx] = obs
@@ -105,3 +106,124 @@ class ReplayBuffer:
         for name in self.FIELDS:
             getattr(self, name)[:size] = state[name]
         self.pos, self.size = pos, size
+
+
+class ObsOnceReplayBuffer:
+    """The same transitions as ReplayBuffer, storing each observation once (`buffer_obs_once`).
+
+    Row i holds obs_t of one env; that env's next observation is the row written one vector step
+    later, i + n_envs, which `add` fills at once (so every valid row can be rebuilt). Where an
+    episode ended, the true final observation goes to a side ring of final observations instead.
+    Rows whose data was overwritten early (the oldest n_envs rows of a full buffer, or rows whose
+    final observation left the side ring) are marked invalid and never sampled.
+    """
+
+    FIELDS = ReplayBuffer.FIELDS
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_envs: int, memory_fraction: float = 0.8):
+        self.capacity, self.obs_dim, self.act_dim, self.n_envs = int(capacity), obs_dim, act_dim, n_envs
+        self.final_capacity = self.final_ring_size(self.capacity, n_envs)
+        need = self.capacity * self.bytes_per_transition(obs_dim, act_dim) + self.final_capacity * 4 * obs_dim
+        have = available_memory_bytes()
+        if need > memory_fraction * have:
+            raise BufferMemoryError(f"replay buffer of {self.capacity:,} transitions needs {_human(need)} but only "
+                                    f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
+        self.obs = np.zeros((self.capacity, obs_dim), np.float32)
+        self.actions = np.zeros((self.capacity, act_dim), np.float32)
+        self.rewards = np.zeros((self.capacity,), np.float32)
+        self.terminated = np.zeros((self.capacity,), np.float32)
+        self.final_slot = np.full(self.capacity, -1, np.int32)  # -1: the next obs is row i + n_envs
+        self.valid = np.zeros(self.capacity, bool)
+        self.final_obs = np.zeros((self.final_capacity, obs_dim), np.float32)
+        self.final_owner = np.full(self.final_capacity, -1, np.int64)
+        self.final_pos = 0
+        self.pos = 0
+        self.size = 0
+
+    @staticmethod
+    def final_ring_size(capacity: int, n_envs: int) -> int:
+        return min(capacity, max(capacity // 8, 4 * n_envs))  # room for episodes averaging >= 8 steps
+
+    @staticmethod
+    def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
+        return 4 * (obs_dim + act_dim + 2) + 4 + 1  # + final-slot index and valid flag
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray,
+            terminated: np.ndarray, done: np.ndarray) -> None:
+        n = len(rewards)
+        idx = (self.pos + np.arange(n)) % self.capacity
+        self.obs[idx] = obs
+        self.actions[idx] = actions
+        self.rewards[idx] = rewards
+        self.terminated[idx] = terminated
+        self.final_slot[idx] = -1
+        self.valid[idx] = True
+        ended = np.asarray(done, bool)
+        for j in np.flatnonzero(ended):
+            slot = self.final_pos
+            self.final_pos = (slot + 1) % self.final_capacity
+            owner = self.final_owner[slot]
+            if owner >= 0 and self.final_slot[owner] == slot:  # its final obs is about to be overwritten
+                self.valid[owner] = False
+                self.final_slot[owner] = -1
+            self.final_obs[slot] = next_obs[j]
+            self.final_owner[slot] = idx[j]
+            self.final_slot[idx[j]] = slot
+        successors = (idx[~ended] + n) % self.capacity
+        self.obs[successors] = next_obs[~ended]
+        self.valid[successors] = False  # those rows (if filled: the oldest) now hold a newer obs
+        self.pos = int((self.pos + n) % self.capacity)
+        self.size = int(min(self.size + n, self.capacity))
+
+    def next_obs_of(self, idx: np.ndarray) -> np.ndarray:
+        slot = self.final_slot[idx]
+        out = self.obs[(idx + self.n_envs) % self.capacity]
+        ended = slot >= 0
+        out[ended] = self.final_obs[slot[ended]]
+        return out
+
+    def sample(self, rng: np.random.Generator, batch_size: int, n_batches: int = 1) -> dict[str, np.ndarray]:
+        if not self.valid[: self.size].any():
+            raise SoftacError("replay buffer holds no complete transition to sample yet")
+        idx = rng.integers(0, self.size, size=(n_batches, batch_size))
+        bad = ~self.valid[idx]
+        while bad.any():  # invalid rows are few (at most n_envs plus rows that lost their final obs)
+            idx[bad] = rng.integers(0, self.size, size=int(bad.sum()))
+            bad = ~self.valid[idx]
+        return {"obs": self.obs[idx], "actions": self.actions[idx], "rewards": self.rewards[idx],
+                "next_obs": self.next_obs_of(idx), "terminated": self.terminated[idx]}
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        written = min(self.size + self.n_envs, self.capacity)  # successors are written ahead of size
+        return {"obs": self.obs[:written], "actions": self.actions[: self.size], "rewards": self.rewards[: self.size],
+                "terminated": self.terminated[: self.size], "final_slot": self.final_slot[: self.size],
+                "valid": self.valid[: self.size], "final_obs": self.final_obs, "final_owner": self.final_owner,
+                "pos_size": np.array([self.pos, self.size, self.final_pos], np.int64)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        pos, size, final_pos = (int(v) for v in state["pos_size"])
+        if size > self.capacity or len(state["final_obs"]) != self.final_capacity:
+            raise SoftacError("checkpoint buffer does not match buffer_size/n_envs of this config")
+        self.obs[: len(state["obs"])] = state["obs"]
+        for name in ("actions", "rewards", "terminated", "final_slot", "valid"):
+            getattr(self, name)[:size] = state[name]
+        self.final_obs[:] = state["final_obs"]
+        self.final_owner[:] = state["final_owner"]
+        self.pos, self.size, self.final_pos = pos, size, final_pos
+
+
+def make_buffer(config, obs_dim: int, act_dim: int):
+    """The replay buffer a config asks for."""
+    if config.buffer_obs_once:
+        return ObsOnceReplayBuffer(config.buffer_size, obs_dim, act_dim, config.n_envs)
+    return ReplayBuffer(config.buffer_size, obs_dim, act_dim)
+
+
+def buffer_bytes_per_transition(config, obs_dim: int, act_dim: int) -> float:
+    if config.buffer_obs_once:
+        ring = ObsOnceReplayBuffer.final_ring_size(config.buffer_size, config.n_envs)
+        return ObsOnceReplayBuffer.bytes_per_transition(obs_dim, act_dim) + ring * 4 * obs_dim / config.buffer_size
+    return ReplayBuffer.bytes_per_transition(obs_dim, act_dim)

@@ -164,9 +164,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         run = Path(args.out) if args.out else _default_run_dir(config)
         check_new_run_dir(run)  # before JAX starts: a clash should fail fast
         agent = SAC(config)
-        ReplayBuffer.check_memory(config.buffer_size, agent.spaces.obs_dim, agent.spaces.act_dim)
+        per = agent.buffer_bytes_per_transition
+        ReplayBuffer.check_memory(config.buffer_size, agent.spaces.obs_dim, agent.spaces.act_dim, bytes_each=per)
         steps = config.total_steps
-        print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}", file=sys.stderr)
+        print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}; replay buffer "
+              f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
+              f"{config.buffer_size:,}", file=sys.stderr)
     summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
     if args.video:
         _record_video(run, which=None, out=None, episodes=1, deterministic=True)

@@ -93,7 +93,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
         from softac.agent import _versions
 
         write_config(run, cfg.to_dict(), {"versions": _versions(),
-                                          "resolved_target_entropy": fns.target_entropy})
+                                          "resolved_target_entropy": fns.target_entropy,
+                                          "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1)})
 
     ts = agent.trainer_state
     ts.setdefault("best_eval", None)
@@ -185,7 +186,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                         raise SoftacError(f"training diverged at step {before}: the policy produced non-finite "
                                           "actions; the last good checkpoint is kept")
                 result = pool.step(env_actions, before)
-                buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated)
+                buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated,
+                           result.terminated | result.truncated)
                 agent.num_steps = after = before + n_envs
                 for _, episode_return, length in result.finished:
                     agent.num_episodes += 1
