@@ -183,3 +183,13 @@ def test_critic_layer_norm_normalises_hidden_features():
     normed = critics_apply(params, obs, act, "relu", normalize=True)
     assert normed.shape == plain.shape == (2, 5)
     assert float(jnp.abs(normed).max()) < 0.1 * float(jnp.abs(plain).max())  # huge inputs stay bounded
+
+
+def test_unrolled_and_vmapped_critics_agree():
+    from softac.networks import critics_apply, init_critics
+
+    params = init_critics(np.random.default_rng(0), 3, 2, [32, 32], "default", 3)
+    rng = np.random.default_rng(1)
+    obs, act = jnp.asarray(rng.normal(size=(7, 3)), jnp.float32), jnp.asarray(rng.uniform(-1, 1, (7, 2)), jnp.float32)
+    np.testing.assert_allclose(np.asarray(critics_apply(params, obs, act, "relu", unroll=True)),
+                               np.asarray(critics_apply(params, obs, act, "relu", unroll=False)), rtol=1e-5, atol=1e-6)

@@ -115,8 +115,18 @@ def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: l
 
 
 def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
-                  matmul_dtype: str = "float32", normalize: bool = False) -> jax.Array:
-    """Q-values of every critic: shape [n_critics, batch]."""
+                  matmul_dtype: str = "float32", normalize: bool = False, unroll: bool = False) -> jax.Array:
+    """Q-values of every critic: shape [n_critics, batch].
+
+    The parameters are one stacked ensemble either way. `unroll` evaluates it critic by critic as
+    plain 2-D matmuls, which XLA's CPU backend runs faster than the batched matmuls of `vmap`
+    (sb3-preset update: 4.6 ms vs 5.6 ms, medians of 6 interleaved runs; docs/performance.md).
+    """
     x = jnp.concatenate([obs, actions], axis=-1)
-    q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype, normalize))(params)
+    if unroll:
+        n = jax.tree_util.tree_leaves(params)[0].shape[0]
+        q = jnp.stack([mlp(jax.tree_util.tree_map(lambda p, i=i: p[i], params), x, activation, matmul_dtype,
+                           normalize) for i in range(n)])
+    else:
+        q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype, normalize))(params)
     return q[..., 0]

@@ -135,8 +135,10 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     critic_tx = optax.adam(c.critic_lr)
     alpha_tx = optax.adam(c.alpha_lr)
 
+    unroll = jax.default_backend() == "cpu" and c.n_critics <= 8  # see critics_apply
+
     def q_values(critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
-        return critics_apply(critic, obs, actions, c.activation, c.matmul_dtype, c.critic_layer_norm)
+        return critics_apply(critic, obs, actions, c.activation, c.matmul_dtype, c.critic_layer_norm, unroll)
 
     def assemble(actor: Any, critic: Any, key: jax.Array) -> SACState:
         log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
