@@ -146,3 +146,11 @@ def test_presets_lists_every_preset():
     assert r.returncode == 0
     for name in ("InvertedPendulum-v5", "InvertedPendulum-v4", "Pusher-v5", "sb3", "cleanrl", "default"):
         assert name in r.stdout
+
+
+def test_gpu_without_a_gpu_is_a_clean_error(tmp_path):
+    import jax
+
+    if jax.default_backend() == "gpu":
+        pytest.skip("this machine has a GPU")
+    assert_clean_error(run_cli("train", "--device", "gpu", "--out", str(tmp_path / "r")), "finds no GPU", "--device cpu")

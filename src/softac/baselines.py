@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 from softac.envs import SpaceInfo, check_spaces, copy_env, env_name
-from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
+from softac.evaluation import EVAL_SEED_OFFSET, run_on_copies
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -97,12 +97,7 @@ def run_baselines(source: Any, episodes: int = 10, seed: int = 0) -> dict[str, A
     results = {}
     try:
         for name, policy in policies.items():
-            envs = [copy_env(source) for _ in range(min(episodes, MAX_PARALLEL))]
-            try:
-                stats = run_episodes(policy, lambda: copy_env(source), episodes, seed + EVAL_SEED_OFFSET, envs=envs)
-            finally:
-                for e in envs:
-                    e.close()
+            stats = run_on_copies(policy, source, episodes, seed + EVAL_SEED_OFFSET)
             results[name] = {k: stats[k] for k in ("mean_return", "std_return", "episodes", "returns", "lengths")}
     finally:
         probe.close()

@@ -36,7 +36,35 @@ def _human(n: float) -> str:
     return f"{n:.1f} TiB"
 
 
-class ReplayBuffer:
+def check_buffer_memory(capacity: int, bytes_each: float, memory_fraction: float = 0.8) -> None:
+    """Refuse, before allocating anything, a buffer the machine cannot hold."""
+    need = capacity * bytes_each
+    have = available_memory_bytes()
+    if need > memory_fraction * have:
+        raise BufferMemoryError(
+            f"replay buffer of {capacity:,} transitions needs {_human(need)} but only "
+            f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
+
+
+class _Ring:
+    """Row bookkeeping shared by both buffers: the oldest rows are overwritten first."""
+
+    capacity: int
+    pos: int
+    size: int
+
+    def _rows(self, n: int) -> np.ndarray:
+        return (self.pos + np.arange(n)) % self.capacity
+
+    def _advance(self, n: int) -> None:
+        self.pos = int((self.pos + n) % self.capacity)
+        self.size = int(min(self.size + n, self.capacity))
+
+    def __len__(self) -> int:
+        return self.size
+
+
+class ReplayBuffer(_Ring):
     """Transitions (obs, action, reward, next_obs, terminated), oldest overwritten first.
 
     `terminated` and truncation are kept apart by construction: only
@@ -61,33 +89,23 @@ class ReplayBuffer:
     @classmethod
     def check_memory(cls, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8,
                      bytes_each: float | None = None) -> None:
-        """Refuse, before allocating anything, a buffer the machine cannot hold."""
-        need = capacity * (bytes_each if bytes_each is not None else cls.bytes_per_transition(obs_dim, act_dim))
-        have = available_memory_bytes()
-        if need > memory_fraction * have:
-            raise BufferMemoryError(
-                f"replay buffer of {capacity:,} transitions needs {_human(need)} but only "
-                f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
+        check_buffer_memory(capacity, bytes_each if bytes_each is not None else cls.bytes_per_transition(
+            obs_dim, act_dim), memory_fraction)
 
     @staticmethod
     def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
         return 4 * (2 * obs_dim + act_dim + 2)
 
-    def __len__(self) -> int:
-        return self.size
-
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             next_obs: np.ndarray, terminated: np.ndarray, done: np.ndarray | None = None) -> None:
         """Add a batch of transitions (one row per vector env); `done` is used by ObsOnceReplayBuffer only."""
-        n = len(rewards)
-        idx = (self.pos + np.arange(n)) % self.capacity
+        idx = self._rows(len(rewards))
         self.obs[idx] = obs
         self.actions[idx] = actions
         self.rewards[idx] = rewards
         self.next_obs[idx] = next_obs
         self.terminated[idx] = terminated
-        self.pos = int((self.pos + n) % self.capacity)
-        self.size = int(min(self.size + n, self.capacity))
+        self._advance(len(rewards))
 
     def sample(self, rng: np.random.Generator, batch_size: int, n_batches: int = 1) -> dict[str, np.ndarray]:
         """`n_batches` independent batches stacked as [n_batches, batch_size, ...]."""
@@ -108,7 +126,7 @@ class ReplayBuffer:
         self.pos, self.size = pos, size
 
 
-class ObsOnceReplayBuffer:
+class ObsOnceReplayBuffer(_Ring):
     """The same transitions as ReplayBuffer, storing each observation once (`buffer_obs_once`).
 
     Row i holds obs_t of one env; that env's next observation is the row written one vector step
@@ -123,11 +141,8 @@ class ObsOnceReplayBuffer:
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_envs: int, memory_fraction: float = 0.8):
         self.capacity, self.obs_dim, self.act_dim, self.n_envs = int(capacity), obs_dim, act_dim, n_envs
         self.final_capacity = self.final_ring_size(self.capacity, n_envs)
-        need = self.capacity * self.bytes_per_transition(obs_dim, act_dim) + self.final_capacity * 4 * obs_dim
-        have = available_memory_bytes()
-        if need > memory_fraction * have:
-            raise BufferMemoryError(f"replay buffer of {self.capacity:,} transitions needs {_human(need)} but only "
-                                    f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
+        ring_bytes = self.final_capacity * 4 * obs_dim / self.capacity
+        check_buffer_memory(self.capacity, self.bytes_per_transition(obs_dim, act_dim) + ring_bytes, memory_fraction)
         self.obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.actions = np.zeros((self.capacity, act_dim), np.float32)
         self.rewards = np.zeros((self.capacity,), np.float32)
@@ -148,13 +163,10 @@ class ObsOnceReplayBuffer:
     def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
         return 4 * (obs_dim + act_dim + 2) + 4 + 1  # + final-slot index and valid flag
 
-    def __len__(self) -> int:
-        return self.size
-
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray,
             terminated: np.ndarray, done: np.ndarray) -> None:
         n = len(rewards)
-        idx = (self.pos + np.arange(n)) % self.capacity
+        idx = self._rows(n)
         self.obs[idx] = obs
         self.actions[idx] = actions
         self.rewards[idx] = rewards
@@ -175,8 +187,7 @@ class ObsOnceReplayBuffer:
         successors = (idx[~ended] + n) % self.capacity
         self.obs[successors] = next_obs[~ended]
         self.valid[successors] = False  # those rows (if filled: the oldest) now hold a newer obs
-        self.pos = int((self.pos + n) % self.capacity)
-        self.size = int(min(self.size + n, self.capacity))
+        self._advance(n)
 
     def next_obs_of(self, idx: np.ndarray) -> np.ndarray:
         slot = self.final_slot[idx]

@@ -44,8 +44,7 @@ def select_device(device: str) -> str:
         _enable_compile_cache(jax)
         if device == "cpu":
             jax.config.update("jax_platforms", "cpu")
-        elif device == "gpu":
-            jax.config.update("jax_platforms", "cuda,rocm" if not os.environ.get("JAX_PLATFORMS") else os.environ["JAX_PLATFORMS"])
+        # gpu and auto: JAX's own choice (a GPU where its plugin finds one), checked below
         try:
             platform = jax.default_backend()
         except RuntimeError as exc:
@@ -55,5 +54,6 @@ def select_device(device: str) -> str:
             raise SoftacError(f"JAX could not start: {exc}".splitlines()[0]) from None
         _chosen = "cpu" if platform == "cpu" else "gpu"
     if device == "gpu" and _chosen != "gpu":
-        raise SoftacError("device=gpu but JAX runs on the CPU in this process; use --device cpu")
+        raise SoftacError("device=gpu but JAX finds no GPU in this process; install jax[cuda12] "
+                          "(pip install -U 'jax[cuda12]') or use --device cpu")
     return _chosen

@@ -67,6 +67,18 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
     return summarize(returns, lengths)
 
 
+def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: Any, episodes: int,
+                  seed: int) -> dict[str, Any]:
+    """`run_episodes` on fresh copies of `source` (an id or an instance), closed afterwards."""
+    envs = [copy_env(source) for _ in range(min(episodes, MAX_PARALLEL))]
+    try:
+        return run_episodes(policy, lambda: copy_env(source), episodes, seed, envs=envs)
+    finally:
+        for env in envs:
+            if env is not source:
+                env.close()
+
+
 def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:
     return {
         "mean_return": float(np.mean(returns)),
@@ -91,13 +103,7 @@ def evaluate(agent: Any, episodes: int = 10, deterministic: bool = True, seed: i
     def policy(obs: np.ndarray) -> np.ndarray:
         return agent.predict(obs, deterministic=deterministic)
 
-    envs = [copy_env(source) for _ in range(min(episodes, MAX_PARALLEL))]
-    try:
-        stats = run_episodes(policy, lambda: copy_env(source), episodes, seed, envs=envs)
-    finally:
-        for e in envs:
-            if e is not source:
-                e.close()
+    stats = run_on_copies(policy, source, episodes, seed)
     stats["deterministic"] = deterministic
     stats["env_id"] = env_name(source)
     return stats

@@ -7,7 +7,6 @@ interrupted runs alike, with Matplotlib's non-interactive Agg backend (no displa
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -255,6 +254,3 @@ def plot_runs(runs: list[Path], out_dir: Path | None = None) -> list[Path]:
             written.append(plot_learning_curve(run, sub / "learning_curve.png", load_baselines(run)))
     return written
 
-
-def finite_or_none(x: float) -> float | None:
-    return x if isinstance(x, float) and math.isfinite(x) else None
