@@ -210,15 +210,22 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
         groups.setdefault(_config_key(c), []).append(i)
     labels = _describe_differences([configs[idx[0]] for idx in groups.values()])
     fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
+    observed: list[float] = []
     for colour, (label, members) in enumerate(zip(labels, groups.values())):
         grid, values = aligned_eval_curves([runs[i] for i in members])
         if len(grid) == 0:
             continue
+        observed.extend(values[~np.isnan(values)].tolist())
         mean, half, n = mean_and_ci(values)
         ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({len(members)} seeds)")
         if len(members) > 1:
             ax.fill_between(grid, mean - half, mean + half, color=f"C{colour}", alpha=0.2)
     _draw_baselines(ax, baselines)
+    observed.extend(b["mean_return"] for b in (baselines or {}).values())
+    if observed:  # few seeds give wide t-intervals: keep the axes on what was observed
+        lo, hi = min(observed), max(observed)
+        pad = 0.08 * (hi - lo or abs(hi) or 1.0)
+        ax.set_ylim(lo - pad, hi + pad)
     ax.set_xlabel("environment steps")
     ax.set_ylabel("deterministic eval return")
     ax.set_title("Evaluation return: mean and 95% confidence band across seeds")
@@ -247,7 +254,8 @@ def plot_runs(runs: list[Path], out_dir: Path | None = None) -> list[Path]:
         if out_dir is None:
             raise SoftacError("plotting several runs needs --out DIR")
         out_dir.mkdir(parents=True, exist_ok=True)
-        written.append(plot_comparison(runs, out_dir / "comparison.png", load_baselines(runs[0])))
+        known = [b for b in (load_baselines(r) for r in runs) if b]
+        written.append(plot_comparison(runs, out_dir / "comparison.png", known[0] if known else None))
         for run in runs:
             sub = out_dir / run.name
             sub.mkdir(exist_ok=True)
