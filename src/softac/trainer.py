@@ -206,7 +206,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                     stats = evaluate_now(after, stop)
                     if stats is not None and target_return is not None and stats["mean_return"] >= target_return:
                         stopped_early = True
-                if crossed(before, after, cfg.checkpoint_interval) or (stopped_early and run is not None):
+                if crossed(before, after, cfg.checkpoint_interval) and not stopped_early:  # (saved below when stopping)
                     save_checkpoint("last", with_buffer=True)
                 if after >= next_show or stopped_early:  # the bar redraws at most every SHOW_EVERY steps
                     next_show = after + SHOW_EVERY
