@@ -46,7 +46,7 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     parameters = 4 * (3 * actor + 4 * critics)  # weights + Adam moments; critics also have targets
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases)
     activations = 4 * config.batch_size * sum(config.hidden_sizes) * (4 * config.n_critics + 4)
-    batch = 4 * config.batch_size * config.gradient_steps * (2 * obs_dim + act_dim + 2)
+    batch = config.batch_size * config.gradient_steps * ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
     need, have = parameters + activations + batch, available_memory_bytes()
     if need > fraction * have:
         raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "

@@ -131,10 +131,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
         nonlocal eval_envs
         if eval_envs is None:
             eval_envs = [agent.make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
-        actor = agent.state.actor
-        stats = run_episodes(lambda obs: scaler.to_env(np.asarray(fns.act_deterministic(actor, obs))),
-                             agent.make_env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET, envs=eval_envs,
-                             should_stop=lambda: stop.requested)
+        stats = run_episodes(lambda obs: agent.predict(obs, deterministic=True), agent.make_env, cfg.eval_episodes,
+                             cfg.seed + EVAL_SEED_OFFSET, envs=eval_envs, should_stop=lambda: stop.requested)
         if stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
             return None
         ts["last_eval"] = stats["mean_return"]
