@@ -77,7 +77,7 @@ class ReplayBuffer(_Ring):
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8):
         self.capacity = int(capacity)
         self.obs_dim, self.act_dim = obs_dim, act_dim
-        self.check_memory(self.capacity, obs_dim, act_dim, memory_fraction)
+        check_buffer_memory(self.capacity, self.bytes_per_transition(obs_dim, act_dim), memory_fraction)
         self.obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.next_obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.actions = np.zeros((self.capacity, act_dim), np.float32)
@@ -85,12 +85,6 @@ class ReplayBuffer(_Ring):
         self.terminated = np.zeros((self.capacity,), np.float32)
         self.pos = 0
         self.size = 0
-
-    @classmethod
-    def check_memory(cls, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8,
-                     bytes_each: float | None = None) -> None:
-        check_buffer_memory(capacity, bytes_each if bytes_each is not None else cls.bytes_per_transition(
-            obs_dim, act_dim), memory_fraction)
 
     @staticmethod
     def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
@@ -141,8 +135,8 @@ class ObsOnceReplayBuffer(_Ring):
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_envs: int, memory_fraction: float = 0.8):
         self.capacity, self.obs_dim, self.act_dim, self.n_envs = int(capacity), obs_dim, act_dim, n_envs
         self.final_capacity = self.final_ring_size(self.capacity, n_envs)
-        ring_bytes = self.final_capacity * 4 * obs_dim / self.capacity
-        check_buffer_memory(self.capacity, self.bytes_per_transition(obs_dim, act_dim) + ring_bytes, memory_fraction)
+        check_buffer_memory(self.capacity, self.bytes_per_transition(obs_dim, act_dim, self.capacity, n_envs),
+                            memory_fraction)
         self.obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.actions = np.zeros((self.capacity, act_dim), np.float32)
         self.rewards = np.zeros((self.capacity,), np.float32)
@@ -159,9 +153,10 @@ class ObsOnceReplayBuffer(_Ring):
     def final_ring_size(capacity: int, n_envs: int) -> int:
         return min(capacity, max(capacity // 8, 4 * n_envs))  # room for episodes averaging >= 8 steps
 
-    @staticmethod
-    def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
-        return 4 * (obs_dim + act_dim + 2) + 4 + 1  # + final-slot index and valid flag
+    @classmethod
+    def bytes_per_transition(cls, obs_dim: int, act_dim: int, capacity: int, n_envs: int) -> float:
+        row = 4 * (obs_dim + act_dim + 2) + 4 + 1  # + final-slot index and valid flag
+        return row + cls.final_ring_size(capacity, n_envs) * 4 * obs_dim / capacity  # + a share of the side ring
 
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray,
             terminated: np.ndarray, done: np.ndarray) -> None:
@@ -234,7 +229,7 @@ def make_buffer(config, obs_dim: int, act_dim: int):
 
 
 def buffer_bytes_per_transition(config, obs_dim: int, act_dim: int) -> float:
+    """Bytes per stored transition of the buffer a config asks for."""
     if config.buffer_obs_once:
-        ring = ObsOnceReplayBuffer.final_ring_size(config.buffer_size, config.n_envs)
-        return ObsOnceReplayBuffer.bytes_per_transition(obs_dim, act_dim) + ring * 4 * obs_dim / config.buffer_size
+        return ObsOnceReplayBuffer.bytes_per_transition(obs_dim, act_dim, config.buffer_size, config.n_envs)
     return ReplayBuffer.bytes_per_transition(obs_dim, act_dim)

@@ -140,7 +140,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         choose_gl_backend()
     from softac.agent import SAC
-    from softac.buffer import ReplayBuffer
+    from softac.buffer import check_buffer_memory
     from softac.trainer import check_new_run_dir
 
     if args.resume:
@@ -165,7 +165,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         check_new_run_dir(run)  # before JAX starts: a clash should fail fast
         agent = SAC(config)
         per = agent.buffer_bytes_per_transition
-        ReplayBuffer.check_memory(config.buffer_size, agent.spaces.obs_dim, agent.spaces.act_dim, bytes_each=per)
+        check_buffer_memory(config.buffer_size, per)
         steps = config.total_steps
         print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}; replay buffer "
               f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
