@@ -232,12 +232,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         """`batches` has a leading axis of gradient steps; all of them run in this one call."""
         zero = jnp.zeros((), jnp.float32)
         start = {"actor_loss": zero, "alpha_loss": zero, "log_prob_mean": zero}
-        if batches.rewards.shape[0] == 1:  # one step: no loop, so XLA can schedule it as straight-line code
-            (state, policy_metrics), critic_metrics = gradient_step(
-                (state, start), jax.tree_util.tree_map(lambda x: x[0], batches))
-            critic_metrics = jax.tree_util.tree_map(lambda x: x[None], critic_metrics)
-        else:
-            (state, policy_metrics), critic_metrics = jax.lax.scan(gradient_step, (state, start), batches)
+        (state, policy_metrics), critic_metrics = jax.lax.scan(gradient_step, (state, start), batches)
         metrics = {k: jnp.mean(v) for k, v in critic_metrics.items()}
         metrics.update(policy_metrics)
         metrics["alpha"] = alpha_of(state)
