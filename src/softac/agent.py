@@ -83,7 +83,7 @@ class SAC:
         from softac import sac
 
         self.fns = sac.build(config, self.spaces.obs_dim, self.spaces.act_dim, self.spaces.low, self.spaces.high)
-        self.scaler = sac.ActionScaler(self.spaces.low, self.spaces.high)
+        self.scaler = self.fns.scaler
         self.state = self.fns.init(config.seed)
         keys = np.random.default_rng([config.seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)
         self.act_key = jnp.asarray(keys[0])  # exploration noise while training

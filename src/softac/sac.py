@@ -102,8 +102,9 @@ class ActionScaler:
         self.scale = (self.high - self.low) / 2.0
         self.bias = (self.high + self.low) / 2.0
 
-    def to_env(self, normalised: np.ndarray) -> np.ndarray:
-        return np.clip(self.bias + self.scale * normalised, self.low, self.high)
+    def to_env(self, normalised: Any, xp: Any = np) -> Any:
+        """`xp` is np on the host, jnp inside jitted code."""
+        return xp.clip(self.bias + self.scale * normalised, self.low, self.high)
 
     def to_normalised(self, env_action: np.ndarray) -> np.ndarray:
         return np.clip((np.asarray(env_action, np.float32) - self.bias) / self.scale, -1.0, 1.0)
@@ -123,6 +124,7 @@ class SACFunctions(NamedTuple):
     act_deterministic: Callable[[Any, jax.Array], jax.Array]
     policy: Policy
     target_entropy: float
+    scaler: ActionScaler
 
 
 def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None = None,
@@ -244,8 +246,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         """(action in [-1, 1], the same action in env bounds, next key): one call per env step."""
         key, sample_key = jax.random.split(key)
         action = policy.sample(actor, obs, sample_key)[0]
-        env_action = jnp.clip(scaler.bias + scaler.scale * action, scaler.low, scaler.high)
-        return action, env_action, key
+        return action, scaler.to_env(action, jnp), key
 
     return SACFunctions(
         init=init,
@@ -254,4 +255,5 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         act_deterministic=jax.jit(policy.deterministic),
         policy=policy,
         target_entropy=target_entropy,
+        scaler=scaler,
     )
