@@ -147,11 +147,13 @@ def _run(args: list[str], timeout: float) -> tuple[dict[str, Any] | None, float,
     return {}, wall, ""
 
 
-def _solve_softac(env_id: str, seed: int, target: float, timeout: float) -> tuple[dict[str, Any] | None, float, str]:
+def solve_softac(env_id: str, seed: int, target: float, timeout: float,
+                 extra: list[str] | tuple[str, ...] = ()) -> tuple[dict[str, Any] | None, float, str]:
+    """The whole `softac train --target-return` process for one seed: (result, wall seconds, error)."""
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "run"
         out, wall, err = _run(["-m", "softac", "train", "--env", env_id, "--seed", str(seed), "--target-return",
-                               str(target), "--out", str(run), "--no-progress"], timeout)
+                               str(target), "--out", str(run), "--no-progress", *extra], timeout)
         if out is None:
             return None, wall, err
         rows = (run / "eval.csv").read_text().splitlines()[1:]
@@ -222,7 +224,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
             runs = []
             for seed in solve_seeds:
                 if fw == "softac":
-                    out, wall, err = _solve_softac(env_id, seed, target, timeout)
+                    out, wall, err = solve_softac(env_id, seed, target, timeout)
                 else:
                     out, wall, err = _run(["-m", "softac.bench", "solve", fw, "--env", env_id, "--seed", str(seed),
                                            "--target", str(target), "--max-steps", str(max_steps)], timeout)
