@@ -81,36 +81,40 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.partial{out.suffix}")
     returns, lengths = [], []
-    # imageio starts ffmpeg (fork+exec of a binary) on the first frame: safe beside JAX's threads
-    warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-    try:
-        writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
-                                    ffmpeg_log_level="error", format="FFMPEG")
+
+    def caption(episode: int, steps: int, total: float) -> str:
+        return f"episode {episode + 1}/{episodes}  step {steps}  return {total:.1f}"
+
+    with warnings.catch_warnings():
+        # imageio starts ffmpeg (fork+exec of a binary) on the first frame: safe beside JAX's threads
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
         try:
-            for episode in range(episodes):
-                obs, _ = env.reset(seed=seed + episode)
-                total, steps, done = 0.0, 0, False
-                while not done:
-                    frame = _render(env)
-                    writer.append_data(_label(frame, f"episode {episode + 1}/{episodes}  step {steps}  "
-                                                     f"return {total:.1f}"))
-                    action = agent.predict(np.asarray(obs, np.float32).reshape(-1), deterministic=deterministic)
-                    obs, reward, terminated, truncated, _ = env.step(action)
-                    total += float(reward)
-                    steps += 1
-                    done = terminated or truncated or (max_steps is not None and steps >= max_steps)
-                final = _label(_render(env), f"episode {episode + 1}/{episodes}  step {steps}  return {total:.1f}")
-                for _ in range(fps // 2):  # hold the last frame half a second, return visible
-                    writer.append_data(final)
-                returns.append(total)
-                lengths.append(steps)
+            writer = imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1,
+                                        ffmpeg_log_level="error", format="FFMPEG")
+            try:
+                for episode in range(episodes):
+                    obs, _ = env.reset(seed=seed + episode)
+                    total, steps, done = 0.0, 0, False
+                    while not done:
+                        frame = _render(env)
+                        writer.append_data(_label(frame, caption(episode, steps, total)))
+                        action = agent.predict(np.asarray(obs, np.float32).reshape(-1), deterministic=deterministic)
+                        obs, reward, terminated, truncated, _ = env.step(action)
+                        total += float(reward)
+                        steps += 1
+                        done = terminated or truncated or (max_steps is not None and steps >= max_steps)
+                    final = _label(_render(env), caption(episode, steps, total))
+                    for _ in range(fps // 2):  # hold the last frame half a second, return visible
+                        writer.append_data(final)
+                    returns.append(total)
+                    lengths.append(steps)
+            finally:
+                writer.close()
+            os.replace(tmp, out)
         finally:
-            writer.close()
-        os.replace(tmp, out)
-    finally:
-        env.close()
-        if tmp.exists():
-            tmp.unlink()
+            env.close()
+            if tmp.exists():
+                tmp.unlink()
     return {"path": str(out), "returns": returns, "lengths": lengths, "fps": fps,
             "mean_return": float(np.mean(returns))}
 
