@@ -19,6 +19,8 @@ def pendulum_run(tmp_path_factory):
     run = tmp_path_factory.mktemp("runs") / "pendulum"
     r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", *SETS)
     assert r.returncode == 0, r.stderr
+    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--out", str(run))
+    assert r.returncode == 0, r.stderr
     return run
 
 
@@ -30,8 +32,7 @@ def _png_size(path):
 
 
 def test_plot_single_run(pendulum_run):
-    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--out", str(pendulum_run))
-    assert r.returncode == 0, r.stderr
+    assert json.loads((pendulum_run / "baselines.json").read_text())["baselines"]["heuristic"]["episodes"] == 3
     r = run_cli("plot", str(pendulum_run))
     assert r.returncode == 0, r.stderr
     for name in ("learning_curve.png", "metrics.png"):
