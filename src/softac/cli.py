@@ -103,6 +103,30 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", metavar="RUN", help="also write RUN/baselines.json (plots and reports draw it)")
     b.add_argument("--json", action="store_true")
 
+    sw = sub.add_parser("sweep", help="many runs on Ray Tune (seeds x a grid, or a search): summary, CI table, plots")
+    sw.add_argument("--env", help="Gymnasium env id (default InvertedPendulum-v5)")
+    sw.add_argument("--seeds", default="1", help="a count N (seeds 0..N-1, or from --first-seed) or a comma list")
+    sw.add_argument("--first-seed", type=int, default=0, help="first seed when --seeds is a count")
+    sw.add_argument("--grid", action="append", nargs="+", default=[], metavar="KEY=V1,V2",
+                    help="sweep a config key over values (repeatable; the grid is their product)")
+    sw.add_argument("--preset", help="preset name (default: the env's preset)")
+    sw.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="override a config key in every trial")
+    sw.add_argument("--steps", type=_positive_int, help="env steps per trial (default: the preset's total_steps)")
+    sw.add_argument("--out", help="sweep directory: one run directory per trial, summary.csv, summary.md, plots/")
+    sw.add_argument("--resume", metavar="DIR", help="continue the sweep in DIR (finished trials are not redone)")
+    sw.add_argument("--address", help="an existing Ray cluster (e.g. auto or ray://HEAD:10001); default: local Ray")
+    sw.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each trial (default 1)")
+    sw.add_argument("--max-concurrent", type=_positive_int, help="at most this many trials at once")
+    sw.add_argument("--framework", choices=["softac", "sb3", "sbx"], default="softac",
+                    help="sb3/sbx: their SAC at their defaults, evaluated like softac (needs the [bench] extra)")
+    sw.add_argument("--search", choices=["random", "optuna"], help="sample configurations instead of a grid")
+    sw.add_argument("--samples", type=_positive_int, default=8, help="configurations a search tries (default 8)")
+    sw.add_argument("--space", metavar="FILE", help="YAML search space (default: the documented SAC space)")
+    sw.add_argument("--asha", action="store_true", help="with --search: stop poor trials early (ASHA)")
+    sw.add_argument("--threshold", type=_finite_float, metavar="R",
+                    help="also report steps and seconds until the eval mean first reaches R")
+
     from softac.bench import add_arguments
 
     add_arguments(sub.add_parser("bench", help="throughput and seconds-to-solve, side by side with SB3 and SBX"))
@@ -235,8 +259,12 @@ def cmd_video(args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     from softac.plots import plot_runs
+    from softac.sweep import SPEC_FILE, trial_dirs
 
-    written = plot_runs([Path(r) for r in args.runs], Path(args.out) if args.out else None)
+    runs = []
+    for given in map(Path, args.runs):  # a sweep directory stands for all its trials
+        runs.extend(trial_dirs(given) if (given / SPEC_FILE).exists() else [given])
+    written = plot_runs(runs, Path(args.out) if args.out else None)
     for path in written:
         print(path)
     return EXIT_OK
@@ -284,6 +312,46 @@ def cmd_presets(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from softac import sweep
+
+    if args.resume:
+        given = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--steps", args.steps),
+                                          ("--out", args.out), ("--space", args.space), ("--search", args.search))
+                 if value is not None] + (["--grid"] if args.grid else []) + (["--set"] if args.overrides else [])
+        if given:
+            raise SoftacError(f"--resume continues a sweep with its own settings; drop {', '.join(given)}")
+        out = Path(args.resume)
+        spec = sweep.load_spec(out)
+    else:
+        if not args.out:
+            raise SoftacError("softac sweep needs --out DIR (or --resume DIR)")
+        out = Path(args.out)
+        from softac.config import DEFAULT_ENV
+
+        env_id = args.env or DEFAULT_ENV
+        overrides = [pair for group in args.overrides for pair in group]
+        base = (sweep.SACConfig.preset(args.preset, env_id=env_id) if args.preset
+                else sweep.SACConfig.for_env(env_id)).with_overrides(overrides)
+        spec = sweep.SweepSpec(
+            env_id=env_id, steps=args.steps or base.total_steps, seeds=sweep.parse_seeds(args.seeds, args.first_seed),
+            preset=args.preset, overrides=overrides, grid=sweep.parse_grid([g for group in args.grid for g in group]),
+            framework=args.framework, search=args.search, samples=args.samples if args.search else 0,
+            space=sweep.load_space(args.space) if args.search else None, asha=args.asha)
+    threshold = args.threshold
+    if threshold is None:
+        threshold = sweep.default_threshold(spec.env_id)
+    result = sweep.run_sweep(spec, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
+                             max_concurrent=args.max_concurrent, threshold=threshold)
+    if result["failed"]:
+        print(f"softac: {len(result['failed'])} trial(s) failed, first: {result['failed'][0]}", file=sys.stderr)
+    if result["unfinished"]:
+        print(f"softac: {len(result['unfinished'])} of {result['trials']} trials unfinished; continue with "
+              f"`softac sweep --resume {out}`", file=sys.stderr)
+        return EXIT_INTERNAL if result["failed"] else EXIT_INTERRUPTED
+    return EXIT_OK
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from softac.bench import main_from_args
 
@@ -291,7 +359,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench, "plot": cmd_plot,
-            "video": cmd_video, "report": cmd_report, "baselines": cmd_baselines}
+            "video": cmd_video, "report": cmd_report, "baselines": cmd_baselines, "sweep": cmd_sweep}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -114,6 +114,15 @@ def write_config(run_dir: Path, config: dict[str, Any], extra: dict[str, Any]) -
     write_atomic(run_dir / "config.yaml", yaml.safe_dump(data, sort_keys=False).encode())
 
 
+def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:
+    """RUN/summary.json: written when a training call ends normally (not when killed or interrupted)."""
+    import json
+
+    from softac.checkpoint import write_atomic
+
+    write_atomic(run_dir / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
+
+
 class Progress:
     """A tqdm bar on a terminal; plain log lines every `every_s` seconds otherwise."""
 

@@ -149,13 +149,27 @@ def _config_key(config: dict[str, Any]) -> str:
 
 
 def _describe_differences(configs: list[dict[str, Any]]) -> list[str]:
-    keys = sorted({k for c in configs for k in c if k not in ("seed", "versions", "resolved_target_entropy")})
-    varying = [k for k in keys if len({json.dumps(c.get(k), default=str) for c in configs}) > 1]
+    """Label each configuration by the keys that vary; runs of other frameworks (SB3, SBX) by their name,
+    since their configs share few keys with softac's."""
+    frameworks = [c.get("framework", "softac") for c in configs]
     labels = []
-    for c in configs:
-        parts = [f"{k}={c.get(k)}" for k in varying]
+    for c, framework in zip(configs, frameworks):
+        same = [o for o, f in zip(configs, frameworks) if f == framework]
+        keys = sorted({k for o in same for k in o if k not in ("seed", "versions", "resolved_target_entropy")})
+        varying = [k for k in keys if len({json.dumps(o.get(k), default=str) for o in same}) > 1]
+        parts = ([framework] if len(set(frameworks)) > 1 else []) + [f"{k}={c.get(k)}" for k in varying]
         labels.append(", ".join(parts) if parts else str(c.get("env_id", "runs")))
     return labels
+
+
+def group_runs(runs: list[Path]) -> tuple[list[str], list[list[Path]]]:
+    """Runs grouped by configuration (all but the seed), with a label for each group."""
+    configs = [load_run_config(r) for r in runs]
+    groups: dict[str, list[int]] = {}
+    for i, c in enumerate(configs):
+        groups.setdefault(_config_key(c), []).append(i)
+    labels = _describe_differences([configs[idx[0]] for idx in groups.values()])
+    return labels, [[runs[i] for i in members] for members in groups.values()]
 
 
 def aligned_eval_curves(runs: list[Path]) -> tuple[np.ndarray, np.ndarray]:
@@ -204,15 +218,11 @@ def mean_and_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | None = None) -> Path:
     """Mean and 95% CI across seeds, one colour per configuration."""
     plt = _pyplot()
-    configs = [load_run_config(r) for r in runs]
-    groups: dict[str, list[int]] = {}
-    for i, c in enumerate(configs):
-        groups.setdefault(_config_key(c), []).append(i)
-    labels = _describe_differences([configs[idx[0]] for idx in groups.values()])
+    labels, groups = group_runs(runs)
     fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
     observed: list[float] = []
-    for colour, (label, members) in enumerate(zip(labels, groups.values())):
-        grid, values = aligned_eval_curves([runs[i] for i in members])
+    for colour, (label, members) in enumerate(zip(labels, groups)):
+        grid, values = aligned_eval_curves(members)
         if len(grid) == 0:
             continue
         observed.extend(values[~np.isnan(values)].tolist())
@@ -231,6 +241,36 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
     ax.set_title("Evaluation return: mean and 95% confidence band across seeds")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=9)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_final_returns(runs: list[Path], out: Path) -> Path:
+    """Each configuration's final eval return: one dot per seed, the mean with its 95% CI."""
+    plt = _pyplot()
+    labels, groups = group_runs(runs)
+    finals = []
+    for members in groups:
+        values = []
+        for run in members:
+            rows = read_csv(run / "eval.csv")
+            if rows:
+                values.append(_floats(rows[-1:], "mean_return")[0])
+        finals.append(np.asarray(values, float))
+    order = sorted(range(len(groups)), key=lambda i: np.nanmean(finals[i]) if len(finals[i]) else -np.inf)
+    fig, ax = plt.subplots(figsize=(9, max(2.5, 0.45 * len(groups) + 1.5)), constrained_layout=True)
+    for row, i in enumerate(order):
+        values = finals[i]
+        if len(values) == 0:
+            continue
+        ax.scatter(values, np.full(len(values), row), color=f"C{i % 10}", alpha=0.6, s=25, zorder=3)
+        mean, half, _ = mean_and_ci(values[:, None])
+        ax.errorbar(mean, [row], xerr=half, fmt="D", color="black", ms=6, capsize=4, zorder=4)
+    ax.set_yticks(range(len(order)), [f"{labels[i]} ({len(groups[i])})" for i in order], fontsize=8)
+    ax.set_xlabel("final deterministic eval return (dots: seeds; diamond and bar: mean and 95% CI)")
+    ax.set_title("Final evaluation return per configuration")
+    ax.grid(alpha=0.3, axis="x")
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out

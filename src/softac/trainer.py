@@ -20,7 +20,7 @@ import numpy as np
 from softac import checkpoint as ckpt
 from softac.errors import SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-from softac.logs import Progress, RunLogger, write_config
+from softac.logs import Progress, RunLogger, write_config, write_summary
 from softac.sac import Batch
 
 RECENT_EPISODES = 20  # episodes behind return_mean in progress.csv and the progress bar
@@ -230,7 +230,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                 with contextlib.suppress(Exception):
                     env.close()
 
-    return {
+    summary = {
         "steps": agent.num_steps,
         "episodes": agent.num_episodes,
         "train_time_s": agent.train_time_s,
@@ -239,4 +239,9 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
         "best_eval": ts["best_eval"],
         "stopped_early": stopped_early,
         "recent_return_mean": float(np.mean(recent)) if recent else None,
+        "best_step": ts.get("best_step"),
+        "total_steps": cfg.total_steps,
     }
+    if run is not None:
+        write_summary(run, summary)
+    return summary

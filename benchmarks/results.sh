@@ -1,0 +1,14 @@
+#!/usr/bin/env bash
+# Regenerates the sweeps behind docs/results.md: softac's presets on 5 seeds, Stable-Baselines3's SAC at its
+# defaults on 3 seeds, same step budgets, same evaluation (10 deterministic episodes), one trial per CPU.
+# Needs the [ray] and [bench] extras (make bench, then pip install -e '.[ray]'). Rerunning continues where it
+# stopped (finished trials are not redone). Then: python benchmarks/results_doc.py $SWEEPS
+set -euo pipefail
+SOFTAC=${SOFTAC:-.venv/bin/softac}
+SWEEPS=${SWEEPS:-sweeps}
+for env in InvertedPendulum-v5 InvertedPendulum-v4; do
+  $SOFTAC sweep --env $env --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/$env-softac
+  $SOFTAC sweep --env $env --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/$env-sb3
+done
+$SOFTAC sweep --env Pusher-v5 --seeds 5 --steps 50000 --threshold -35 --out $SWEEPS/Pusher-v5-softac
+$SOFTAC sweep --env Pusher-v5 --seeds 3 --steps 50000 --threshold -35 --framework sb3 --out $SWEEPS/Pusher-v5-sb3

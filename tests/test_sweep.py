@@ -1,0 +1,235 @@
+"""`softac sweep`: trials on a local Ray Tune, summaries, resume, search; bad input fails before Ray starts."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import TESTS, assert_clean_error, run_cli
+from softac import sweep
+from softac.errors import SoftacError
+
+pytest.importorskip("ray.tune", reason="the [ray] extra is not installed")
+
+# tiny trials: a few seconds each, evaluated every 200 steps on 2 episodes
+TINY_SET = ["--set", "hidden_sizes=[16,16]", "batch_size=32", "learning_starts=100", "buffer_size=5000",
+            "eval_interval=200", "eval_episodes=2", "log_interval=100", "checkpoint_interval=200"]
+DRIFT = "softac_test_envs:Drift-v0"
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _commands(out: Path, trial: str) -> list[str]:
+    return [line for line in (out / "_logs" / f"{trial}.log").read_text().splitlines() if line.startswith("$ ")]
+
+
+# ---- parsing and validation (no Ray) ---------------------------------------------------------
+
+def test_seeds_count_list_and_first_seed():
+    assert sweep.parse_seeds("3") == [0, 1, 2]
+    assert sweep.parse_seeds("2", first=10) == [10, 11]
+    assert sweep.parse_seeds("4,7,9") == [4, 7, 9]
+    for bad in ("0", "x", "1,1", "-1,2", ","):
+        with pytest.raises(SoftacError):
+            sweep.parse_seeds(bad)
+
+
+def test_grid_values_split_outside_brackets_and_name_trials():
+    grid = sweep.parse_grid(["tau=0.005,0.02", "hidden_sizes=[64,64],[256, 256]"])
+    assert grid == {"tau": [0.005, 0.02], "hidden_sizes": [[64, 64], [256, 256]]}
+    trials = sweep.grid_trials(sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0, 1], grid=grid))
+    assert len(trials) == 8 and len({t["name"] for t in trials}) == 8
+    assert trials[0]["name"] == "tau=0.005,hidden_sizes=64x64,seed=0"
+    assert trials[0]["values"] == {"tau": 0.005, "hidden_sizes": [64, 64]}
+    for bad in (["tau"], ["tau=1,,2"], ["tau=1,1"], ["tau=1", "tau=2"]):
+        with pytest.raises(SoftacError):
+            sweep.parse_grid(bad)
+
+
+def test_trial_command_passes_grid_values_and_resumes_partial_runs(tmp_path):
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[3], preset="sb3", overrides=["tau=0.01"],
+                           grid={"hidden_sizes": [[8, 8]]})
+    trial = sweep.grid_trials(spec)[0]
+    cmd = sweep.trial_command(spec, spec.base_config(), trial, tmp_path / trial["name"])
+    assert cmd[1:4] == ["-m", "softac", "train"]
+    assert cmd[cmd.index("--seed") + 1] == "3" and cmd[cmd.index("--steps") + 1] == "500"
+    assert cmd[cmd.index("--preset") + 1] == "sb3"
+    assert cmd[cmd.index("--set") + 1:] == ["tau=0.01", "hidden_sizes=[8, 8]"]
+    (tmp_path / trial["name"] / "checkpoints" / "last").mkdir(parents=True)
+    assert sweep.trial_state(tmp_path / trial["name"]) == "partial"
+    resume = sweep.trial_command(spec, spec.base_config(), trial, tmp_path / trial["name"])
+    assert resume[3:5] == ["train", "--resume"]
+
+
+def test_search_space_is_checked_against_the_config():
+    base = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0]).base_config()
+    sweep.check_space(sweep.DEFAULT_SPACE, base)
+    for bad in ({"taux": {"uniform": [0.1, 0.2]}}, {"tau": {"uniform": [0.2, 0.1]}},
+                {"tau": {"loguniform": [0, 0.1]}}, {"tau": {"normal": [0, 1]}}, {"batch_size": {"choice": [0]}}):
+        with pytest.raises(SoftacError):
+            sweep.check_space(bad, base)
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--grid", "taux=0.1,0.2"], "unknown config key 'taux'"),
+    (["--grid", "gamma=0.9,2.0"], "gamma"),
+    (["--grid", "tau=0.1", "--search", "random"], "alternatives"),
+    (["--asha"], "needs --search"),
+    (["--search", "random", "--seeds", "2"], "one seed"),
+    (["--seeds", "0"], "--seeds"),
+    (["--set", "batch_size=0"], "batch_size"),
+    (["--env", "NoSuchEnv-v9"], "NoSuchEnv-v9"),
+    (["--cpus-per-trial", "0"], "--cpus-per-trial"),
+    (["--search", "random", "--space", "/nonexistent/space.yaml"], "space"),
+])
+def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
+    result = run_cli("sweep", "--out", str(tmp_path / "sweep"), *args, timeout=60)
+    assert_clean_error(result, fragment)
+    assert not (tmp_path / "sweep" / "_ray").exists()
+
+
+def test_sweep_needs_an_out_dir_and_keeps_other_data(tmp_path):
+    assert_clean_error(run_cli("sweep", timeout=60), "--out")
+    (tmp_path / "mine.txt").write_text("precious")
+    assert_clean_error(run_cli("sweep", "--out", str(tmp_path), timeout=60), "not a sweep directory")
+    assert (tmp_path / "mine.txt").read_text() == "precious"
+    assert_clean_error(run_cli("sweep", "--resume", str(tmp_path), timeout=60), "not a sweep directory")
+
+
+def test_without_ray_the_sweep_says_how_to_install_it(tmp_path):
+    fake = tmp_path / "fake"
+    (fake / "ray").mkdir(parents=True)
+    (fake / "ray" / "__init__.py").write_text("raise ImportError('No module named ray')\n")
+    result = run_cli("sweep", "--env", DRIFT, "--steps", "300", "--out", str(tmp_path / "s"), *TINY_SET,
+                     env_extra={"PYTHONPATH": f"{fake}{os.pathsep}{TESTS}"}, timeout=60)
+    assert_clean_error(result, "pip install 'softac[ray]'")
+
+
+def test_peers_need_the_bench_extra_and_take_no_softac_settings(tmp_path):
+    result = run_cli("sweep", "--framework", "sb3", "--grid", "tau=0.1,0.2", "--out", str(tmp_path / "s"), timeout=60)
+    assert_clean_error(result, "own defaults")
+
+
+# ---- on a local Ray ----------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def grid_sweep(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweeps") / "grid"
+    result = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "400",
+                     "--threshold=-1e9", "--out", str(out), *TINY_SET, timeout=600)
+    return out, result
+
+
+def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
+    out, result = grid_sweep
+    assert result.returncode == 0, result.stderr
+    rows = _rows(out / "summary.csv")
+    assert [r["trial"] for r in rows] == ["tau=0.05,seed=0", "tau=0.05,seed=1", "tau=0.2,seed=0", "tau=0.2,seed=1"]
+    assert list(rows[0]) == ["trial", "seed", "tau", "final_eval_mean", "best_eval_mean", "steps", "wall_s", "status",
+                             "steps_to_threshold", "seconds_to_threshold"]
+    for row in rows:
+        assert row["status"] == "done" and row["steps"] == "400"
+        assert float(row["best_eval_mean"]) >= float(row["final_eval_mean"])
+        assert row["steps_to_threshold"] == "200"  # the first eval clears a threshold of -1e9
+        run = out / row["trial"]
+        config = json.loads(json.dumps(__import__("yaml").safe_load((run / "config.yaml").read_text())))
+        assert config["tau"] == float(row["tau"]) and config["seed"] == int(row["seed"])
+        assert config["hidden_sizes"] == [16, 16] and config["total_steps"] == 400
+        evals = _rows(run / "eval.csv")
+        assert [e["step"] for e in evals] == ["200", "400"]
+        assert float(row["final_eval_mean"]) == pytest.approx(float(evals[-1]["mean_return"]), abs=0.01)
+    # an ordinary run directory: `softac eval` loads it
+    ev = run_cli("eval", str(out / rows[0]["trial"]), "--episodes", "2", "--json", timeout=120)
+    assert ev.returncode == 0, ev.stderr and "mean_return" in json.loads(ev.stdout)
+    md = (out / "summary.md").read_text()
+    assert "| tau=0.05 | 2 |" in md and "| tau=0.2 | 2 |" in md and "±" in md
+    assert "| 2/2 |" in md  # reached the threshold, per configuration
+    for name in ("comparison.png", "final_returns.png"):
+        assert (out / "plots" / name).stat().st_size > 10_000
+    assert "[4/4] finished" in result.stderr
+
+
+def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
+    out, first = grid_sweep
+    before = {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")}
+    again = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "400",
+                    "--out", str(out), *TINY_SET, timeout=120)
+    assert again.returncode == 0, again.stderr
+    assert "4 trials (4 already finished)" in again.stderr
+    assert {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")} == before
+    assert all(len(_commands(out, t)) == 1 for t in ("tau=0.05,seed=0", "tau=0.2,seed=1"))
+    different = run_cli("sweep", "--env", DRIFT, "--seeds", "3", "--grid", "tau=0.05,0.2", "--steps", "400",
+                        "--out", str(out), *TINY_SET, timeout=60)
+    assert_clean_error(different, "differs in seeds", "--resume")
+
+
+def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
+    out, _ = grid_sweep
+    result = run_cli("plot", str(out), "--out", str(tmp_path / "figs"), timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "figs" / "comparison.png").exists()
+    assert (tmp_path / "figs" / "tau=0.2,seed=1" / "learning_curve.png").exists()
+
+
+def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
+    out = tmp_path / "sweep"
+    env = dict(os.environ, PYTHONPATH=str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    args = ["sweep", "--env", "softac_test_envs:Slow-v0", "--seeds", "3", "--steps", "2500", "--max-concurrent", "1",
+            "--out", str(out), *TINY_SET]
+    driver = subprocess.Popen([sys.executable, "-m", "softac", *args], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+    try:  # interrupt once the first trial is done and the second has a checkpoint past step 0
+        deadline = time.time() + 300
+        while time.time() < deadline:
+            done = [sweep.trial_state(out / f"seed={s}") == "done" for s in range(3)]
+            second = out / "seed=1" / "eval.csv"
+            if done[0] and second.exists() and len(second.read_text().splitlines()) >= 3 and not done[1]:
+                break
+            assert driver.poll() is None, driver.communicate()
+            time.sleep(0.2)
+        driver.send_signal(signal.SIGINT)
+        _, stderr = driver.communicate(timeout=120)
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    assert driver.returncode == 130, stderr
+    assert "--resume" in stderr.splitlines()[-1]
+    assert sweep.trial_state(out / "seed=1") == "partial"  # the trial saved a checkpoint when it was stopped
+    resumed = run_cli("sweep", "--resume", str(out), timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "3 trials (1 already finished)" in resumed.stderr
+    assert len(_commands(out, "seed=0")) == 1  # not redone
+    assert "--resume" in _commands(out, "seed=1")[-1]  # continued from its checkpoint
+    rows = _rows(out / "summary.csv")
+    assert [r["status"] for r in rows] == ["done"] * 3 and {r["steps"] for r in rows} == {"2500"}
+    steps = [int(e["step"]) for e in _rows(out / "seed=1" / "eval.csv")]
+    assert steps == sorted(set(steps)) and steps[-1] == 2500
+
+
+@pytest.mark.parametrize("search, asha", [("optuna", True), ("random", False)])
+def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
+    space = tmp_path / "space.yaml"
+    space.write_text("tau: {loguniform: [0.01, 0.2]}\nbatch_size: {choice: [16, 32]}\n")
+    out = tmp_path / "search"
+    result = run_cli("sweep", "--env", DRIFT, "--search", search, "--samples", "3", "--space", str(space),
+                     "--steps", "600", "--out", str(out), *TINY_SET, *(["--asha"] if asha else []), timeout=600)
+    assert result.returncode == 0, result.stderr
+    rows = _rows(out / "summary.csv")
+    assert len(rows) == 3 and len({r["trial"] for r in rows}) == 3
+    for row in rows:
+        assert 0.01 <= float(row["tau"]) <= 0.2 and row["batch_size"] in ("16", "32")
+        assert row["status"] in (("done", "stopped early") if asha else ("done",))
+    md = (out / "summary.md").read_text()
+    assert "Best trial" in md and "--set tau=" in md
+    again = run_cli("sweep", "--resume", str(out), timeout=300)  # a finished search is not rerun
+    assert again.returncode == 0, again.stderr
+    assert len(_rows(out / "summary.csv")) == 3
