@@ -6,9 +6,9 @@
 set -euo pipefail
 SOFTAC=${SOFTAC:-.venv/bin/softac}
 SWEEPS=${SWEEPS:-sweeps}
-for env in InvertedPendulum-v5 InvertedPendulum-v4; do
-  $SOFTAC sweep --env $env --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/$env-softac
-  $SOFTAC sweep --env $env --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/$env-sb3
-done
-$SOFTAC sweep --env Pusher-v5 --seeds 5 --steps 50000 --threshold -35 --out $SWEEPS/Pusher-v5-softac
-$SOFTAC sweep --env Pusher-v5 --seeds 3 --steps 50000 --threshold -35 --framework sb3 --out $SWEEPS/Pusher-v5-sb3
+$SOFTAC sweep --env InvertedPendulum-v5 --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/InvertedPendulum-v5-softac
+$SOFTAC sweep --env InvertedPendulum-v5 --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/InvertedPendulum-v5-sb3
+$SOFTAC sweep --env InvertedPendulum-v4 --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/InvertedPendulum-v4-softac
+$SOFTAC sweep --env InvertedPendulum-v4 --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/InvertedPendulum-v4-sb3
+$SOFTAC sweep --env Pusher-v5 --seeds 5 --steps 30000 --threshold -40 --out $SWEEPS/Pusher-v5-softac
+$SOFTAC sweep --env Pusher-v5 --seeds 3 --steps 30000 --threshold -40 --framework sb3 --out $SWEEPS/Pusher-v5-sb3

@@ -89,12 +89,19 @@ def test_search_space_is_checked_against_the_config():
     (["--set", "batch_size=0"], "batch_size"),
     (["--env", "NoSuchEnv-v9"], "NoSuchEnv-v9"),
     (["--cpus-per-trial", "0"], "--cpus-per-trial"),
+    (["--address", "127.0.0.1:1"], "cannot reach the Ray cluster"),
     (["--search", "random", "--space", "/nonexistent/space.yaml"], "space"),
 ])
 def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
     result = run_cli("sweep", "--out", str(tmp_path / "sweep"), *args, timeout=60)
     assert_clean_error(result, fragment)
     assert not (tmp_path / "sweep" / "_ray").exists()
+
+
+def test_readme_lists_the_default_search_space():
+    readme = (TESTS.parent / "README.md").read_text()
+    block = readme.split("The default search space")[1].split("```yaml\n")[1].split("```")[0]
+    assert __import__("yaml").safe_load(block) == sweep.DEFAULT_SPACE
 
 
 def test_sweep_needs_an_out_dir_and_keeps_other_data(tmp_path):

@@ -420,12 +420,29 @@ def _require_ray() -> None:
         raise SoftacError(INSTALL_RAY) from None
 
 
+def _check_reachable(address: str) -> None:
+    """Ray retries an unreachable address for minutes: fail in seconds instead."""
+    import socket
+
+    hostport = address.split("://", 1)[-1]
+    if address == "auto" or ":" not in hostport:
+        return
+    host, _, port = hostport.rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=5):
+            pass
+    except (OSError, ValueError) as exc:
+        raise SoftacError(f"cannot reach the Ray cluster at {address}: {getattr(exc, 'strerror', None) or exc}; "
+                          "is `ray start --head` running there?") from None
+
+
 def _start_ray(address: str | None) -> Any:
     import logging
 
     import ray
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+    os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "fatal")  # the C++ core's retry warnings, not our errors
     os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
     kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR, "log_to_driver": False}
     try:
@@ -481,6 +498,8 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
     if cpus_per_trial <= 0:
         raise SoftacError("--cpus-per-trial must be > 0")
     _require_ray()
+    if address:
+        _check_reachable(address)
     prepare_out_dir(out, spec)
     out = out.resolve()
     failed: list[str] = []
@@ -492,7 +511,7 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
     else:
         trials = grid_trials(spec)
         todo = [t for t in trials if trial_state(out / t["name"]) != "done"]
-        log(f"sweep {out}: {len(trials)} trials ({len(trials) - len(todo)} already finished), {spec.framework} on "
+        log(f"sweep {out}: {len(trials)} trial{'s' * (len(trials) != 1)} ({len(trials) - len(todo)} already finished), {spec.framework} on "
             f"{spec.env_id}, {spec.steps} steps each")
         if todo:
             failed = _run_grid(spec, todo, len(trials), out, address, cpus_per_trial, max_concurrent, log)
