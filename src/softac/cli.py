@@ -117,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--resume", metavar="DIR", help="continue the sweep in DIR (finished trials are not redone)")
     sw.add_argument("--address", help="an existing Ray cluster (e.g. auto or ray://HEAD:10001); default: local Ray")
     sw.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each trial (default 1)")
+    sw.add_argument("--gpus-per-trial", type=float, default=0.0,
+                    help="GPUs Ray reserves for each trial (with --set device=gpu; fractions share a GPU)")
     sw.add_argument("--max-concurrent", type=_positive_int, help="at most this many trials at once")
     sw.add_argument("--framework", choices=["softac", "sb3", "sbx"], default="softac",
                     help="sb3/sbx: their SAC at their defaults, evaluated like softac (needs the [bench] extra)")
@@ -342,7 +344,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if threshold is None:
         threshold = sweep.default_threshold(spec.env_id)
     result = sweep.run_sweep(spec, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
-                             max_concurrent=args.max_concurrent, threshold=threshold)
+                             max_concurrent=args.max_concurrent, threshold=threshold,
+                             gpus_per_trial=args.gpus_per_trial)
     if result["failed"]:
         print(f"softac: {len(result['failed'])} trial(s) failed, first: {result['failed'][0]}", file=sys.stderr)
     if result["unfinished"]:

@@ -491,12 +491,15 @@ def _trial_label(trial: Any) -> str:
 
 
 def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_trial: float = 1.0,
-              max_concurrent: int | None = None, threshold: float | None = None,
+              max_concurrent: int | None = None, threshold: float | None = None, gpus_per_trial: float = 0.0,
               log=lambda *a: print(*a, file=sys.stderr, flush=True)) -> dict[str, Any]:
     """Run (or continue) a sweep; returns {'trials', 'unfinished', 'failed', 'files'}."""
     validate(spec)
     if cpus_per_trial <= 0:
         raise SoftacError("--cpus-per-trial must be > 0")
+    if gpus_per_trial < 0:
+        raise SoftacError("--gpus-per-trial must be >= 0")
+    resources = {"cpu": cpus_per_trial, **({"gpu": gpus_per_trial} if gpus_per_trial else {})}
     _require_ray()
     if address:
         _check_reachable(address)
@@ -505,7 +508,7 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
     failed: list[str] = []
     if spec.search:
         if unfinished_trials(out, spec):
-            failed = _run_search(spec, out, address, cpus_per_trial, max_concurrent, log)
+            failed = _run_search(spec, out, address, resources, max_concurrent, log)
         else:
             log(f"sweep {out}: all {spec.samples} sampled trials are finished")
     else:
@@ -514,7 +517,7 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
         log(f"sweep {out}: {len(trials)} trial{'s' * (len(trials) != 1)} ({len(trials) - len(todo)} already finished), {spec.framework} on "
             f"{spec.env_id}, {spec.steps} steps each")
         if todo:
-            failed = _run_grid(spec, todo, len(trials), out, address, cpus_per_trial, max_concurrent, log)
+            failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, log)
     files = write_summaries(out, spec, threshold)
     for path in files:
         log(f"wrote {path}")
@@ -542,11 +545,12 @@ def _run_config(out: Path, name: str, callbacks: list) -> Any:
                           failure_config=tune.FailureConfig(max_failures=0))
 
 
-def _trainable(spec: SweepSpec, out: Path, cpus: float):
+def _trainable(spec: SweepSpec, out: Path, resources: dict[str, float]):
+    """Ray reserves `resources` per trial; with a GPU, Ray sets CUDA_VISIBLE_DEVICES, which the trial inherits."""
     from ray import tune
 
-    return tune.with_resources(tune.with_parameters(run_trial, spec=spec.to_dict(), out=str(out), cpus=cpus),
-                               {"cpu": cpus})
+    return tune.with_resources(tune.with_parameters(run_trial, spec=spec.to_dict(), out=str(out),
+                                                    cpus=resources["cpu"]), resources)
 
 
 def _failures(results: Any) -> list[str]:
@@ -558,7 +562,7 @@ def _failures(results: Any) -> list[str]:
 
 
 def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path, address: str | None,
-              cpus: float, max_concurrent: int | None, log) -> list[str]:
+              resources: dict[str, float], max_concurrent: int | None, log) -> list[str]:
     _start_ray(address)
     import ray
     from ray import tune
@@ -566,7 +570,7 @@ def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path
     printer = _Lines(total, total - len(todo)).make()
     try:
         tuner = tune.Tuner(
-            _trainable(spec, out, cpus),
+            _trainable(spec, out, resources),
             param_space={"trial": tune.grid_search(todo)},
             tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, reuse_actors=False),
             run_config=_run_config(out, f"grid-{time.strftime('%Y%m%d-%H%M%S')}", [printer]))
@@ -575,8 +579,8 @@ def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path
         ray.shutdown()
 
 
-def _run_search(spec: SweepSpec, out: Path, address: str | None, cpus: float, max_concurrent: int | None,
-                log) -> list[str]:
+def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict[str, float],
+                max_concurrent: int | None, log) -> list[str]:
     _start_ray(address)
     import ray
     from ray import tune
@@ -586,7 +590,7 @@ def _run_search(spec: SweepSpec, out: Path, address: str | None, cpus: float, ma
     try:
         if tune.Tuner.can_restore(str(path)):
             log(f"sweep {out}: continuing the search ({spec.samples} samples)")
-            tuner = tune.Tuner.restore(str(path), trainable=_trainable(spec, out, cpus), resume_unfinished=True,
+            tuner = tune.Tuner.restore(str(path), trainable=_trainable(spec, out, resources), resume_unfinished=True,
                                        resume_errored=True)
         else:
             log(f"sweep {out}: {spec.search} search, {spec.samples} samples on seed {spec.seeds[0]}"
@@ -610,7 +614,7 @@ def _run_search(spec: SweepSpec, out: Path, address: str | None, cpus: float, ma
                 scheduler = ASHAScheduler(time_attr="step", max_t=spec.steps, reduction_factor=3,
                                           grace_period=max(interval, spec.steps // 9))
             tuner = tune.Tuner(
-                _trainable(spec, out, cpus),
+                _trainable(spec, out, resources),
                 param_space=_tune_space(spec.space or {}),
                 tune_config=tune.TuneConfig(metric=METRIC, mode="max", num_samples=spec.samples,
                                             search_alg=search_alg, scheduler=scheduler,
