@@ -240,3 +240,13 @@ def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
     again = run_cli("sweep", "--resume", str(out), timeout=300)  # a finished search is not rerun
     assert again.returncode == 0, again.stderr
     assert len(_rows(out / "summary.csv")) == 3
+
+
+def test_python_api_runs_a_sweep(tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    tiny = [pair for pair in TINY_SET[1:]]
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=300, seeds=[5], overrides=tiny, grid={"gamma": [0.9]})
+    result = sweep.run_sweep(spec, tmp_path / "api", log=lambda *a: None)
+    assert result["trials"] == 1 and result["unfinished"] == [] and result["failed"] == []
+    assert (tmp_path / "api" / "gamma=0.9,seed=5" / "summary.json").exists()
+    assert {p.name for p in result["files"]} >= {"summary.csv", "summary.md", "comparison.png"}
