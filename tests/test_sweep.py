@@ -79,6 +79,24 @@ def test_search_space_is_checked_against_the_config():
             sweep.check_space(bad, base)
 
 
+def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
+    run = tmp_path / "sweep" / "seed=0"
+    run.mkdir(parents=True)
+    (run / "config.yaml").write_text("seed: 0\ntau: 0.02\n")
+    (run / "eval.csv").write_text("step,mean_return,std_return,episodes\n100,10,0,2\n200,1000,0,2\n"
+                                  "300,50,0,2\n400,1000,0,2\n")
+    (run / "progress.csv").write_text("step,time_s\n100,1.0\n300,3.0\n400,4.0\n")
+    spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=400, seeds=[0])
+    [row] = sweep.trial_rows(tmp_path / "sweep", spec, threshold=1000)
+    assert row["steps_to_threshold"] == 200 and row["seconds_to_threshold"] == 2.0  # interpolated time
+    assert row["held_threshold"] == pytest.approx(2 / 3, abs=1e-3)
+    assert row["final_eval_mean"] == 1000 and row["best_eval_mean"] == 1000 and row["status"] == "incomplete"
+    [never] = sweep.trial_rows(tmp_path / "sweep", spec, threshold=2000)
+    assert never["steps_to_threshold"] is None and never["held_threshold"] is None
+    table = sweep.markdown_table(sweep.aggregate([row], [], 1000, name="softac"), 1000)
+    assert "| softac | 1 (0 done) |" in table and "| 1/1 | 200 | 2.0 | 67% |" in table
+
+
 @pytest.mark.parametrize("args, fragment", [
     (["--grid", "taux=0.1,0.2"], "unknown config key 'taux'"),
     (["--grid", "gamma=0.9,2.0"], "gamma"),
@@ -142,11 +160,12 @@ def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
     rows = _rows(out / "summary.csv")
     assert [r["trial"] for r in rows] == ["tau=0.05,seed=0", "tau=0.05,seed=1", "tau=0.2,seed=0", "tau=0.2,seed=1"]
     assert list(rows[0]) == ["trial", "seed", "tau", "final_eval_mean", "best_eval_mean", "steps", "wall_s", "status",
-                             "steps_to_threshold", "seconds_to_threshold"]
+                             "steps_to_threshold", "seconds_to_threshold", "held_threshold"]
     for row in rows:
         assert row["status"] == "done" and row["steps"] == "400"
         assert float(row["best_eval_mean"]) >= float(row["final_eval_mean"])
         assert row["steps_to_threshold"] == "200"  # the first eval clears a threshold of -1e9
+        assert row["held_threshold"] == "1.0"
         run = out / row["trial"]
         config = json.loads(json.dumps(__import__("yaml").safe_load((run / "config.yaml").read_text())))
         assert config["tau"] == float(row["tau"]) and config["seed"] == int(row["seed"])
@@ -159,7 +178,7 @@ def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
     assert ev.returncode == 0, ev.stderr and "mean_return" in json.loads(ev.stdout)
     md = (out / "summary.md").read_text()
     assert "| tau=0.05 | 2 |" in md and "| tau=0.2 | 2 |" in md and "±" in md
-    assert "| 2/2 |" in md  # reached the threshold, per configuration
+    assert "| 2/2 |" in md and "| 100% |" in md  # reached the threshold and held it, per configuration
     for name in ("comparison.png", "final_returns.png"):
         assert (out / "plots" / name).stat().st_size > 10_000
     assert "[4/4] finished" in result.stderr

@@ -670,6 +670,9 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None) -> li
             step, seconds = _threshold_crossing(run, threshold)
             row["steps_to_threshold"] = step
             row["seconds_to_threshold"] = None if seconds is None else round(seconds, 1)
+            after = [v for st, v in evals if step is not None and st >= step]
+            # holding matters as much as reaching (a policy that falls over again is not solved)
+            row["held_threshold"] = round(sum(v >= threshold for v in after) / len(after), 3) if after else None
         rows.append(row)
     return rows
 
@@ -707,6 +710,7 @@ def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | No
                 entry["steps_to_threshold"] = float(np.median([r["steps_to_threshold"] for r in reached]))
                 secs = [r["seconds_to_threshold"] for r in reached if r["seconds_to_threshold"] is not None]
                 entry["seconds_to_threshold"] = float(np.median(secs)) if secs else None
+                entry["held_threshold"] = float(np.mean([r["held_threshold"] for r in reached]))
         table.append(entry)
     table.sort(key=lambda e: -(e["final"][0] if "final" in e else -math.inf))
     return table
@@ -720,7 +724,7 @@ def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
     head = ["configuration", "seeds", "final eval (mean ± std)", "final 95% CI", "best eval (mean ± std)",
             "median steps", "median wall s"]
     if threshold is not None:
-        head += [f"reached {threshold:g}", "median steps to it", "median s to it"]
+        head += [f"reached {threshold:g}", "median steps to it", "median s to it", "evals held after"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for e in table:
         final, best = e.get("final"), e.get("best")
@@ -730,7 +734,8 @@ def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
                  f"{best[0]:.1f} ± {best[1]:.1f}" if best else "-", f"{e['steps']}", _fmt(e["wall_s"])]
         if threshold is not None:
             cells += [f"{e['reached']}/{e['seeds']}", _fmt(e.get("steps_to_threshold"), 0),
-                      _fmt(e.get("seconds_to_threshold"))]
+                      _fmt(e.get("seconds_to_threshold")),
+                      "-" if e.get("held_threshold") is None else f"{100 * e['held_threshold']:.0f}%"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
