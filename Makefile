@@ -3,16 +3,22 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.softac-installed
+TEST_STAMP := $(VENV)/.softac-test-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
 .PHONY: demo test test-fast bench docs venv clean-venv render-deps system-deps
 
 venv: $(STAMP)
 
-# base install only (JAX from PyPI, no PyTorch); the test extra adds pytest
+# the base install only (JAX from PyPI; no PyTorch, no Ray): what `make demo` needs
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e .
+	@touch $@
+
+# the test extra adds pytest, hypothesis and the [ray] extra (the sweep tests run a local Ray)
+$(TEST_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[test]"
 	@touch $@
 
@@ -50,19 +56,19 @@ demo: $(STAMP) render-deps
 	@echo "  video:   $$(ls $(DEMO)/videos/*.mp4 2>/dev/null || echo 'none (rendering unavailable)')"
 	@echo "  report:  $(DEMO)/report.html"
 
-test: $(STAMP) system-deps
+test: $(TEST_STAMP) system-deps
 	$(BIN)/python -m pytest -q
 
 # unit tests only: skips the learning tests
-test-fast: $(STAMP)
+test-fast: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 
 # softac vs Stable-Baselines3 vs SBX on this machine; torch 2.13.0 (CPU build) goes in first so that
 # no CUDA packages are pulled. BENCH_ARGS adds options, e.g. BENCH_ARGS="--repeats 5".
 BENCH_STAMP := $(VENV)/.softac-bench-installed
-$(BENCH_STAMP): $(STAMP)
+$(BENCH_STAMP): $(TEST_STAMP)
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[test,bench]"
+	$(BIN)/python -m pip install -q -e ".[test,bench]"  # test includes [ray]: `softac sweep --framework sb3`
 	@touch $@
 
 bench: $(BENCH_STAMP)

@@ -8,7 +8,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from conftest import assert_clean_error, run_cli
+from conftest import TESTS, assert_clean_error, run_cli
 
 SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "buffer_size=5000",
         "log_interval=100", "eval_interval=200", "eval_episodes=2"]
@@ -160,3 +160,17 @@ def test_gl_backend_choice(monkeypatch):
     assert video.choose_gl_backend() == "osmesa" and os.environ["MUJOCO_GL"] == "osmesa"
     monkeypatch.setenv("MUJOCO_GL", "egl")
     assert video.choose_gl_backend() == "egl"  # the user's choice wins
+
+
+def test_make_demo_installs_the_base_package_only(tmp_path):
+    """`make demo` must not install PyTorch, Ray or the test tools: only `pip install -e .`."""
+    if shutil.which("make") is None:
+        pytest.skip("no make")
+    root = TESTS.parent
+    plan = subprocess.run(["make", "-n", "demo", f"VENV={tmp_path / 'venv'}"], cwd=root, capture_output=True,
+                          text=True, timeout=60).stdout
+    installs = [line for line in plan.splitlines() if "pip install" in line and "--upgrade pip" not in line]
+    assert installs and all(line.rstrip().endswith("pip install -q -e .") for line in installs), installs
+    test_plan = subprocess.run(["make", "-n", "test", f"VENV={tmp_path / 'venv'}"], cwd=root, capture_output=True,
+                               text=True, timeout=60).stdout
+    assert 'pip install -q -e ".[test]"' in test_plan
