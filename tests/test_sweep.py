@@ -269,3 +269,17 @@ def test_python_api_runs_a_sweep(tmp_path, monkeypatch):
     assert result["trials"] == 1 and result["unfinished"] == [] and result["failed"] == []
     assert (tmp_path / "api" / "gamma=0.9,seed=5" / "summary.json").exists()
     assert {p.name for p in result["files"]} >= {"summary.csv", "summary.md", "comparison.png"}
+
+
+def test_a_failing_trial_is_reported_with_its_log_and_the_others_finish(tmp_path):
+    out = tmp_path / "sweep"
+    result = run_cli("sweep", "--env", "softac_test_envs:BrokenStep-v0", "--seeds", "2", "--steps", "400",
+                     "--out", str(out), *TINY_SET, timeout=600)
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr and "Warning" not in result.stderr
+    assert result.stderr.count("FAILED seed=") == 2
+    last = [line for line in result.stderr.splitlines() if line.startswith("softac:")]
+    assert "2 trial(s) failed" in last[0] and "_logs" in last[0], last
+    assert "--resume" in last[-1]
+    log = (out / "_logs" / "seed=0.log").read_text()
+    assert "softac: error:" in log and "raised in step" in log

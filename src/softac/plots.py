@@ -109,7 +109,8 @@ def plot_learning_curve(run: Path, out: Path, baselines: dict[str, Any] | None =
     ax.set_ylabel("episode return")
     ax.set_title(f"Learning curve: {run_label(run)}")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=9)
+    if ax.get_legend_handles_labels()[0]:  # runs that failed before their first evaluation draw nothing
+        ax.legend(loc="best", fontsize=9)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
@@ -240,7 +241,8 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
     ax.set_ylabel("deterministic eval return")
     ax.set_title("Evaluation return: mean and 95% confidence band across seeds")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=9)
+    if ax.get_legend_handles_labels()[0]:  # runs that failed before their first evaluation draw nothing
+        ax.legend(loc="best", fontsize=9)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out

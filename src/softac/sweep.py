@@ -405,9 +405,11 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
                     proc.wait(60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    if code != 0:
+    if code not in (0, 130):  # 130: stopped by a signal, with a checkpoint; it resumes later
+        # reported, not raised: a raised error makes Tune print a traceback; this way the user gets one line
         lines = [ln for ln in log_path.read_text().splitlines() if ln.strip()]
-        raise RuntimeError(f"trial {trial['name']} exited {code}: {lines[-1] if lines else ''} (log: {log_path})")
+        tune.report({METRIC: best, "step": max(reported, default=0),
+                     "trial_error": f"{trial['name']} exited {code}: {lines[-1] if lines else ''} (log: {log_path})"})
 
 
 # ---- the driver ----------------------------------------------------------------------------
@@ -442,7 +444,6 @@ def _start_ray(address: str | None) -> Any:
     import ray
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
-    os.environ.setdefault("RAY_BACKEND_LOG_LEVEL", "fatal")  # the C++ core's retry warnings, not our errors
     os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
     kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR, "log_to_driver": False}
     try:
@@ -470,17 +471,20 @@ class _Lines:
 
         class Printer(Callback):
             def on_trial_result(self, iteration, trials, trial, result, **info):
-                print(f"  {_trial_label(trial)}: step {result.get('step')}, eval {result.get(METRIC, float('nan')):.1f}",
-                      file=sys.stderr, flush=True)
+                if "trial_error" not in result:
+                    print(f"  {_trial_label(trial)}: step {result.get('step')}, "
+                          f"eval {result.get(METRIC, float('nan')):.1f}", file=sys.stderr, flush=True)
 
             def on_trial_complete(self, iteration, trials, trial, **info):
                 lines.done += 1
-                print(f"[{lines.done}/{lines.total}] finished {_trial_label(trial)}", file=sys.stderr, flush=True)
+                error = (trial.last_result or {}).get("trial_error")
+                what = f"FAILED {error}" if error else f"finished {_trial_label(trial)}"
+                print(f"[{lines.done}/{lines.total}] {what}", file=sys.stderr, flush=True)
 
-            def on_trial_error(self, iteration, trials, trial, **info):
+            def on_trial_error(self, iteration, trials, trial, **info):  # a bug of ours or Ray's, not the run's
                 lines.done += 1
-                print(f"[{lines.done}/{lines.total}] FAILED {_trial_label(trial)}: "
-                      f"{str(trial.error_file or '')}", file=sys.stderr, flush=True)
+                print(f"[{lines.done}/{lines.total}] FAILED {_trial_label(trial)} (Ray: {trial.error_file})",
+                      file=sys.stderr, flush=True)
 
         return Printer()
 
@@ -558,6 +562,8 @@ def _failures(results: Any) -> list[str]:
     for result in results:
         if result.error is not None:
             failed.append(str(result.error).strip().splitlines()[-1][:300])
+        elif (result.metrics or {}).get("trial_error"):
+            failed.append(result.metrics["trial_error"])
     return failed
 
 
