@@ -273,13 +273,16 @@ def test_python_api_runs_a_sweep(tmp_path, monkeypatch):
 
 def test_a_failing_trial_is_reported_with_its_log_and_the_others_finish(tmp_path):
     out = tmp_path / "sweep"
-    result = run_cli("sweep", "--env", "softac_test_envs:BrokenStep-v0", "--seeds", "2", "--steps", "400",
+    broken, fine = "softac_test_envs:BrokenStep-v0", DRIFT  # BrokenStep raises in step at step 30
+    result = run_cli("sweep", "--env", DRIFT, "--grid", f"env_id={broken},{fine}", "--steps", "400",
                      "--out", str(out), *TINY_SET, timeout=600)
     assert result.returncode == 1, result.stderr
     assert "Traceback" not in result.stderr and "Warning" not in result.stderr
-    assert result.stderr.count("FAILED seed=") == 2
+    assert result.stderr.count("FAILED env_id=") == 1 and "finished env_id=" in result.stderr
     last = [line for line in result.stderr.splitlines() if line.startswith("softac:")]
-    assert "2 trial(s) failed" in last[0] and "_logs" in last[0], last
-    assert "--resume" in last[-1]
-    log = (out / "_logs" / "seed=0.log").read_text()
+    assert "1 trial(s) failed" in last[0] and "_logs" in last[0], last
+    assert "1 of 2 trials unfinished" in last[-1] and "--resume" in last[-1]
+    log = (out / "_logs" / f"env_id={broken},seed=0.log").read_text()
     assert "softac: error:" in log and "raised in step" in log
+    rows = {r["trial"]: r["status"] for r in _rows(out / "summary.csv")}
+    assert rows[f"env_id={fine},seed=0"] == "done"
