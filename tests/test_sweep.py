@@ -63,7 +63,7 @@ def test_trial_command_passes_grid_values_and_resumes_partial_runs(tmp_path):
     assert cmd[1:4] == ["-m", "softac", "train"]
     assert cmd[cmd.index("--seed") + 1] == "3" and cmd[cmd.index("--steps") + 1] == "500"
     assert cmd[cmd.index("--preset") + 1] == "sb3"
-    assert cmd[cmd.index("--set") + 1:] == ["tau=0.01", "hidden_sizes=[8, 8]"]
+    assert cmd[cmd.index("--set") + 1:] == ["tau=0.01", "hidden_sizes=[8,8]"]
     (tmp_path / trial["name"] / "checkpoints" / "last").mkdir(parents=True)
     assert sweep.trial_state(tmp_path / trial["name"]) == "partial"
     resume = sweep.trial_command(spec, spec.base_config(), trial, tmp_path / trial["name"])
@@ -86,7 +86,7 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     (run / "eval.csv").write_text("step,mean_return,std_return,episodes\n100,10,0,2\n200,1000,0,2\n"
                                   "300,50,0,2\n400,1000,0,2\n")
     (run / "progress.csv").write_text("step,time_s\n100,1.0\n300,3.0\n400,4.0\n")
-    spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=400, seeds=[0])
+    spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=800, seeds=[0])  # stopped at 400 of 800
     [row] = sweep.trial_rows(tmp_path / "sweep", spec, threshold=1000)
     assert row["steps_to_threshold"] == 200 and row["seconds_to_threshold"] == 2.0  # interpolated time
     assert row["held_threshold"] == pytest.approx(2 / 3, abs=1e-3)
@@ -95,6 +95,8 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     assert never["steps_to_threshold"] is None and never["held_threshold"] is None
     table = sweep.markdown_table(sweep.aggregate([row], [], 1000, name="softac"), 1000)
     assert "| softac | 1 (0 done) |" in table and "| 1/1 | 200 | 2.0 | 67% |" in table
+    spec.steps = 400  # a trial whose evaluations reached the last step is complete, summary.json or not
+    assert sweep.trial_rows(tmp_path / "sweep", spec)[0]["status"] == "done"
 
 
 @pytest.mark.parametrize("args, fragment", [

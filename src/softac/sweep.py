@@ -146,7 +146,7 @@ def parse_grid(items: list[str]) -> dict[str, list[Any]]:
 
 def _value_text(value: Any) -> str:
     """A value as a `--set` accepts it (JSON is YAML) and as a short directory-name part."""
-    return json.dumps(value)
+    return json.dumps(value, separators=(",", ":"))  # no spaces: the summary's --set line pastes into a shell
 
 
 def _name_part(value: Any) -> str:
@@ -671,7 +671,9 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None) -> li
         row["best_eval_mean"] = max(v for _, v in evals) if evals else None
         row["steps"] = summary.get("steps", int(float(progress[-1]["step"])) if progress else 0)
         row["wall_s"] = round(summary.get("train_time_s", float(progress[-1]["time_s"]) if progress else 0.0), 1)
-        row["status"] = "done" if trial_state(run) == "done" else ("stopped early" if spec.asha else "incomplete")
+        # a trial ASHA stops at its last milestone can miss its summary.json: its evals show it is complete
+        complete = trial_state(run) == "done" or (bool(evals) and evals[-1][0] >= spec.steps)
+        row["status"] = "done" if complete else ("stopped early" if spec.asha else "incomplete")
         if threshold is not None:
             step, seconds = _threshold_crossing(run, threshold)
             row["steps_to_threshold"] = step
