@@ -331,15 +331,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         out = Path(args.out)
         from softac.config import DEFAULT_ENV
 
-        env_id = args.env or DEFAULT_ENV
-        overrides = [pair for group in args.overrides for pair in group]
-        base = (sweep.SACConfig.preset(args.preset, env_id=env_id) if args.preset
-                else sweep.SACConfig.for_env(env_id)).with_overrides(overrides)
         spec = sweep.SweepSpec(
-            env_id=env_id, steps=args.steps or base.total_steps, seeds=sweep.parse_seeds(args.seeds, args.first_seed),
-            preset=args.preset, overrides=overrides, grid=sweep.parse_grid([g for group in args.grid for g in group]),
+            env_id=args.env or DEFAULT_ENV, steps=args.steps or 0, seeds=sweep.parse_seeds(args.seeds, args.first_seed),
+            preset=args.preset, overrides=[pair for group in args.overrides for pair in group],
+            grid=sweep.parse_grid([g for group in args.grid for g in group]),
             framework=args.framework, search=args.search, samples=args.samples if args.search else 0,
             space=sweep.load_space(args.space) if args.search else None, asha=args.asha)
+        spec.steps = spec.steps or spec.preset_config().total_steps  # default: the preset's budget
     threshold = args.threshold
     if threshold is None:
         threshold = sweep.default_threshold(spec.env_id)

@@ -73,9 +73,13 @@ class SweepSpec:
     space: dict[str, dict[str, list[Any]]] | None = None
     asha: bool = False
 
-    def base_config(self) -> SACConfig:
+    def preset_config(self) -> SACConfig:
+        """The preset (or the env's own) with the overrides, before the sweep's step budget."""
         config = SACConfig.preset(self.preset, env_id=self.env_id) if self.preset else SACConfig.for_env(self.env_id)
-        return config.with_overrides(self.overrides).replace(total_steps=self.steps)
+        return config.with_overrides(self.overrides)
+
+    def base_config(self) -> SACConfig:
+        return self.preset_config().replace(total_steps=self.steps)
 
     def swept_keys(self) -> list[str]:
         return list(self.space or {}) if self.search else list(self.grid)
@@ -110,7 +114,7 @@ def _split_top_level(text: str) -> list[str]:
     """Split on commas outside brackets: `hidden_sizes=[64,64],[256,256]` has two values."""
     parts, depth, current = [], 0, ""
     for ch in text:
-        depth += ch in "[{(" 
+        depth += ch in "[{("
         depth -= ch in "]})"
         if ch == "," and depth == 0:
             parts.append(current)
@@ -380,12 +384,14 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
         os.replace(run, run.with_name(f"{run.name}.incomplete-{n}"))
     (root / LOG_DIR).mkdir(parents=True, exist_ok=True)
     log_path = root / LOG_DIR / f"{trial['name']}.log"
-    reported = {step for step, _ in _read_evals(run)} if run.exists() else set()
-    best = max((v for _, v in _read_evals(run)), default=-math.inf) if run.exists() else -math.inf
+    previous = _read_evals(run)  # a resumed trial has reported these already
+    reported = {step for step, _ in previous}
+    best = max((v for _, v in previous), default=-math.inf)
+    cmd = trial_command(sweep, base, trial, run)
     with open(log_path, "a") as log:
-        log.write(f"$ {' '.join(trial_command(sweep, base, trial, run))}\n")
+        log.write(f"$ {' '.join(cmd)}\n")
         log.flush()
-        proc = subprocess.Popen(trial_command(sweep, base, trial, run), stdout=log, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                 env=_thread_env(cpus), preexec_fn=_die_with_parent if os.name == "posix" else None)
         try:
             while True:
@@ -639,14 +645,12 @@ def trial_dirs(out: Path) -> list[Path]:
                   and (p / "config.yaml").exists())
 
 
-def _threshold_crossing(run: Path, threshold: float) -> tuple[int | None, float | None]:
+def _threshold_crossing(evals: list[tuple[int, float]], progress: list[dict[str, str]],
+                        threshold: float) -> tuple[int | None, float | None]:
     """First eval step whose mean reaches the threshold, and the run's elapsed seconds at that step."""
-    from softac.logs import read_csv
-
-    for step, value in _read_evals(run):
+    for step, value in evals:
         if value >= threshold:
-            times = [(float(r["step"]), float(r["time_s"])) for r in read_csv(run / "progress.csv")
-                     if r.get("time_s") not in (None, "")]
+            times = [(float(r["step"]), float(r["time_s"])) for r in progress if r.get("time_s") not in (None, "")]
             seconds = float(np.interp(step, *zip(*times))) if times else None
             return step, seconds
     return None, None
@@ -675,7 +679,7 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None) -> li
         complete = trial_state(run) == "done" or (bool(evals) and evals[-1][0] >= spec.steps)
         row["status"] = "done" if complete else ("stopped early" if spec.asha else "incomplete")
         if threshold is not None:
-            step, seconds = _threshold_crossing(run, threshold)
+            step, seconds = _threshold_crossing(evals, progress, threshold)
             row["steps_to_threshold"] = step
             row["seconds_to_threshold"] = None if seconds is None else round(seconds, 1)
             after = [v for st, v in evals if step is not None and st >= step]
