@@ -171,6 +171,21 @@ def test_bfloat16_matmuls_stay_close_to_float32():
     assert jax.tree_util.tree_leaves(new_state.actor)[0].dtype == jnp.float32  # parameters stay f32
 
 
+def test_bfloat16_matmul_gradients_match_float32():
+    from softac.networks import bf16_matmul
+
+    rng = np.random.default_rng(0)
+    x = jnp.asarray(rng.normal(size=(32, 48)), jnp.float32)
+    w = jnp.asarray(rng.normal(size=(48, 24)) / 7.0, jnp.float32)
+    upstream = jnp.asarray(rng.normal(size=(32, 24)), jnp.float32)
+    loss32 = lambda x, w: jnp.sum(jnp.tanh(x @ w) * upstream)
+    loss16 = lambda x, w: jnp.sum(jnp.tanh(bf16_matmul(x, w)) * upstream)
+    (dx32, dw32), (dx16, dw16) = jax.grad(loss32, (0, 1))(x, w), jax.grad(loss16, (0, 1))(x, w)
+    assert dx16.shape == x.shape and dw16.shape == w.shape and dx16.dtype == dw16.dtype == jnp.float32
+    for g16, g32 in ((dx16, dx32), (dw16, dw32)):  # bf16 inputs (8-bit mantissa), f32 accumulation
+        assert float(jnp.linalg.norm(g16 - g32) / jnp.linalg.norm(g32)) < 2e-2
+
+
 def test_critic_layer_norm_normalises_hidden_features():
     from softac.networks import critics_apply, init_critics, layer_norm
 

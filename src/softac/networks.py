@@ -67,7 +67,10 @@ def _bf16_matmul_fwd(x: jax.Array, w: jax.Array):
 def _bf16_matmul_bwd(residuals, g: jax.Array):
     x16, w16 = residuals
     g16 = g.astype(jnp.bfloat16)
-    dx = jnp.dot(g16, w16.T, preferred_element_type=jnp.float32)
+    # g @ w.T written as one dot_general contracting both operands' last axes: XLA's CPU backend keeps
+    # that form in bf16, while `jnp.dot(g16, w16.T)` (a transpose, then a dot) is run in f32 on
+    # converted copies. The weight gradient contracts the batch axis, which it runs in f32 either way.
+    dx = jax.lax.dot_general(g16, w16, (((1,), (1,)), ((), ())), preferred_element_type=jnp.float32)
     dw = jnp.dot(x16.T, g16, preferred_element_type=jnp.float32)
     return dx, dw
 
