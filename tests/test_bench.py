@@ -28,3 +28,12 @@ def test_bench_softac_only_reports_json():
     assert out["env"] == "InvertedPendulum-v5"
     assert out["throughput"]["softac"]["median_steps_per_s"] > 0
     assert "softac" in r.stderr  # the human-readable table goes to stderr with --json
+
+
+def test_bench_runs_the_bf16_variant_beside_softac():
+    r = run_cli("bench", "--frameworks", "softac,softac-bf16", "--steps", "40", "--warmup", "300", "--repeats", "1",
+                "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)["throughput"]
+    assert out["softac"]["median_steps_per_s"] > 0 and out["softac-bf16"]["median_steps_per_s"] > 0
+    assert "softac-bf16" in r.stderr

@@ -10,6 +10,9 @@ Two measurements, each framework in its own fresh process, one after the other:
   (`softac train --target-return R`); the peers run at their defaults with an EvalCallback. Both
   the whole-process wall time and the training time without evaluation are reported.
 
+`softac-bf16` is softac with `matmul_dtype=bfloat16` (bf16 matmuls, f32 accumulation and
+parameters); it is in the default list where the CPU has AVX-512 BF16 or AMX.
+
 Peers need the `[bench]` extra (`make bench` installs it, torch 2.13.0 CPU first).
 """
 
@@ -28,8 +31,23 @@ from typing import Any
 
 from softac.errors import SoftacError
 
-FRAMEWORKS = ("softac", "sb3", "sbx")
+FRAMEWORKS = ("softac", "softac-bf16", "sb3", "sbx")
 PEER_MODULES = {"sb3": "stable_baselines3", "sbx": "sbx"}
+# softac variants: the same preset with these settings added
+VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
+
+
+def cpu_has_bf16() -> bool:
+    """AVX-512 BF16 or AMX: bf16 matmuls are fast here, so the bench shows them by default."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def default_frameworks() -> list[str]:
+    return [fw for fw in FRAMEWORKS if fw != "softac-bf16" or cpu_has_bf16()]
 
 
 # ---- workers: each runs in its own process and prints one JSON line -----------------
@@ -207,15 +225,15 @@ def worker(argv: list[str]) -> None:
     p.add_argument("--log-interval", type=int, default=1000)
     a = p.parse_args(argv)
     if a.kind == "run":
-        if a.framework == "softac":
+        if a.framework in VARIANTS:
             p.error("run is for the peers; softac trains with `softac train`")
         out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
                        a.log_interval)
         print(json.dumps(out), flush=True)
         return
     if a.kind == "throughput":
-        if a.framework == "softac":
-            out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)
+        if a.framework in VARIANTS:
+            out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, VARIANTS[a.framework] + a.overrides)
         else:
             out = _throughput_peer(a.framework, a.env, a.warmup, a.steps, a.seed)
     else:
@@ -291,7 +309,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
         f"median of {repeats}")
     for _ in range(repeats):  # interleaved, so drift of the machine hits every framework alike
         for fw in frameworks:
-            extra = ["--set", *overrides] if (fw == "softac" and overrides) else []
+            extra = ["--set", *overrides] if (fw in VARIANTS and overrides) else []
             out, _, err = _run(["-m", "softac.bench", "throughput", fw, "--env", env_id, "--warmup", str(warmup),
                                 "--steps", str(steps), *extra], timeout)
             entry = result["throughput"].setdefault(fw, {"runs": []})
@@ -303,13 +321,15 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
     for fw, entry in result["throughput"].items():
         if entry["runs"]:
             entry["median_steps_per_s"] = statistics.median(entry["runs"])
-    base = result["throughput"].get("softac", {}).get("median_steps_per_s")
+    ours = {fw: e["median_steps_per_s"] for fw, e in result["throughput"].items()
+            if fw in VARIANTS and "median_steps_per_s" in e}
     for fw, entry in result["throughput"].items():
         if "median_steps_per_s" in entry:
-            ratio = f"  softac/{fw} = {base / entry['median_steps_per_s']:.2f}x" if base and fw != "softac" else ""
-            log(f"  {fw:<7} {entry['median_steps_per_s']:8.1f} steps/s  (runs {entry['runs']}){ratio}")
-            if base and fw != "softac":
-                entry["softac_ratio"] = round(base / entry["median_steps_per_s"], 2)
+            ratios = {f"{mine}_ratio": round(speed / entry["median_steps_per_s"], 2)
+                      for mine, speed in ours.items() if fw not in VARIANTS}
+            shown = "".join(f"  {k[:-6]}/{fw} = {v:.2f}x" for k, v in ratios.items())
+            log(f"  {fw:<11} {entry['median_steps_per_s']:8.1f} steps/s  (runs {entry['runs']}){shown}")
+            entry.update(ratios)
 
     if solve_seeds:
         log(f"seconds to solve {env_id} (deterministic eval mean >= {target:g}, 10 episodes every 1000 steps), "
@@ -317,8 +337,10 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
         for fw in frameworks:
             runs = []
             for seed in solve_seeds:
-                if fw == "softac":
-                    out, wall, err = solve_softac(env_id, seed, target, timeout)
+                if fw in VARIANTS:
+                    variant = VARIANTS[fw]
+                    out, wall, err = solve_softac(env_id, seed, target, timeout,
+                                                  ["--set", *variant] if variant else [])
                 else:
                     out, wall, err = _run(["-m", "softac.bench", "solve", fw, "--env", env_id, "--seed", str(seed),
                                            "--target", str(target), "--max-steps", str(max_steps)], timeout)
@@ -329,7 +351,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
                 out = {"seed": seed, "wall_s": round(wall, 1), **{k: (round(v, 1) if isinstance(v, float) else v)
                                                                    for k, v in out.items()}}
                 runs.append(out)
-                log(f"  {fw:<7} seed {seed}: {'solved' if out['solved'] else 'NOT solved'} at {out['steps']} steps, "
+                log(f"  {fw:<11} seed {seed}: {'solved' if out['solved'] else 'NOT solved'} at {out['steps']} steps, "
                     f"{out['wall_s']:.1f}s whole process, {out['train_s']:.1f}s training without eval")
             ok = [r for r in runs if "error" not in r]
             summary: dict[str, Any] = {"runs": runs, "solved": sum(r["solved"] for r in ok), "seeds": len(runs)}
@@ -337,7 +359,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
                 summary["median_wall_s"] = statistics.median(r["wall_s"] for r in ok)
                 summary["median_train_s"] = statistics.median(r["train_s"] for r in ok)
                 summary["median_steps"] = statistics.median(r["steps"] for r in ok)
-                log(f"  {fw:<7} median {summary['median_wall_s']:.1f}s whole process, "
+                log(f"  {fw:<11} median {summary['median_wall_s']:.1f}s whole process, "
                     f"{summary['median_train_s']:.1f}s training, {summary['median_steps']:.0f} steps; "
                     f"solved {summary['solved']}/{summary['seeds']}")
             result["solve"][fw] = summary
@@ -346,7 +368,9 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env", default="InvertedPendulum-v5")
-    p.add_argument("--frameworks", default=",".join(FRAMEWORKS), help="comma list of softac,sb3,sbx")
+    p.add_argument("--frameworks", default=None,
+                   help="comma list of softac,softac-bf16,sb3,sbx (default: all; softac-bf16 where the CPU has "
+                        "AVX-512 BF16 or AMX)")
     p.add_argument("--steps", type=int, default=2000, help="timed training steps per throughput run")
     p.add_argument("--warmup", type=int, default=500, help="untimed steps first (compile, learning_starts)")
     p.add_argument("--repeats", type=int, default=3, help="throughput runs per framework (median reported)")
@@ -361,14 +385,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main_from_args(args: argparse.Namespace) -> int:
-    requested = [f.strip() for f in args.frameworks.split(",") if f.strip()]
+    requested = ([f.strip() for f in args.frameworks.split(",") if f.strip()] if args.frameworks is not None
+                 else default_frameworks())
     unknown = [f for f in requested if f not in FRAMEWORKS]
     if unknown or not requested:
         raise SoftacError(f"--frameworks takes a comma list of {', '.join(FRAMEWORKS)}; got {args.frameworks!r}")
     for name in ("steps", "warmup", "repeats"):
         if getattr(args, name) < (0 if name == "warmup" else 1):
             raise SoftacError(f"--{name} must be positive")
-    if "softac" in requested and args.warmup < 300:
+    if any(fw in VARIANTS for fw in requested) and args.warmup < 300:
         raise SoftacError("--warmup must be >= 300 (the sb3 preset starts learning at step 100)")
     frameworks, missing = available_frameworks(requested)
     if missing:
