@@ -216,7 +216,7 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
     driver = subprocess.Popen([sys.executable, "-m", "softac", *args], env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
     try:  # interrupt once the first trial is done and the second has a checkpoint past step 0
-        deadline = time.time() + 300
+        deadline = time.time() + 600
         while time.time() < deadline:
             done = [sweep.trial_state(out / f"seed={s}") == "done" for s in range(3)]
             second = out / "seed=1" / "eval.csv"
@@ -224,6 +224,8 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
                 break
             assert driver.poll() is None, driver.communicate()
             time.sleep(0.2)
+        else:
+            pytest.fail("the sweep never had its first trial done and the second one under way (600 s)")
         driver.send_signal(signal.SIGINT)
         _, stderr = driver.communicate(timeout=120)
     finally:
