@@ -31,10 +31,10 @@ from typing import Any
 
 from softac.errors import SoftacError
 
-FRAMEWORKS = ("softac", "softac-bf16", "sb3", "sbx")
 PEER_MODULES = {"sb3": "stable_baselines3", "sbx": "sbx"}
-# softac variants: the same preset with these settings added
+# softac variants: the same preset with these settings added (the driver passes them as --set)
 VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
+FRAMEWORKS = (*VARIANTS, *PEER_MODULES)
 
 
 def cpu_has_bf16() -> bool:
@@ -233,7 +233,7 @@ def worker(argv: list[str]) -> None:
         return
     if a.kind == "throughput":
         if a.framework in VARIANTS:
-            out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, VARIANTS[a.framework] + a.overrides)
+            out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)
         else:
             out = _throughput_peer(a.framework, a.env, a.warmup, a.steps, a.seed)
     else:
@@ -309,7 +309,8 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
         f"median of {repeats}")
     for _ in range(repeats):  # interleaved, so drift of the machine hits every framework alike
         for fw in frameworks:
-            extra = ["--set", *overrides] if (fw in VARIANTS and overrides) else []
+            settings = VARIANTS[fw] + overrides if fw in VARIANTS else []
+            extra = ["--set", *settings] if settings else []
             out, _, err = _run(["-m", "softac.bench", "throughput", fw, "--env", env_id, "--warmup", str(warmup),
                                 "--steps", str(steps), *extra], timeout)
             entry = result["throughput"].setdefault(fw, {"runs": []})
