@@ -83,6 +83,24 @@ def test_repeated_kill_9_never_loses_more_than_a_checkpoint_interval(tmp_path):
     assert steps == sorted(set(steps))  # resumed logs hold no step twice and no half rows
 
 
+@pytest.mark.faults
+def test_kill_9_before_the_first_periodic_checkpoint_resumes_from_step_0(tmp_path):
+    """A run killed before its first periodic checkpoint holds only the one written at step 0 (found when a
+    sweep's trials were killed at ~8k steps with checkpoints every 10k): --resume continues it."""
+    run = tmp_path / "run"
+    proc = _popen_train("--env", "softac_test_envs:Drift-v0", "--steps", "1000000", "--out", str(run), *TINY_SETS,
+                        "checkpoint_interval=1000000")
+    _wait_for(lambda: (run / "progress.csv").exists() and _csv_rows(run / "progress.csv")[1:], proc)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate()
+    assert _checkpoint_step(run) == 0
+    r = run_cli("train", "--resume", str(run), "--steps", "300", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert _checkpoint_step(run) == 300
+    steps = [int(row[0]) for row in _csv_rows(run / "progress.csv")[1:]]
+    assert steps == sorted(set(steps)) and steps[-1] == 300  # the killed run's rows were replaced, none twice
+
+
 def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
     run = tmp_path / "run"
     proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),

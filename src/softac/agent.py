@@ -93,6 +93,7 @@ class SAC:
         self.num_episodes = 0
         self.train_time_s = 0.0
         self.trainer_state: dict[str, Any] = {}
+        self.restored_from: Path | None = None  # the checkpoint directory this agent was loaded from
         self.buffer: ReplayBuffer | ObsOnceReplayBuffer | None = None
         self.pool: EnvPool | None = None
         self.pool_started = False
@@ -227,6 +228,7 @@ class SAC:
         self.train_time_s = float(meta.get("train_time_s", 0.0))
         self.rng.bit_generator.state = meta["numpy_rng"]
         self.trainer_state = dict(meta.get("trainer") or {})
+        self.restored_from = Path(where).resolve() if where else None
         if meta.get("has_buffer"):
             self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
             self.buffer.load_state_dict({k[len("buffer/"):]: v for k, v in arrays.items() if k.startswith("buffer/")})

@@ -70,6 +70,13 @@ def check_new_run_dir(run: Path) -> None:
         raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
 
 
+def _continues_run(agent: Any, run: Path) -> bool:
+    """The agent was loaded from this run's own checkpoint, e.g. the one written at step 0 by a run that was
+    killed (kill -9, power loss) before its first periodic checkpoint: training it continues that run."""
+    source = getattr(agent, "restored_from", None)
+    return source is not None and source.parent.parent == run.resolve()
+
+
 def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
           progress: bool | None = None) -> dict[str, Any]:
     cfg = agent.config
@@ -82,7 +89,7 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
     n_envs, act_dim = cfg.n_envs, agent.spaces.act_dim
     run = Path(run_dir) if run_dir is not None else None
     if run is not None:
-        if start_step == 0:
+        if start_step == 0 and not _continues_run(agent, run):
             check_new_run_dir(run)
         try:
             run.mkdir(parents=True, exist_ok=True)
