@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from softac.bench import _machine
+from softac.bench import machine_description
 from softac.plots import plot_comparison
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     figures.mkdir(parents=True, exist_ok=True)
     script = (Path(__file__).parent / "results.sh").read_text().splitlines()
     commands = "\n".join(line.strip() for line in script if "$SOFTAC sweep" in line or line.startswith("  --"))
-    text = [INTRO.format(machine=_machine(), commands=commands)]
+    text = [INTRO.format(machine=machine_description(), commands=commands)]
     for env, threshold in ENVS.items():
         text.extend(section(env, threshold, a.sweeps, figures))
     notes = a.docs / "results-notes.md"

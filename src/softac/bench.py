@@ -287,7 +287,8 @@ def available_frameworks(requested: list[str]) -> tuple[list[str], list[str]]:
     return ok, missing
 
 
-def _machine() -> str:
+def machine_description() -> str:
+    """CPU model, core count and Python version: the line every benchmark and report is labelled with."""
     import platform
 
     cpu = platform.processor() or platform.machine()
@@ -303,7 +304,7 @@ def _machine() -> str:
 
 def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repeats: int, solve_seeds: list[int],
               target: float, max_steps: int, timeout: float, overrides: list[str], log=print) -> dict[str, Any]:
-    result: dict[str, Any] = {"machine": _machine(), "env": env_id, "throughput": {}, "solve": {}}
+    result: dict[str, Any] = {"machine": machine_description(), "env": env_id, "throughput": {}, "solve": {}}
     log(f"machine: {result['machine']}")
     log(f"throughput at SB3's SAC defaults on {env_id}: {steps} steps after {warmup} warm-up steps, "
         f"median of {repeats}")

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from softac.bench import machine_description
 from softac.logs import read_csv
 from softac.plots import load_baselines, load_run_config, plot_runs
 
@@ -60,12 +61,6 @@ def _fmt(value: Any) -> str:
     return f"{f:.1f}" if abs(f) >= 10 else f"{f:.3g}"
 
 
-def _machine() -> str:
-    from softac.bench import _machine as machine
-
-    return machine()
-
-
 def build_report(run: Path, out: Path | None = None, video: Path | None = None) -> Path:
     config = load_run_config(run)
     figures = plot_runs([run])
@@ -114,7 +109,7 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
     cfg_rows = [[k, json.dumps(v) if isinstance(v, (list, dict)) else v] for k, v in shown.items()]
     parts.append("<h2>Configuration</h2><div class='cols'>" + _table(["key", "value"], cfg_rows) + "</div>")
     env_rows = [[k, v] for k, v in versions.items()] + [["python", platform.python_version()],
-                                                        ["machine", _machine()]]
+                                                        ["machine", machine_description()]]
     parts.append("<h2>Versions and machine</h2>" + _table(["", ""], env_rows))
     page = ("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
             "<meta name='viewport' content='width=device-width, initial-scale=1'>"
