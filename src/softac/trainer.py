@@ -73,8 +73,7 @@ def check_new_run_dir(run: Path) -> None:
 def _continues_run(agent: Any, run: Path) -> bool:
     """The agent was loaded from this run's own checkpoint, e.g. the one written at step 0 by a run that was
     killed (kill -9, power loss) before its first periodic checkpoint: training it continues that run."""
-    source = getattr(agent, "restored_from", None)
-    return source is not None and source.parent.parent == run.resolve()
+    return agent.restored_from is not None and agent.restored_from.parent.parent == run.resolve()
 
 
 def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
