@@ -74,3 +74,31 @@ def test_evaluate_reports_per_episode_results(tiny):
     assert stats["mean_return"] == np.mean(stats["returns"])
     again = evaluate(agent, episodes=3)
     assert again["returns"] == stats["returns"]  # deterministic policy, fixed eval seeds
+
+
+def test_a_loaded_agent_never_writes_over_another_run(tiny, tmp_path):
+    """SAC.load(A) then learn(run_dir=B): B holding another run is refused and left as it was; A (loaded from
+    its last checkpoint) continues, a new directory is fine, and A's best checkpoint does not rewind A."""
+    from softac.errors import SoftacError
+
+    cfg = tiny(eval_interval=200)
+    for name in ("a", "b"):
+        SAC(cfg).learn(400, run_dir=tmp_path / name, progress=False)
+    b_before = {p: p.read_bytes() for p in (tmp_path / "b").rglob("*") if p.is_file()}
+
+    loaded = SAC.load(tmp_path / "a", which="last")
+    with pytest.raises(SoftacError, match="already holds a run"):
+        loaded.learn(100, run_dir=tmp_path / "b", progress=False)
+    assert {p: p.read_bytes() for p in (tmp_path / "b").rglob("*") if p.is_file()} == b_before
+
+    best = SAC.load(tmp_path / "a", which="best")
+    with pytest.raises(SoftacError, match="already holds a run"):
+        best.learn(100, run_dir=tmp_path / "a", progress=False)
+
+    loaded.learn(100, run_dir=tmp_path / "a", progress=False)
+    assert SAC.load(tmp_path / "a", which="last").num_steps == 500
+    loaded.learn(100, run_dir=tmp_path / "fork", progress=False)  # a new directory: a fork of run a
+    loaded.learn(100, run_dir=tmp_path / "fork", progress=False)  # and, trained into, its own run from then on
+    assert SAC.load(tmp_path / "fork", which="last").num_steps == 700
+    with pytest.raises(SoftacError, match="already holds a run"):
+        loaded.learn(100, run_dir=tmp_path / "a", progress=False)  # a is no longer this agent's latest state

@@ -105,9 +105,11 @@ def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
     run = tmp_path / "run"
     proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
                         "--set", "hidden_sizes=16", "batch_size=16", "learning_starts=50", "eval_interval=100",
-                        "eval_episodes=2000", "checkpoint_interval=0", "buffer_size=1000")
-    _wait_for(lambda: (run / "checkpoints" / "last" / "meta.json").exists(), proc)
-    time.sleep(3.0)  # 100 steps take ~0.3 s; evaluating 2000 slow episodes takes minutes
+                        "eval_episodes=2000", "checkpoint_interval=0", "buffer_size=1000", "log_interval=100")
+    # the step-100 progress row is written just before the evaluation starts (however long the first compile
+    # took on a cold cache); evaluating 2000 slow episodes takes minutes
+    _wait_for(lambda: (run / "progress.csv").exists() and len(_csv_rows(run / "progress.csv")) >= 2, proc)
+    time.sleep(1.0)
     assert (run / "eval.csv").read_text().count("\n") == 1  # still inside the first evaluation
     sent = time.time()
     proc.send_signal(signal.SIGTERM)

@@ -94,6 +94,9 @@ class SAC:
         self.train_time_s = 0.0
         self.trainer_state: dict[str, Any] = {}
         self.restored_from: Path | None = None  # the checkpoint directory this agent was loaded from
+        # the run directory this agent is the latest state of (loaded from its checkpoints/last, or last trained
+        # into): the only run it may go on writing into; any other directory must hold no run (never overwritten)
+        self.run_dir: Path | None = None
         self.buffer: ReplayBuffer | ObsOnceReplayBuffer | None = None
         self.pool: EnvPool | None = None
         self.pool_started = False
@@ -229,6 +232,9 @@ class SAC:
         self.rng.bit_generator.state = meta["numpy_rng"]
         self.trainer_state = dict(meta.get("trainer") or {})
         self.restored_from = Path(where).resolve() if where else None
+        from_last = self.restored_from is not None and self.restored_from.name == "last" \
+            and self.restored_from.parent.name == "checkpoints"
+        self.run_dir = self.restored_from.parent.parent if from_last else None
         if meta.get("has_buffer"):
             self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
             self.buffer.load_state_dict({k[len("buffer/"):]: v for k, v in arrays.items() if k.startswith("buffer/")})

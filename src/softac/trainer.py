@@ -70,10 +70,20 @@ def check_new_run_dir(run: Path) -> None:
         raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
 
 
-def _continues_run(agent: Any, run: Path) -> bool:
-    """The agent was loaded from this run's own checkpoint, e.g. the one written at step 0 by a run that was
-    killed (kill -9, power loss) before its first periodic checkpoint: training it continues that run."""
-    return agent.restored_from is not None and agent.restored_from.parent.parent == run.resolve()
+def check_run_dir_for(agent: Any, run: Path) -> None:
+    """An agent writes only into a new directory or the run it is the latest state of: a loaded agent never
+    writes over another run, nor rewinds its own from an older (best) checkpoint. Its own run includes one
+    killed (kill -9, power loss) before its first periodic checkpoint, continued from the step-0 checkpoint."""
+    if agent.run_dir == run.resolve():
+        return
+    try:
+        check_new_run_dir(run)
+    except SoftacError:
+        if agent.num_steps == 0:
+            raise
+        raise SoftacError(f"{run} already holds a run that this agent is not the latest state of (it was loaded "
+                          f"from {agent.restored_from or 'elsewhere'}); train into a new directory, or load "
+                          f"{run / 'checkpoints' / 'last'} to continue that run") from None
 
 
 def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
@@ -88,12 +98,12 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
     n_envs, act_dim = cfg.n_envs, agent.spaces.act_dim
     run = Path(run_dir) if run_dir is not None else None
     if run is not None:
-        if start_step == 0 and not _continues_run(agent, run):
-            check_new_run_dir(run)
+        check_run_dir_for(agent, run)
         try:
             run.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
+        agent.run_dir = run.resolve()
     logger = RunLogger(run, resume_step=start_step) if run is not None else None
     if run is not None:
         from softac.agent import _versions
