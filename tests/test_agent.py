@@ -27,10 +27,11 @@ def test_save_load_gives_identical_predictions(tiny, tmp_path):
     assert not meta["has_buffer"] and not any(k.startswith("buffer/") for k in arrays)
 
 
-@pytest.mark.parametrize("obs_once", [False, True])
-def test_resume_is_exact(tiny, tmp_path, obs_once):
-    """N+M steps in one go equals N, save, load, M (same seed, CPU), with either replay buffer."""
-    cfg = tiny(n_envs=2, gradient_steps=2, policy_frequency=2, eval_interval=300, buffer_obs_once=obs_once)
+@pytest.mark.parametrize("obs_once,n_step", [(False, 1), (True, 1), (False, 3), (True, 3)])
+def test_resume_is_exact(tiny, tmp_path, obs_once, n_step):
+    """N+M steps in one go equals N, save, load, M (same seed, CPU), with either replay buffer, n-step too."""
+    cfg = tiny(n_envs=2, gradient_steps=2, policy_frequency=2, eval_interval=300, buffer_obs_once=obs_once,
+               n_step=n_step)
     straight = SAC(cfg)
     straight.learn(900, run_dir=tmp_path / "straight", progress=False)
 

@@ -151,4 +151,89 @@ def test_obs_once_buffer_rebuilds_the_same_transitions(n_envs, capacity):
     pusher = SACConfig.preset("Pusher-v5")
     full_bytes = buffer_bytes_per_transition(pusher, 23, 7)
     compact_bytes = buffer_bytes_per_transition(pusher.replace(buffer_obs_once=True), 23, 7)
-    assert full_bytes == 220 and compact_bytes == pytest.approx(133 + 92 / 8)  # one obs saved, a small side ring
+    assert full_bytes == 221 and compact_bytes == pytest.approx(133 + 92 / 8)  # one obs saved, a small side ring
+
+
+def _reference_n_step(log, g, n_envs, n_step, gamma, newest, can_enter=lambda g: True):
+    """The n-step return from global transition g, walked over the plain list of every transition added."""
+    rewards, last, steps = 0.0, g, 0
+    for k in range(n_step):
+        at = g + k * n_envs
+        if at > newest or (k > 0 and (log[last]["done"] or not can_enter(at))):
+            break
+        rewards += gamma**k * log[at]["reward"]
+        last, steps = at, k + 1
+    return last, rewards, steps
+
+
+@pytest.mark.parametrize("n_envs,capacity,n_step", [(1, 30, 3), (3, 50, 4), (2, 64, 5)])
+def test_n_step_returns_match_a_walk_over_every_transition(n_envs, capacity, n_step):
+    """Sampled n-step rows of both buffers equal a plain walk over the transitions: rewards discounted and
+    summed per env (vector envs interleave), stopped after an episode end (termination or truncation),
+    never past the newest row, across the ring's wrap; the last row's next obs and terminated flag."""
+    from softac.buffer import ObsOnceReplayBuffer
+
+    gamma = 0.9
+    pool = EnvPool(lambda i: make_env("softac_test_envs:Drift-v0"), n_envs, seed=2, name="Drift-v0")
+    pool.reset()
+    full = ReplayBuffer(capacity, 2, 1, n_envs=n_envs, n_step=n_step, gamma=gamma)
+    compact = ObsOnceReplayBuffer(capacity, 2, 1, n_envs, n_step=n_step, gamma=gamma)
+    rng = np.random.default_rng(0)
+    log = []
+    ended = {"terminated": 0, "truncated": 0}
+    for t in range(200):  # wraps the ring several times
+        obs = pool.obs
+        actions = rng.uniform(-1, 3, (n_envs, 1)).astype(np.float32)
+        result = pool.step(actions, t)
+        done = result.terminated | result.truncated
+        ended["terminated"] += int(result.terminated.sum())
+        ended["truncated"] += int(result.truncated.sum())
+        for buf in (full, compact):
+            buf.add(obs, actions, result.rewards, result.next_obs, result.terminated, done)
+        for e in range(n_envs):
+            log.append({"reward": float(result.rewards[e]), "next_obs": result.next_obs[e].copy(),
+                        "terminated": float(result.terminated[e]), "done": bool(done[e])})
+        newest = len(log) - 1
+        oldest = max(0, len(log) - capacity)
+        for buf in (full, compact):
+            can_enter = (lambda g: True) if buf is full else (lambda g: bool(compact.valid[g % capacity]))
+            starts = [g for g in range(oldest, newest + 1) if buf is full or compact.valid[g % capacity]]
+            idx = np.array([g % capacity for g in starts])
+            if not len(idx):
+                continue
+            last, rewards, steps = buf._returns_of(idx)
+            batch_next = buf.next_obs[last] if buf is full else buf.next_obs_of(last)
+            for j, g in enumerate(starts):
+                ref_last, ref_rewards, ref_steps = _reference_n_step(log, g, n_envs, n_step, gamma, newest,
+                                                                     can_enter)
+                assert last[j] == ref_last % capacity and steps[j] == ref_steps
+                assert rewards[j] == pytest.approx(ref_rewards, rel=1e-6, abs=1e-6)
+                np.testing.assert_array_equal(batch_next[j], log[ref_last]["next_obs"])
+                assert buf.terminated[last[j]] == log[ref_last]["terminated"]
+    assert ended["terminated"] and ended["truncated"]  # both kinds of episode end were walked over
+    batch = full.sample(np.random.default_rng(1), 16, 2)
+    assert batch["steps"].shape == (2, 16) and batch["steps"].max() == n_step
+
+
+def test_n_step_by_hand():
+    """One env, gamma 0.5, n 3: rewards 1, 2 (truncated), 3, 4 (newest)."""
+    buf = ReplayBuffer(10, obs_dim=1, act_dim=1, n_step=3, gamma=0.5)
+    for r, truncated in ((1, False), (2, True), (3, False), (4, False)):
+        buf.add(np.full((1, 1), r), np.zeros((1, 1)), np.array([r]), np.full((1, 1), 10 * r), np.zeros(1),
+                np.array([truncated]))
+    last, rewards, steps = buf._returns_of(np.arange(4))
+    assert last.tolist() == [1, 1, 3, 3]  # stopped at the truncation, and at the newest row
+    assert rewards.tolist() == [1 + 0.5 * 2, 2, 3 + 0.5 * 4, 4]
+    assert steps.tolist() == [2, 1, 2, 1]
+    assert buf.next_obs[last].ravel().tolist() == [20, 20, 40, 40]  # the true final obs of the truncated step
+
+
+def test_buffer_checkpoints_from_before_n_step_load():
+    """Checkpoints written before the episode-end flag existed load (their runs are one-step)."""
+    buf = ReplayBuffer(5, obs_dim=2, act_dim=1)
+    buf.add(np.zeros((2, 2)), np.zeros((2, 1)), np.ones(2), np.ones((2, 2)), np.array([0.0, 1.0]))
+    state = buf.state_dict()
+    del state["done"]
+    copy = ReplayBuffer(5, 2, 1)
+    copy.load_state_dict(state)
+    assert copy.done[:2].tolist() == [False, True] and len(copy) == 2

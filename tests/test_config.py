@@ -46,6 +46,8 @@ def test_overrides_parse_types():
     ("batch_size=abc", "batch_size"),
     ("batch_size=0", "batch_size"),
     ("gamma=1.5", "gamma"),
+    ("n_step=0", "n_step"),
+    ("n_step=2.5", "n_step"),
     ("tau=0", "tau"),
     ("actor_lr=-1", "actor_lr"),
     ("hidden_sizes=a,b", "hidden_sizes"),

@@ -87,6 +87,7 @@ def _batch(rng, n_steps, batch, obs_dim, act_dim, terminated=0.0):
         rewards=jnp.asarray(rng.normal(size=(n_steps, batch)), jnp.float32),
         next_obs=jnp.asarray(rng.normal(size=(n_steps, batch, obs_dim)), jnp.float32),
         terminated=jnp.full((n_steps, batch), terminated, jnp.float32),
+        steps=jnp.ones((n_steps, batch), jnp.float32),
     )
 
 
@@ -144,6 +145,23 @@ def test_terminated_transitions_do_not_bootstrap():
     batches = sac.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
     state, metrics = fns.update(state, batches)
     assert float(metrics["q1_mean"]) == pytest.approx(3.0, abs=0.15)
+
+
+def test_n_step_target_bootstraps_with_gamma_to_the_steps():
+    """An n-step batch row that summed `steps` rewards bootstraps with gamma^steps: the update equals
+    one-step SAC with gamma^steps in place of gamma, on the same state, batch and keys."""
+    base = SACConfig().replace(hidden_sizes=[16], batch_size=8, gamma=0.9)
+    n_step = sac.build(base.replace(n_step=3), 3, 2)
+    batch = _batch(np.random.default_rng(3), 1, 8, 3, 2)
+    for steps in (1.0, 2.0, 3.0):
+        one_step = sac.build(base.replace(gamma=0.9**steps), 3, 2)
+        got, _ = n_step.update(n_step.init(0), batch._replace(steps=jnp.full((1, 8), steps, jnp.float32)))
+        want, _ = one_step.update(one_step.init(0), batch)
+        for a, b in zip(_leaves(got.critic), _leaves(want.critic)):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    same, _ = n_step.update(n_step.init(0), batch._replace(steps=jnp.full((1, 8), 2.0, jnp.float32)))
+    plain, _ = n_step.update(n_step.init(0), batch)
+    assert any(not np.allclose(a, b) for a, b in zip(_leaves(same.critic), _leaves(plain.critic)))
 
 
 def test_delayed_policy_updates_and_critic_ensemble():

@@ -52,6 +52,9 @@ class _Ring:
     capacity: int
     pos: int
     size: int
+    n_envs: int
+    n_step: int
+    gamma: float
 
     def _rows(self, n: int) -> np.ndarray:
         return (self.pos + np.arange(n)) % self.capacity
@@ -63,48 +66,90 @@ class _Ring:
     def __len__(self) -> int:
         return self.size
 
+    def _ends_episode(self, rows: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _can_enter(self, rows: np.ndarray) -> np.ndarray:
+        return np.ones(rows.shape, bool)
+
+    def _n_step_rows(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(last row, discounted reward sum, rewards summed) of the n-step returns from rows `idx`.
+
+        From each sampled row the walk follows its env's next rows (n_envs apart, also across the ring's wrap),
+        summing gamma^k r_(t+k) for up to n_step rewards. It stops after a row that ended its episode
+        (terminated or truncated: that row's `terminated` and true final observation then decide the
+        bootstrap) and before a row not written yet, so the last row is always a whole transition.
+        """
+        last = idx.copy()
+        rewards = self.rewards[idx].copy()
+        steps = np.ones(idx.shape, np.float32)
+        ahead = (self.pos - 1 - idx) % self.capacity  # rows written after each sampled row
+        going = np.ones(idx.shape, bool)
+        for k in range(1, self.n_step):
+            following = (last + self.n_envs) % self.capacity
+            going &= ~self._ends_episode(last) & (ahead >= k * self.n_envs) & self._can_enter(following)
+            last = np.where(going, following, last)
+            rewards += np.where(going, np.float32(self.gamma**k) * self.rewards[following], np.float32(0.0))
+            steps += going
+        return last, rewards, steps
+
+    def _returns_of(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self.n_step == 1:
+            return idx, self.rewards[idx], np.ones(idx.shape, np.float32)
+        return self._n_step_rows(idx)
+
 
 class ReplayBuffer(_Ring):
-    """Transitions (obs, action, reward, next_obs, terminated), oldest overwritten first.
+    """Transitions (obs, action, reward, next_obs, terminated, done), oldest overwritten first.
 
-    `terminated` and truncation are kept apart by construction: only
-    `terminated` is stored, because truncation must still bootstrap, and the
-    stored next_obs is the true final observation, never the one after reset.
+    `terminated` and truncation are kept apart by construction: only `terminated` stops the bootstrap,
+    because truncation must still bootstrap, and the stored next_obs is the true final observation, never
+    the one after reset. `done` (terminated or truncated) marks episode ends for n-step returns.
+    Rows are written one vector step at a time, env 0 first, so an env's next transition is n_envs rows on.
     """
 
-    FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated")
+    FIELDS = ("obs", "actions", "rewards", "next_obs", "terminated", "done")
 
-    def __init__(self, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8):
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, memory_fraction: float = 0.8,
+                 n_envs: int = 1, n_step: int = 1, gamma: float = 0.99):
         self.capacity = int(capacity)
         self.obs_dim, self.act_dim = obs_dim, act_dim
+        self.n_envs, self.n_step, self.gamma = n_envs, n_step, gamma
         check_buffer_memory(self.capacity, self.bytes_per_transition(obs_dim, act_dim), memory_fraction)
         self.obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.next_obs = np.zeros((self.capacity, obs_dim), np.float32)
         self.actions = np.zeros((self.capacity, act_dim), np.float32)
         self.rewards = np.zeros((self.capacity,), np.float32)
         self.terminated = np.zeros((self.capacity,), np.float32)
+        self.done = np.zeros((self.capacity,), bool)
         self.pos = 0
         self.size = 0
 
     @staticmethod
     def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
-        return 4 * (2 * obs_dim + act_dim + 2)
+        return 4 * (2 * obs_dim + act_dim + 2) + 1
 
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             next_obs: np.ndarray, terminated: np.ndarray, done: np.ndarray | None = None) -> None:
-        """Add a batch of transitions (one row per vector env); `done` is used by ObsOnceReplayBuffer only."""
+        """Add a batch of transitions (one row per vector env); `done` defaults to `terminated`."""
         idx = self._rows(len(rewards))
         self.obs[idx] = obs
         self.actions[idx] = actions
         self.rewards[idx] = rewards
         self.next_obs[idx] = next_obs
         self.terminated[idx] = terminated
+        self.done[idx] = np.asarray(terminated if done is None else done, bool)
         self._advance(len(rewards))
+
+    def _ends_episode(self, rows: np.ndarray) -> np.ndarray:
+        return self.done[rows]
 
     def sample(self, rng: np.random.Generator, batch_size: int, n_batches: int = 1) -> dict[str, np.ndarray]:
         """`n_batches` independent batches stacked as [n_batches, batch_size, ...]."""
         idx = rng.integers(0, self.size, size=(n_batches, batch_size))
-        return {name: getattr(self, name)[idx] for name in self.FIELDS}
+        last, rewards, steps = self._returns_of(idx)
+        return {"obs": self.obs[idx], "actions": self.actions[idx], "rewards": rewards,
+                "next_obs": self.next_obs[last], "terminated": self.terminated[last], "steps": steps}
 
     def state_dict(self) -> dict[str, np.ndarray]:
         out = {name: getattr(self, name)[: self.size] for name in self.FIELDS}
@@ -116,6 +161,9 @@ class ReplayBuffer(_Ring):
         if size > self.capacity:
             raise SoftacError(f"checkpoint buffer holds {size} transitions, more than buffer_size={self.capacity}")
         for name in self.FIELDS:
+            if name == "done" and name not in state:  # checkpoints from before n-step returns (always n_step 1)
+                self.done[:size] = state["terminated"] > 0
+                continue
             getattr(self, name)[:size] = state[name]
         self.pos, self.size = pos, size
 
@@ -132,8 +180,10 @@ class ObsOnceReplayBuffer(_Ring):
 
     FIELDS = ReplayBuffer.FIELDS
 
-    def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_envs: int, memory_fraction: float = 0.8):
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_envs: int, memory_fraction: float = 0.8,
+                 n_step: int = 1, gamma: float = 0.99):
         self.capacity, self.obs_dim, self.act_dim, self.n_envs = int(capacity), obs_dim, act_dim, n_envs
+        self.n_step, self.gamma = n_step, gamma
         self.final_capacity = self.final_ring_size(self.capacity, n_envs)
         check_buffer_memory(self.capacity, self.bytes_per_transition(obs_dim, act_dim, self.capacity, n_envs),
                             memory_fraction)
@@ -199,8 +249,16 @@ class ObsOnceReplayBuffer(_Ring):
         while bad.any():  # invalid rows are few (at most n_envs plus rows that lost their final obs)
             idx[bad] = rng.integers(0, self.size, size=int(bad.sum()))
             bad = ~self.valid[idx]
-        return {"obs": self.obs[idx], "actions": self.actions[idx], "rewards": self.rewards[idx],
-                "next_obs": self.next_obs_of(idx), "terminated": self.terminated[idx]}
+        last, rewards, steps = self._returns_of(idx)
+        return {"obs": self.obs[idx], "actions": self.actions[idx], "rewards": rewards,
+                "next_obs": self.next_obs_of(last), "terminated": self.terminated[last], "steps": steps}
+
+    # an n-step walk enters only valid rows; in a valid row, an episode end is exactly a final-obs slot
+    def _ends_episode(self, rows: np.ndarray) -> np.ndarray:
+        return self.final_slot[rows] >= 0
+
+    def _can_enter(self, rows: np.ndarray) -> np.ndarray:
+        return self.valid[rows]
 
     def state_dict(self) -> dict[str, np.ndarray]:
         written = min(self.size + self.n_envs, self.capacity)  # successors are written ahead of size
@@ -223,9 +281,10 @@ class ObsOnceReplayBuffer(_Ring):
 
 def make_buffer(config, obs_dim: int, act_dim: int):
     """The replay buffer a config asks for."""
+    returns = {"n_step": config.n_step, "gamma": config.gamma}
     if config.buffer_obs_once:
-        return ObsOnceReplayBuffer(config.buffer_size, obs_dim, act_dim, config.n_envs)
-    return ReplayBuffer(config.buffer_size, obs_dim, act_dim)
+        return ObsOnceReplayBuffer(config.buffer_size, obs_dim, act_dim, config.n_envs, **returns)
+    return ReplayBuffer(config.buffer_size, obs_dim, act_dim, n_envs=config.n_envs, **returns)
 
 
 def buffer_bytes_per_transition(config, obs_dim: int, act_dim: int) -> float:

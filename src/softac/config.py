@@ -43,7 +43,7 @@ class SACConfig:
     device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
     # replay
     buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
-    buffer_obs_once: bool = _f(False, "store each observation once (next_obs rebuilt from the following row): Pusher 220 -> 145 B per transition")
+    buffer_obs_once: bool = _f(False, "store each observation once (next_obs rebuilt from the following row): Pusher 221 -> 145 B per transition")
     batch_size: int = _f(256, "transitions per gradient step")
     learning_starts: int = _f(100, "environment steps of uniform random actions before learning")
     # algorithm
@@ -52,6 +52,7 @@ class SACConfig:
     target_update_interval: int = _f(1, "gradient steps between target-critic updates")
     gradient_steps: int = _f(1, "gradient steps per vector-env step (all fused in one jitted call)")
     policy_frequency: int = _f(1, "critic updates per actor/alpha update round; each round does this many actor updates (CleanRL's delayed update)")
+    n_step: int = _f(1, "rewards summed before bootstrapping (n-step returns, as RLlib's n_step; the walk stops at episode ends); 1 = plain SAC")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum")
     critic_layer_norm: bool = _f(False, "LayerNorm before each hidden activation of the critics (RLPD; for high gradient_steps)")
     hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
@@ -174,6 +175,7 @@ class SACConfig:
         need(self.gradient_steps >= 0, "gradient_steps", "must be >= 0")
         need(self.gradient_steps <= 10_000, "gradient_steps", "must be <= 10000")
         need(self.policy_frequency >= 1, "policy_frequency", "must be >= 1")
+        need(1 <= self.n_step <= 100, "n_step", "must be between 1 and 100")
         need(1 <= self.n_critics <= 100, "n_critics", "must be between 1 and 100")
         need(len(self.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
         need(all(1 <= h <= 65_536 for h in self.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")

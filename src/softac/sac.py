@@ -33,6 +33,7 @@ class Batch(NamedTuple):
     rewards: jax.Array
     next_obs: jax.Array  # the true next observation, also at the end of an episode
     terminated: jax.Array  # 1.0 only for true terminal states: time-limit truncation still bootstraps
+    steps: jax.Array  # rewards summed into `rewards` (n-step returns; 1 for one-step SAC)
 
 
 class SACState(NamedTuple):
@@ -164,11 +165,14 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
 
     # Critic: soft Bellman target with the minimum over target critics (clipped double Q).
     # Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps.
+    # With n-step returns the buffer has summed `steps` discounted rewards (no entropy terms in between,
+    # as RLlib and SB3 do), so the bootstrap is discounted by gamma^steps (Sutton & Barto 2018, sec. 7.1).
     def critic_loss(critic: Any, state: SACState, batch: Batch, key: jax.Array) -> tuple[jax.Array, dict]:
         next_actions, next_log_prob = policy.sample(state.actor, batch.next_obs, key)
         next_q = jnp.min(q_values(state.target_critic, batch.next_obs, next_actions), axis=0)
         next_v = next_q - alpha_of(state) * next_log_prob
-        target = jax.lax.stop_gradient(batch.rewards + c.gamma * (1.0 - batch.terminated) * next_v)
+        discount = c.gamma ** batch.steps if c.n_step > 1 else c.gamma
+        target = jax.lax.stop_gradient(batch.rewards + discount * (1.0 - batch.terminated) * next_v)
         q = q_values(critic, batch.obs, batch.actions)
         loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
         return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, c.n_critics - 1)])}
