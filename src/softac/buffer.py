@@ -80,18 +80,17 @@ class _Ring:
         (terminated or truncated: that row's `terminated` and true final observation then decide the
         bootstrap) and before a row not written yet, so the last row is always a whole transition.
         """
-        last = idx.copy()
-        rewards = self.rewards[idx].copy()
-        steps = np.ones(idx.shape, np.float32)
+        k = np.arange(self.n_step)
+        rows = (idx[..., None] + k * self.n_envs) % self.capacity  # [..., n_step]: this env's next rows
         ahead = (self.pos - 1 - idx) % self.capacity  # rows written after each sampled row
-        going = np.ones(idx.shape, bool)
-        for k in range(1, self.n_step):
-            following = (last + self.n_envs) % self.capacity
-            going &= ~self._ends_episode(last) & (ahead >= k * self.n_envs) & self._can_enter(following)
-            last = np.where(going, following, last)
-            rewards += np.where(going, np.float32(self.gamma**k) * self.rewards[following], np.float32(0.0))
-            steps += going
-        return last, rewards, steps
+        enters = k * self.n_envs <= ahead[..., None]
+        enters[..., 1:] &= ~self._ends_episode(rows[..., :-1]) & self._can_enter(rows[..., 1:])
+        taken = np.logical_and.accumulate(enters, axis=-1)
+        steps = taken.sum(axis=-1)
+        last = np.take_along_axis(rows, steps[..., None] - 1, axis=-1)[..., 0]
+        discounts = (self.gamma ** k).astype(np.float32)
+        rewards = np.sum(self.rewards[rows] * np.where(taken, discounts, np.float32(0.0)), axis=-1)
+        return last, rewards, steps.astype(np.float32)
 
     def _returns_of(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self.n_step == 1:
