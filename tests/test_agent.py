@@ -103,3 +103,21 @@ def test_a_loaded_agent_never_writes_over_another_run(tiny, tmp_path):
     assert SAC.load(tmp_path / "fork", which="last").num_steps == 700
     with pytest.raises(SoftacError, match="already holds a run"):
         loaded.learn(100, run_dir=tmp_path / "a", progress=False)  # a is no longer this agent's latest state
+
+
+class _TermsEnv(DriftEnv):
+    """Drift with its reward split in info, as MuJoCo envs do (plus entries that are not reward terms)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, _ = super().step(action)
+        return obs, reward, terminated, truncated, {"reward_base": 1.0, "reward_action": reward - 1.0,
+                                                    "reward_flag": True, "reward_vector": np.ones(2), "x": 5.0}
+
+
+def test_evaluate_reports_the_reward_terms_an_env_puts_in_info(tiny):
+    agent = SAC(tiny(), env=_TermsEnv())
+    stats = evaluate(agent, episodes=3)
+    assert set(stats["reward_terms"]) == {"reward_action", "reward_base"}
+    assert stats["reward_terms"]["reward_base"] == pytest.approx(stats["mean_length"])
+    assert sum(stats["reward_terms"].values()) == pytest.approx(stats["mean_return"])
+    assert evaluate(SAC(tiny()), episodes=2)["reward_terms"] == {}  # an env without them

@@ -58,6 +58,10 @@ def test_cli_resume_equals_one_run_on_mujoco(tmp_path):
     assert set(a.files) == set(b.files)
     for name in a.files:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    r = run_cli("eval", str(straight), "--episodes", "2", "--json")  # MuJoCo envs split their reward in info
+    out = json.loads(r.stdout)
+    assert out["reward_terms"] == {"reward_survive": pytest.approx(out["mean_return"])}
+    assert "reward terms, mean per episode: survive" in run_cli("eval", str(straight), "--episodes", "2").stdout
     rows_a = _metric_rows(straight / "progress.csv")
     rows_b = [r for r in _metric_rows(split / "progress.csv") if int(r["step"]) % 200 == 0]
     assert rows_a == rows_b

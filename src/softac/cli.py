@@ -224,6 +224,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"{stats['env_id']}: mean return {stats['mean_return']:.2f} +- {stats['std_return']:.2f} over "
               f"{stats['episodes']} {mode} episodes (mean length {stats['mean_length']:.0f}; "
               f"checkpoint at step {agent.num_steps})")
+        if stats["reward_terms"]:
+            print("reward terms, mean per episode: " + ", ".join(
+                f"{name[len('reward_'):]} {value:.2f}" for name, value in stats["reward_terms"].items()))
     return EXIT_OK
 
 

@@ -27,6 +27,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
     envs = envs if envs is not None else [make_env() for _ in range(min(episodes, MAX_PARALLEL))]
     returns = np.zeros(episodes)
     lengths = np.zeros(episodes, np.int64)
+    terms: dict[str, np.ndarray] = {}  # per-episode sums of the env's reward terms (info["reward_*"])
     next_episode = 0
     active: dict[int, int] = {}  # env slot -> episode index
     obs = [None] * len(envs)
@@ -53,18 +54,32 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
         for slot, action in zip(slots, actions):
             ep = active[slot]
             try:
-                o, r, terminated, truncated, _ = envs[slot].step(action)
+                o, r, terminated, truncated, info = envs[slot].step(action)
             except Exception as exc:
                 raise EnvError(f"env {env_name(envs[slot])} raised in step during evaluation: "
                                f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
             returns[ep] += float(r)
             lengths[ep] += 1
+            add_reward_terms(terms, info, ep, episodes)
             obs[slot] = np.asarray(o, np.float32).reshape(-1)
             if terminated or truncated:
                 del active[slot]
                 if next_episode < episodes:
                     start(slot)
-    return summarize(returns, lengths)
+    return summarize(returns, lengths, terms)
+
+
+def add_reward_terms(terms: dict[str, np.ndarray], info: Any, episode: int, episodes: int) -> None:
+    """Add the scalar `reward_*` entries of a step's info (MuJoCo envs report their reward's parts there:
+    Pusher's reward_near, reward_dist, reward_ctrl) to the episode's sums."""
+    if not isinstance(info, dict):
+        return
+    for key, value in info.items():
+        if key.startswith("reward_") and np.ndim(value) == 0 and isinstance(value, (int, float, np.number)) \
+                and not isinstance(value, bool):
+            if key not in terms:
+                terms[key] = np.zeros(episodes)
+            terms[key][episode] += float(value)
 
 
 def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: Any, episodes: int,
@@ -79,7 +94,8 @@ def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: Any, episo
                 env.close()
 
 
-def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:
+def summarize(returns: np.ndarray, lengths: np.ndarray, terms: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+    """`reward_terms`: the mean per-episode sum of each reward term the env reports in `info`."""
     return {
         "mean_return": float(np.mean(returns)),
         "std_return": float(np.std(returns)),
@@ -89,6 +105,7 @@ def summarize(returns: np.ndarray, lengths: np.ndarray) -> dict[str, Any]:
         "episodes": int(len(returns)),
         "returns": [float(r) for r in returns],
         "lengths": [int(n) for n in lengths],
+        "reward_terms": {k: float(np.mean(v)) for k, v in sorted((terms or {}).items())},
     }
 
 
