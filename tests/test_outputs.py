@@ -174,3 +174,14 @@ def test_make_demo_installs_the_base_package_only(tmp_path):
     test_plan = subprocess.run(["make", "-n", "test", f"VENV={tmp_path / 'venv'}"], cwd=root, capture_output=True,
                                text=True, timeout=60).stdout
     assert 'pip install -q -e ".[test]"' in test_plan
+
+
+def test_comparison_labels_name_what_varies_shortly():
+    """Legend labels name only the keys that vary, with searched floats cut to 4 significant digits."""
+    from softac.plots import _describe_differences
+
+    base = {"env_id": "Pusher-v5", "seed": 0, "gamma": 0.95, "hidden_sizes": [256, 256], "actor_lr": 0.001}
+    other = {**base, "seed": 1, "actor_lr": 0.00036875529945204906, "hidden_sizes": [128, 128]}
+    assert _describe_differences([base, other]) == ["actor_lr=0.001, hidden_sizes=256x256",
+                                                    "actor_lr=0.0003688, hidden_sizes=128x128"]
+    assert _describe_differences([base]) == ["Pusher-v5"]

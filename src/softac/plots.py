@@ -7,6 +7,7 @@ interrupted runs alike, with Matplotlib's non-interactive Agg backend (no displa
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ METRIC_GRID = [  # (column, title), the notebooks' 2x3 grid
     ("log_prob_mean", "log-prob mean"),
     ("alpha_loss", "alpha loss"),
 ]
+LEGEND_INSIDE_CHARS = 50  # longer legend labels go below the axes, or they squeeze the plot to a sliver
 BASELINE_STYLES = {"random": ":", "zero": "-.", "heuristic": "--"}
 
 
@@ -105,15 +107,7 @@ def plot_learning_curve(run: Path, out: Path, baselines: dict[str, Any] | None =
     _draw_baselines(ax, baselines)
     if not episodes and not evals:
         ax.text(0.5, 0.5, "no episodes finished yet", ha="center", va="center", transform=ax.transAxes)
-    ax.set_xlabel("environment steps")
-    ax.set_ylabel("episode return")
-    ax.set_title(f"Learning curve: {run_label(run)}")
-    ax.grid(alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:  # runs that failed before their first evaluation draw nothing
-        ax.legend(loc="best", fontsize=9)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return _finish_curve(plt, fig, ax, out, "episode return", f"Learning curve: {run_label(run)}")
 
 
 def plot_metric_grid(run: Path, out: Path) -> Path:
@@ -158,9 +152,18 @@ def _describe_differences(configs: list[dict[str, Any]]) -> list[str]:
         same = [o for o, f in zip(configs, frameworks) if f == framework]
         keys = sorted({k for o in same for k in o if k not in ("seed", "versions", "resolved_target_entropy")})
         varying = [k for k in keys if len({json.dumps(o.get(k), default=str) for o in same}) > 1]
-        parts = ([framework] if len(set(frameworks)) > 1 else []) + [f"{k}={c.get(k)}" for k in varying]
+        parts = ([framework] if len(set(frameworks)) > 1 else []) + [f"{k}={_short(c.get(k))}" for k in varying]
         labels.append(", ".join(parts) if parts else str(c.get("env_id", "runs")))
     return labels
+
+
+def _short(value: Any) -> str:
+    """A config value for a legend: floats to 4 significant digits (searches produce 0.00036875529945204906)."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return "x".join(map(str, value))
+    return str(value)
 
 
 def group_runs(runs: list[Path]) -> tuple[list[str], list[list[Path]]]:
@@ -228,7 +231,7 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
             continue
         observed.extend(values[~np.isnan(values)].tolist())
         mean, half, n = mean_and_ci(values)
-        ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({len(members)} seeds)")
+        ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({len(members)} seed{'s' if len(members) > 1 else ''})")
         if len(members) > 1:
             ax.fill_between(grid, mean - half, mean + half, color=f"C{colour}", alpha=0.2)
     _draw_baselines(ax, baselines)
@@ -237,11 +240,21 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
         lo, hi = min(observed), max(observed)
         pad = 0.08 * (hi - lo or abs(hi) or 1.0)
         ax.set_ylim(lo - pad, hi + pad)
+    return _finish_curve(plt, fig, ax, out, "deterministic eval return",
+                         "Evaluation return: mean and 95% confidence band across seeds")
+
+
+def _finish_curve(plt, fig, ax, out: Path, ylabel: str, title: str) -> Path:
+    """Labels, grid and legend of a return-over-steps figure, then save it to `out`."""
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("deterministic eval return")
-    ax.set_title("Evaluation return: mean and 95% confidence band across seeds")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.grid(alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:  # runs that failed before their first evaluation draw nothing
+    handles, labels = ax.get_legend_handles_labels()
+    if max(map(len, labels), default=0) > LEGEND_INSIDE_CHARS:  # many varying keys: wrapped, below the axes
+        ax.legend(handles, [textwrap.fill(label, 110) for label in labels], loc="upper center",
+                  bbox_to_anchor=(0.5, -0.13), fontsize=8)
+    elif handles:  # runs that failed before their first evaluation draw nothing
         ax.legend(loc="best", fontsize=9)
     fig.savefig(out, dpi=110)
     plt.close(fig)
