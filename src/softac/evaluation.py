@@ -94,7 +94,8 @@ def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: Any, episo
                 env.close()
 
 
-def summarize(returns: np.ndarray, lengths: np.ndarray, terms: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+def summarize(returns: np.ndarray, lengths: np.ndarray,
+              terms: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """`reward_terms`: the mean per-episode sum of each reward term the env reports in `info`."""
     return {
         "mean_return": float(np.mean(returns)),

@@ -231,7 +231,8 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
             continue
         observed.extend(values[~np.isnan(values)].tolist())
         mean, half, n = mean_and_ci(values)
-        ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({len(members)} seed{'s' if len(members) > 1 else ''})")
+        seeds = f"{len(members)} seed{'s' if len(members) > 1 else ''}"
+        ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({seeds})")
         if len(members) > 1:
             ax.fill_between(grid, mean - half, mean + half, color=f"C{colour}", alpha=0.2)
     _draw_baselines(ax, baselines)
