@@ -75,8 +75,7 @@ def add_reward_terms(terms: dict[str, np.ndarray], info: Any, episode: int, epis
     if not isinstance(info, dict):
         return
     for key, value in info.items():
-        if key.startswith("reward_") and np.ndim(value) == 0 and isinstance(value, (int, float, np.number)) \
-                and not isinstance(value, bool):
+        if key.startswith("reward_") and isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
             if key not in terms:
                 terms[key] = np.zeros(episodes)
             terms[key][episode] += float(value)

@@ -62,11 +62,15 @@ def _check_finite(metrics: dict[str, float], step: int) -> None:
                           "(try lower learning rates); the last good checkpoint is kept")
 
 
+def _holds_run(run: Path) -> bool:
+    return (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir())
+
+
 def check_new_run_dir(run: Path) -> None:
     """A new run never writes over another run's checkpoints."""
     if run.exists() and not run.is_dir():
         raise SoftacError(f"run directory {run} exists and is not a directory")
-    if (run / "checkpoints").is_dir() and any((run / "checkpoints").iterdir()):
+    if _holds_run(run):
         raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
 
 
@@ -76,14 +80,11 @@ def check_run_dir_for(agent: Any, run: Path) -> None:
     killed (kill -9, power loss) before its first periodic checkpoint, continued from the step-0 checkpoint."""
     if agent.run_dir == run.resolve():
         return
-    try:
-        check_new_run_dir(run)
-    except SoftacError:
-        if agent.num_steps == 0:
-            raise
+    if agent.num_steps > 0 and _holds_run(run):
         raise SoftacError(f"{run} already holds a run that this agent is not the latest state of (it was loaded "
                           f"from {agent.restored_from or 'elsewhere'}); train into a new directory, or load "
-                          f"{run / 'checkpoints' / 'last'} to continue that run") from None
+                          f"{run / 'checkpoints' / 'last'} to continue that run")
+    check_new_run_dir(run)
 
 
 def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
