@@ -114,6 +114,10 @@ def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
     (["eval", "/nonexistent/run"], ["no such run or checkpoint"]),
     (["eval", ".", "--episodes", "x"], ["--episodes"]),
     (["bogus"], ["invalid choice"]),
+    # an argument no command knows is blamed on the command it followed, once (not "softac: error: softac:")
+    (["bench", "--json", "extra"], ["softac: error: softac bench: unrecognized arguments: extra",
+                                    "(see softac bench --help)"]),
+    (["--bogus"], ["softac: error: unrecognized arguments: --bogus (see softac --help)"]),
 ])
 def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
     assert_clean_error(run_cli(*args, cwd=tmp_path), *fragments)
