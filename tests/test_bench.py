@@ -37,3 +37,5 @@ def test_bench_runs_the_bf16_variant_beside_softac():
     out = json.loads(r.stdout)["throughput"]
     assert out["softac"]["median_steps_per_s"] > 0 and out["softac-bf16"]["median_steps_per_s"] > 0
     assert "softac-bf16" in r.stderr
+    progress = [line.split() for line in r.stderr.splitlines() if line.strip().startswith("run ")]
+    assert [words[:3] for words in progress] == [["run", "1/1", "softac"], ["run", "1/1", "softac-bf16"]]

@@ -308,7 +308,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
     log(f"machine: {result['machine']}")
     log(f"throughput at SB3's SAC defaults on {env_id}: {steps} steps after {warmup} warm-up steps, "
         f"median of {repeats}")
-    for _ in range(repeats):  # interleaved, so drift of the machine hits every framework alike
+    for round_ in range(1, repeats + 1):  # interleaved, so drift of the machine hits every framework alike
         for fw in frameworks:
             settings = VARIANTS[fw] + overrides if fw in VARIANTS else []
             extra = ["--set", *settings] if settings else []
@@ -320,6 +320,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
                 log(f"  {fw}: failed: {err}")
             else:
                 entry["runs"].append(round(out["steps_per_s"], 1))
+                log(f"  run {round_}/{repeats} {fw:<11} {out['steps_per_s']:8.1f} steps/s")  # minutes pass between
     for fw, entry in result["throughput"].items():
         if entry["runs"]:
             entry["median_steps_per_s"] = statistics.median(entry["runs"])
