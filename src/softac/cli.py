@@ -20,6 +20,8 @@ EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_INTERNAL = 0, 2, 130, 1
 
 
 class _Parser(argparse.ArgumentParser):
+    commands: dict[str, argparse.ArgumentParser] = {}  # the root's subcommand parsers, by name
+
     def error(self, message: str) -> None:  # one line, not usage + message
         where = f"{self.prog}: " if " " in self.prog else ""  # main() already says "softac: error:"
         raise SoftacError(f"{where}{message} (see {self.prog} --help)")
@@ -45,11 +47,11 @@ def _finite_float(text: str) -> float:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> _Parser:
     parser = _Parser(prog="softac", description="Soft Actor-Critic for continuous-control Gymnasium envs.")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
-    parser.set_defaults(command_parsers=sub.choices)  # to name the command whose arguments were not understood
+    parser.commands = sub.choices  # to name the command whose arguments were not understood
 
     t = sub.add_parser("train", help="train an agent (InvertedPendulum-v5 by default)")
     t.add_argument("--env", help="Gymnasium env id, or module:EnvId")
@@ -374,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
         parser = build_parser()
         args, unknown = parser.parse_known_args(argv)
         if unknown:
-            parser_of = args.command_parsers.get(args.command, parser)
+            parser_of = parser.commands.get(args.command, parser)
             parser_of.error(f"unrecognized arguments: {' '.join(unknown)}")
         if args.version:
             from softac import __version__
