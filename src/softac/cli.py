@@ -26,6 +26,14 @@ class _Parser(argparse.ArgumentParser):
         where = f"{self.prog}: " if " " in self.prog else ""  # main() already says "softac: error:"
         raise SoftacError(f"{where}{message} (see {self.prog} --help)")
 
+    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+        # argparse reports a subcommand's unknown arguments from the root; blame the command they followed
+        parsed, unknown = self.parse_known_args(args, namespace)
+        if unknown:
+            self.commands.get(getattr(parsed, "command", None), self).error(
+                f"unrecognized arguments: {' '.join(unknown)}")
+        return parsed
+
 
 def _positive_int(text: str) -> int:
     try:
@@ -374,10 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
         parser = build_parser()
-        args, unknown = parser.parse_known_args(argv)
-        if unknown:
-            parser_of = parser.commands.get(args.command, parser)
-            parser_of.error(f"unrecognized arguments: {' '.join(unknown)}")
+        args = parser.parse_args(argv)
         if args.version:
             from softac import __version__
 
