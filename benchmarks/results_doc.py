@@ -25,7 +25,8 @@ Made with `softac sweep` (Ray Tune, one trial per CPU, two trials at a time) on 
 softac runs each env's preset on 5 seeds; Stable-Baselines3's SAC runs at its defaults on 3 seeds
 (`softac sweep --framework sb3`), with the same step budget and the same evaluation: every
 `eval_interval` steps, 10 episodes with deterministic actions, episode i seeded `seed + 1000000 + i`.
-Both frameworks train on one CPU thread per trial here, so wall times compare like with like.
+Each trial's process is pinned to one CPU, so both frameworks train on one CPU per trial and wall times
+compare like with like.
 
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
 - best eval: the best evaluation of each trial;
