@@ -335,8 +335,8 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
     return cmd
 
 
-# CPUs held by running trials on this machine: one lock file per CPU (per node on a Ray cluster)
-CPU_LOCKS = Path(tempfile.gettempdir()) / "softac-cpus"
+# CPUs held by this user's running trials on this machine: one lock file per CPU (per node on a Ray cluster)
+CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(os, 'getuid') else 0}"
 
 
 def _thread_env(cpus: float) -> dict[str, str]:
@@ -368,11 +368,14 @@ def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
     for cpu in allowed:
         if len(held) == n:
             break
-        lock = open(CPU_LOCKS / f"cpu{cpu}.lock", "a")
+        try:
+            lock = open(CPU_LOCKS / f"cpu{cpu}.lock", "a")
+        except OSError:
+            continue
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             held.append((cpu, lock))
-        except OSError:
+        except OSError:  # another trial holds it
             lock.close()
     if len(held) < min(n, len(allowed)):
         for _, lock in held:
