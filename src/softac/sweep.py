@@ -340,23 +340,20 @@ CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(
 
 
 def _thread_env(cpus: float) -> dict[str, str]:
-    """Thread counts for the libraries that read them; the CPUs themselves come from `claim_cpus`."""
+    """Thread counts for the libraries that read them (PyTorch for the peers, OpenMP, MKL); XLA takes
+    its own from the CPUs of `claim_cpus`."""
     env = dict(os.environ)
-    threads = max(1, int(cpus))
-    env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
-    if threads == 1:
-        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") +
-                            " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1").strip()
+    env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(max(1, int(cpus)))
     return env
 
 
 def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
     """The n CPUs a trial is pinned to, and the locks that hold them: CPUs no other trial on this
     machine holds (an exclusive lock on a file per CPU, released when the holder exits, even if
-    killed), else any n of them, shared. Pinned, a trial runs n XLA threads whatever else runs beside
-    it (XLA sizes its thread pool from the CPU affinity and ignores the thread flags of `_thread_env`),
-    so its numbers do not depend on what else runs, and two 1-CPU trials on 2 cores ran 18% faster per
-    update than unpinned (docs/performance.md)."""
+    killed), else any n of them, shared. Pinned, a trial runs n XLA threads whatever runs beside it:
+    XLA sizes its thread pool from the CPU affinity (the thread flags the sweep set before left a
+    "1-CPU" trial on ~1.7 cores), so its numbers do not depend on what else runs, and two 1-CPU
+    trials on 2 cores ran 18% faster per update than unpinned (docs/performance.md)."""
     import fcntl
 
     try:
