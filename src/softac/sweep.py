@@ -339,11 +339,11 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
 CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(os, 'getuid') else 0}"
 
 
-def _thread_env(cpus: float) -> dict[str, str]:
+def _thread_env(threads: int) -> dict[str, str]:
     """Thread counts for the libraries that read them (PyTorch for the peers, OpenMP, MKL); XLA takes
     its own from the CPUs of `claim_cpus`."""
     env = dict(os.environ)
-    env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(max(1, int(cpus)))
+    env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
     return env
 
 
@@ -361,9 +361,11 @@ def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
         CPU_LOCKS.mkdir(exist_ok=True)
     except (AttributeError, OSError):  # no affinity API (macOS) or no writable temp dir: not pinned
         return [], []
-    held: list[tuple[int, Any]] = []
+    n = min(n, len(allowed))
+    cpus: list[int] = []
+    locks: list[Any] = []
     for cpu in allowed:
-        if len(held) == n:
+        if len(cpus) == n:
             break
         try:
             lock = open(CPU_LOCKS / f"cpu{cpu}.lock", "a")
@@ -371,15 +373,17 @@ def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
             continue
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            held.append((cpu, lock))
         except OSError:  # another trial holds it
             lock.close()
-    if len(held) < min(n, len(allowed)):
-        for _, lock in held:
+            continue
+        cpus.append(cpu)
+        locks.append(lock)
+    if len(cpus) < n:
+        for lock in locks:
             lock.close()
         start = os.getpid() % len(allowed)  # spreads the trials that share CPUs
-        return sorted(allowed[(start + i) % len(allowed)] for i in range(min(n, len(allowed)))), []
-    return [cpu for cpu, _ in held], [lock for _, lock in held]
+        return sorted(allowed[(start + i) % len(allowed)] for i in range(n)), []
+    return cpus, locks
 
 
 def trial_process_setup(cpus: list[int]):
@@ -430,13 +434,14 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     reported = {step for step, _ in previous}
     best = max((v for _, v in previous), default=-math.inf)
     cmd = trial_command(sweep, base, trial, run)
-    pinned, locks = claim_cpus(max(1, int(cpus)))
+    threads = max(1, int(cpus))
+    pinned, locks = claim_cpus(threads)
     with open(log_path, "a") as log, contextlib.ExitStack() as held:
         for lock in locks:
             held.callback(lock.close)
         log.write(f"$ {' '.join(cmd)}" + (f"  (CPUs {pinned})" if pinned else "") + "\n")
         log.flush()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_thread_env(cpus),
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_thread_env(threads),
                                 preexec_fn=trial_process_setup(pinned) if os.name == "posix" else None)
         try:
             while True:
