@@ -111,6 +111,8 @@ def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
     (["train", "--steps", "-5"], ["--steps"]),
     (["train", "--set", "buffer_size=100000000000"], ["replay buffer", "available"]),
     (["train", "--resume", "/nonexistent/run"], ["no such run or checkpoint"]),
+    (["train", "--cpus", "0"], ["--cpus must be >= 1"]),
+    (["train", "--cpus", "4096"], ["--cpus 4096: this process may use"]),
     (["eval", "/nonexistent/run"], ["no such run or checkpoint"]),
     (["eval", ".", "--episodes", "x"], ["--episodes"]),
     (["bogus"], ["invalid choice"]),
@@ -121,6 +123,26 @@ def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
 ])
 def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
     assert_clean_error(run_cli(*args, cwd=tmp_path), *fragments)
+
+
+def test_cpus_pins_the_run_to_a_cpu_no_other_run_holds(tmp_path):
+    """`--cpus 1` beside another pinned softac process takes a CPU that process does not hold, and the run's
+    config.yaml records how many CPUs it ran on (its numbers depend on it)."""
+    import fcntl
+    import os
+
+    allowed = sorted(os.sched_getaffinity(0))
+    locks = tmp_path / "tmp" / f"softac-cpus-{os.getuid()}"
+    locks.mkdir(parents=True)
+    with open(locks / f"cpu{allowed[0]}.lock", "a") as held:  # as a sweep trial or `train --cpus` holds it
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        run = tmp_path / "run"
+        r = run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "300", "--out", str(run), "--cpus", "1",
+                    "--no-progress", *TINY_SETS, env_extra={"TMPDIR": str(tmp_path / "tmp")})
+    assert r.returncode == 0, r.stderr
+    expected = f"pinned to CPUs [{allowed[1]}]" if len(allowed) > 1 else f"pinned to CPUs [{allowed[0]}] (shared"
+    assert expected in r.stderr.splitlines()[0], r.stderr
+    assert "\ncpus: 1\n" in (run / "config.yaml").read_text()
 
 
 def test_checkpoint_problems_are_clean_errors(tmp_path):

@@ -71,7 +71,7 @@ def test_unknown_preset_suggests():
 
 def test_yaml_file_roundtrip(tmp_path):
     path = tmp_path / "c.yaml"
-    path.write_text("env_id: Pusher-v5\nbatch_size: 64\nversions: {jax: '0'}\n")
+    path.write_text("env_id: Pusher-v5\nbatch_size: 64\nversions: {jax: '0'}\ncpus: 2\n")
     c = SACConfig.from_yaml(path)
     assert c.env_id == "Pusher-v5" and c.batch_size == 64
     path.write_text("batch_size: [1\n")

@@ -185,3 +185,5 @@ def test_comparison_labels_name_what_varies_shortly():
     assert _describe_differences([base, other]) == ["actor_lr=0.001, hidden_sizes=256x256",
                                                     "actor_lr=0.0003688, hidden_sizes=128x128"]
     assert _describe_differences([base]) == ["Pusher-v5"]
+    # what config.yaml records about the machine (CPU count, versions) does not split seeds into configurations
+    assert _describe_differences([{**base, "cpus": 1}, {**other, "cpus": 2}]) == _describe_differences([base, other])

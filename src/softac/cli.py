@@ -74,6 +74,9 @@ def build_parser() -> _Parser:
     t.add_argument("--out", help="run directory (default runs/ENV/DATE-seedS)")
     t.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
     t.add_argument("--resume", metavar="DIR", help="continue the run in DIR exactly where it stopped")
+    t.add_argument("--cpus", type=_positive_int, metavar="N",
+                   help="pin the run to N CPUs that no other pinned softac run or sweep trial holds (side-by-side "
+                        "runs stop competing for cores; results match a sweep trial with N CPUs)")
     t.add_argument("--target-return", type=_finite_float, metavar="R",
                    help="stop once the deterministic eval mean reaches R")
     t.add_argument("--video", action="store_true", help="record the final policy to RUN/videos at the end")
@@ -171,8 +174,26 @@ def _default_run_dir(config) -> Path:
     return Path("runs") / name / f"{time.strftime('%Y%m%d-%H%M%S')}-seed{config.seed}"
 
 
+def _pin_cpus(n: int) -> None:
+    """Before JAX starts: XLA sizes its thread pool from the CPUs this process may use."""
+    from softac.cpus import pin_this_process, usable_cpus
+
+    if n < 1:
+        raise SoftacError(f"--cpus must be >= 1, got {n}")
+    usable = usable_cpus()
+    if not usable:
+        print("softac: note: --cpus is ignored here (this OS cannot pin a process to CPUs)", file=sys.stderr)
+        return
+    if n > len(usable):
+        raise SoftacError(f"--cpus {n}: this process may use {len(usable)} CPU(s) ({usable})")
+    cpus, shared = pin_this_process(n)
+    print(f"pinned to CPUs {cpus}" + (" (shared: no free CPUs)" if shared else ""), file=sys.stderr)
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from softac import checkpoint as ckpt
+    if args.cpus is not None:
+        _pin_cpus(args.cpus)
     if args.video:  # MuJoCo picks its GL backend when first imported: choose it now, fail early
         from softac.video import choose_gl_backend
 

@@ -111,7 +111,7 @@ class SACConfig:
             data = {}
         if not isinstance(data, dict):
             raise ConfigError(f"config file {path} must hold a mapping of key: value")
-        data = {k: v for k, v in data.items() if k not in _RECORD_ONLY_KEYS}
+        data = {k: v for k, v in data.items() if k not in RECORD_ONLY_KEYS}
         base = cls.for_env(data.get("env_id"))
         return base.replace(**data)
 
@@ -199,7 +199,7 @@ class SACConfig:
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
 GENERIC_PRESETS = ("default", "sb3", "cleanrl")
 # keys written to config.yaml for the record; ignored when the file is read back
-_RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "buffer_bytes_per_transition")
+RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "buffer_bytes_per_transition", "cpus")
 
 
 def _unknown_key_message(key: str, known: list[str]) -> str:

@@ -21,7 +21,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ import numpy as np
 import yaml
 
 from softac.config import ConfigError, SACConfig
+from softac.cpus import claim_cpus
 from softac.errors import SoftacError
 
 SPEC_FILE = "sweep.json"
@@ -335,55 +335,12 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
     return cmd
 
 
-# CPUs held by this user's running trials on this machine: one lock file per CPU (per node on a Ray cluster)
-CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(os, 'getuid') else 0}"
-
-
 def _thread_env(threads: int) -> dict[str, str]:
     """Thread counts for the libraries that read them (PyTorch for the peers, OpenMP, MKL); XLA takes
     its own from the CPUs of `claim_cpus`."""
     env = dict(os.environ)
     env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
     return env
-
-
-def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
-    """The n CPUs a trial is pinned to, and the locks that hold them: CPUs no other trial on this
-    machine holds (an exclusive lock on a file per CPU, released when the holder exits, even if
-    killed), else any n of them, shared. Pinned, a trial runs n XLA threads whatever runs beside it:
-    XLA sizes its thread pool from the CPU affinity (the thread flags the sweep set before left a
-    "1-CPU" trial on ~1.7 cores), so its numbers do not depend on what else runs, and two 1-CPU
-    trials on 2 cores ran 18% faster per update than unpinned (docs/performance.md)."""
-    import fcntl
-
-    try:
-        allowed = sorted(os.sched_getaffinity(0))
-        CPU_LOCKS.mkdir(exist_ok=True)
-    except (AttributeError, OSError):  # no affinity API (macOS) or no writable temp dir: not pinned
-        return [], []
-    n = min(n, len(allowed))
-    cpus: list[int] = []
-    locks: list[Any] = []
-    for cpu in allowed:
-        if len(cpus) == n:
-            break
-        try:
-            lock = open(CPU_LOCKS / f"cpu{cpu}.lock", "a")
-        except OSError:
-            continue
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:  # another trial holds it
-            lock.close()
-            continue
-        cpus.append(cpu)
-        locks.append(lock)
-    if len(cpus) < n:
-        for lock in locks:
-            lock.close()
-        start = os.getpid() % len(allowed)  # spreads the trials that share CPUs
-        return sorted(allowed[(start + i) % len(allowed)] for i in range(n)), []
-    return cpus, locks
 
 
 def trial_process_setup(cpus: list[int]):

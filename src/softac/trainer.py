@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import os
 import signal
 import threading
 import time
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from softac import checkpoint as ckpt
+from softac.cpus import usable_cpus
 from softac.errors import SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
 from softac.logs import Progress, RunLogger, write_config, write_summary
@@ -111,7 +113,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
 
         write_config(run, cfg.to_dict(), {"versions": _versions(),
                                           "resolved_target_entropy": fns.target_entropy,
-                                          "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1)})
+                                          "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1),
+                                          "cpus": len(usable_cpus()) or os.cpu_count()})
 
     ts = agent.trainer_state
     ts.setdefault("best_eval", None)

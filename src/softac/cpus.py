@@ -1,0 +1,77 @@
+"""Pinning a process to CPUs no other softac process on this machine holds.
+
+XLA sizes its CPU thread pool from the process's CPU affinity when its backend starts, and its sums
+depend on that thread count. A process pinned to n CPUs therefore runs n XLA threads whatever runs
+beside it: its numbers do not depend on the neighbours, and side-by-side runs stop competing for the
+same cores (two 1-CPU sb3-preset trainings on 2 cores: 18-33% faster than unpinned;
+docs/performance.md). `softac sweep` pins each trial this way, `softac train --cpus N` a single run.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+# CPUs held by this user's pinned softac processes: one lock file per CPU (per node on a Ray cluster)
+CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(os, 'getuid') else 0}"
+
+_held: list[Any] = []  # the locks of this process's own CPUs: open until it exits
+
+
+def usable_cpus() -> list[int]:
+    """The CPUs this process may run on ([] where the OS has no affinity API, e.g. macOS)."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return []
+
+
+def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
+    """n CPUs to pin a process to, and the locks that hold them: CPUs no other pinned softac process
+    on this machine holds (an exclusive lock on a file per CPU, released when the holder exits, even
+    if killed), else any n of them, shared (no locks), so the thread count never depends on what else
+    runs. ([], []) where pinning is not possible."""
+    import fcntl
+
+    allowed = usable_cpus()
+    if not allowed:
+        return [], []
+    try:
+        CPU_LOCKS.mkdir(exist_ok=True)
+    except OSError:  # no writable temp dir: not pinned
+        return [], []
+    n = min(n, len(allowed))
+    cpus: list[int] = []
+    locks: list[Any] = []
+    for cpu in allowed:
+        if len(cpus) == n:
+            break
+        try:
+            lock = open(CPU_LOCKS / f"cpu{cpu}.lock", "a")
+        except OSError:
+            continue
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # another process holds it
+            lock.close()
+            continue
+        cpus.append(cpu)
+        locks.append(lock)
+    if len(cpus) < n:
+        for lock in locks:
+            lock.close()
+        start = os.getpid() % len(allowed)  # spreads the processes that share CPUs
+        return sorted(allowed[(start + i) % len(allowed)] for i in range(n)), []
+    return cpus, locks
+
+
+def pin_this_process(n: int) -> tuple[list[int], bool]:
+    """Pin this process to n claimed CPUs, held until it exits: (the CPUs, whether they are shared with
+    another pinned process). Call it before JAX starts its backend, which sizes its thread pool then."""
+    cpus, locks = claim_cpus(n)
+    if cpus:
+        os.sched_setaffinity(0, cpus)
+    _held.extend(locks)
+    return cpus, bool(cpus) and not locks
