@@ -1,7 +1,9 @@
 """The `softac` command: outputs, exit codes, one-line errors, resume, signals."""
 
 import csv
+import fcntl
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -78,8 +80,6 @@ def test_resume_without_steps_finishes_the_configured_total(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
-    import os
-
     run = tmp_path / "run"
     env = dict(os.environ, PYTHONPATH=str(TESTS))
     proc = subprocess.Popen([sys.executable, "-m", "softac", "train", "--env", "softac_test_envs:Drift-v0",
@@ -125,12 +125,28 @@ def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
     assert_clean_error(run_cli(*args, cwd=tmp_path), *fragments)
 
 
+def test_concurrent_processes_claim_different_cpus(tmp_path, monkeypatch):
+    """What `--cpus` and each sweep trial claim: CPUs no other pinned softac process holds, while it lives."""
+    from softac import cpus
+
+    monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
+    allowed = sorted(os.sched_getaffinity(0))
+    first, first_locks = cpus.claim_cpus(1)
+    assert first == allowed[:1] and len(first_locks) == 1
+    second, second_locks = cpus.claim_cpus(1)  # another process while the first runs
+    if len(allowed) > 1:
+        assert second == allowed[1:2] and len(second_locks) == 1
+    else:  # every CPU held: pinned all the same (as many threads, so the same numbers), shared
+        assert second == allowed and second_locks == []
+    assert cpus.claim_cpus(len(allowed)) == (allowed, [])  # not that many free: all of them, shared
+    for lock in first_locks:
+        lock.close()  # the first process ended
+    assert cpus.claim_cpus(1)[0] == allowed[:1]
+
+
 def test_cpus_pins_the_run_to_a_cpu_no_other_run_holds(tmp_path):
     """`--cpus 1` beside another pinned softac process takes a CPU that process does not hold, and the run's
     config.yaml records how many CPUs it ran on (its numbers depend on it)."""
-    import fcntl
-    import os
-
     allowed = sorted(os.sched_getaffinity(0))
     locks = tmp_path / "tmp" / f"softac-cpus-{os.getuid()}"
     locks.mkdir(parents=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from conftest import TESTS, assert_clean_error, run_cli
-from softac import cpus, sweep
+from softac import sweep
 from softac.errors import SoftacError
 
 pytest.importorskip("ray.tune", reason="the [ray] extra is not installed")
@@ -290,22 +290,6 @@ def test_a_failing_trial_is_reported_with_its_log_and_the_others_finish(tmp_path
     assert "softac: error:" in log and "raised in step" in log
     rows = {r["trial"]: r["status"] for r in _rows(out / "summary.csv")}
     assert rows[f"env_id={fine},seed=0"] == "done"
-
-
-def test_concurrent_trials_claim_different_cpus(tmp_path, monkeypatch):
-    monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
-    allowed = sorted(os.sched_getaffinity(0))
-    first, first_locks = cpus.claim_cpus(1)
-    assert first == allowed[:1] and len(first_locks) == 1
-    second, second_locks = cpus.claim_cpus(1)  # another trial while the first runs
-    if len(allowed) > 1:
-        assert second == allowed[1:2] and len(second_locks) == 1
-    else:  # every CPU held: pinned all the same (as many threads, so the same numbers), shared
-        assert second == allowed and second_locks == []
-    assert cpus.claim_cpus(len(allowed)) == (allowed, [])  # not that many free: all of them, shared
-    for lock in first_locks:
-        lock.close()  # the first trial ended
-    assert cpus.claim_cpus(1)[0] == allowed[:1]
 
 
 def test_a_trial_process_runs_on_its_claimed_cpus():

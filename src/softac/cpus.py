@@ -3,7 +3,7 @@
 XLA sizes its CPU thread pool from the process's CPU affinity when its backend starts, and its sums
 depend on that thread count. A process pinned to n CPUs therefore runs n XLA threads whatever runs
 beside it: its numbers do not depend on the neighbours, and side-by-side runs stop competing for the
-same cores (two 1-CPU sb3-preset trainings on 2 cores: 18-33% faster than unpinned;
+same cores (two sb3-preset trainings side by side on 2 cores: 1.24x faster pinned to one CPU each;
 docs/performance.md). `softac sweep` pins each trial this way, `softac train --cpus N` a single run.
 """
 
