@@ -113,6 +113,8 @@ def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
     (["train", "--resume", "/nonexistent/run"], ["no such run or checkpoint"]),
     (["train", "--cpus", "0"], ["--cpus must be >= 1"]),
     (["train", "--cpus", "4096"], ["--cpus 4096: this process may use"]),
+    # pinned only once every input is accepted, so a refused one still gets its one line
+    (["train", "--cpus", "1", "--env", "InvertedPendulm-v5"], ["unknown environment id"]),
     (["eval", "/nonexistent/run"], ["no such run or checkpoint"]),
     (["eval", ".", "--episodes", "x"], ["--episodes"]),
     (["bogus"], ["invalid choice"]),

@@ -174,26 +174,26 @@ def _default_run_dir(config) -> Path:
     return Path("runs") / name / f"{time.strftime('%Y%m%d-%H%M%S')}-seed{config.seed}"
 
 
-def _pin_cpus(n: int) -> None:
-    """Before JAX starts: XLA sizes its thread pool from the CPUs this process may use."""
+def _pin_cpus(n: int | None) -> str | None:
+    """--cpus, once the inputs are checked and before JAX starts (XLA sizes its thread pool from the CPUs
+    this process may use); the line to print when training starts."""
     from softac.cpus import pin_this_process, usable_cpus
 
+    if n is None:
+        return None
     if n < 1:
         raise SoftacError(f"--cpus must be >= 1, got {n}")
     usable = usable_cpus()
     if not usable:
-        print("softac: note: --cpus is ignored here (this OS cannot pin a process to CPUs)", file=sys.stderr)
-        return
+        return "softac: note: --cpus is ignored here (this OS cannot pin a process to CPUs)"
     if n > len(usable):
         raise SoftacError(f"--cpus {n}: this process may use {len(usable)} CPU(s) ({usable})")
     cpus, shared = pin_this_process(n)
-    print(f"pinned to CPUs {cpus}" + (" (shared: no free CPUs)" if shared else ""), file=sys.stderr)
+    return f"pinned to CPUs {cpus}" + (" (shared: no free CPUs)" if shared else "")
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from softac import checkpoint as ckpt
-    if args.cpus is not None:
-        _pin_cpus(args.cpus)
     if args.video:  # MuJoCo picks its GL backend when first imported: choose it now, fail early
         from softac.video import choose_gl_backend
 
@@ -212,23 +212,28 @@ def cmd_train(args: argparse.Namespace) -> int:
         directory = ckpt.resolve(run, "last")
         if directory.parent.parent != run:
             raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
+        pinned = _pin_cpus(args.cpus)
         agent = SAC.load(run, which="last", device=args.device)
         if args.steps is not None:
             steps = args.steps
         else:
             steps = max(agent.config.total_steps - agent.num_steps, 0)
-        print(f"resuming {run} at step {agent.num_steps}; training {steps} more steps", file=sys.stderr)
+        start = f"resuming {run} at step {agent.num_steps}; training {steps} more steps"
     else:
         config = _resolve_train_config(args)
         run = Path(args.out) if args.out else _default_run_dir(config)
         check_new_run_dir(run)  # before JAX starts: a clash should fail fast
+        pinned = _pin_cpus(args.cpus)
         agent = SAC(config)
         per = agent.buffer_bytes_per_transition
         check_buffer_memory(config.buffer_size, per)
         steps = config.total_steps
-        print(f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}; replay buffer "
-              f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
-              f"{config.buffer_size:,}", file=sys.stderr)
+        start = (f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}; replay buffer "
+                 f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
+                 f"{config.buffer_size:,}")
+    for line in (pinned, start):  # printed once every input is accepted: a refused one gets one line only
+        if line:
+            print(line, file=sys.stderr)
     summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
     if args.video:
         _record_video(run, which=None, out=None, episodes=1, deterministic=True)
