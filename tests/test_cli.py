@@ -202,3 +202,23 @@ def test_gpu_without_a_gpu_is_a_clean_error(tmp_path):
     if jax.default_backend() == "gpu":
         pytest.skip("this machine has a GPU")
     assert_clean_error(run_cli("train", "--device", "gpu", "--out", str(tmp_path / "r")), "finds no GPU", "--device cpu")
+
+
+def test_help_for_the_root_and_every_command():
+    """`softac`, `softac --help` and `softac CMD --help` print usage, never an internal error (argparse formats
+    help with %, so a literal % in a help text once broke all of them)."""
+    from softac.cli import build_parser
+
+    r = run_cli("--help")
+    assert r.returncode == 0 and "usage: softac" in r.stdout and not r.stderr, r.stderr
+    commands = list(build_parser().commands)
+    assert {"train", "eval", "video", "plot", "report", "baselines", "sweep", "bench", "presets"} <= set(commands)
+    for command in commands:
+        assert command in r.stdout, command
+    bare = run_cli()
+    assert bare.returncode == 2 and "usage: softac" in bare.stderr and "internal error" not in bare.stderr
+    for command in commands:
+        r = run_cli(command, "--help")
+        assert r.returncode == 0, (command, r.stderr)
+        assert f"usage: softac {command}" in r.stdout, (command, r.stdout[:200])
+        assert "internal error" not in r.stderr + r.stdout, command

@@ -70,6 +70,31 @@ def test_trial_command_passes_grid_values_and_resumes_partial_runs(tmp_path):
     assert resume[3:5] == ["train", "--resume"]
 
 
+def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
+    """summary.md's "check it on more seeds" line must train the best trial's configuration: the search's
+    --preset and --set, with the sampled values in place of an override of the same key."""
+    import shlex
+
+    from softac.cli import build_parser, sweep_spec_from_args
+
+    search = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=3000, seeds=[0], preset="sb3",
+                             overrides=["tau=0.01", "hidden_sizes=[64,64]", "gamma=0.98"], search="random",
+                             samples=4, space={"tau": {"loguniform": [0.001, 0.1]}, "batch_size": {"choice": [64]}})
+    best = {"tau": 0.0321, "batch_size": 64}
+    line = sweep.check_command(search, best, seeds=5, out="/tmp/check dir")
+    argv = shlex.split(line)
+    assert argv[:2] == ["softac", "sweep"]
+    check = sweep_spec_from_args(build_parser().parse_args(argv[1:]))
+    assert check.preset == "sb3" and check.seeds == [0, 1, 2, 3, 4] and check.steps == 3000
+    assert check.search is None and not check.grid
+    expected = search.base_config().replace(tau=0.0321, batch_size=64)
+    assert check.base_config() == expected
+    assert check.base_config().hidden_sizes == [64, 64] and check.base_config().gamma == 0.98
+    plain = sweep.SweepSpec(env_id="Pusher-v5", steps=100, seeds=[0], search="random", samples=2)
+    assert sweep.check_command(plain, {"tau": 0.02}) == ("softac sweep --env Pusher-v5 --seeds 5 --steps 100 "
+                                                         "--set tau=0.02 --out DIR")
+
+
 def test_search_space_is_checked_against_the_config():
     base = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0]).base_config()
     sweep.check_space(sweep.DEFAULT_SPACE, base)
@@ -259,7 +284,12 @@ def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
         assert 0.01 <= float(row["tau"]) <= 0.2 and row["batch_size"] in ("16", "32")
         assert row["status"] in (("done", "stopped early") if asha else ("done",))
     md = (out / "summary.md").read_text()
-    assert "Best trial" in md and "--set tau=" in md
+    assert "Best trial" in md and "--set" in md and " tau=" in md
+    argv = __import__("shlex").split(md.split("more seeds: `")[1].split("`")[0])
+    sets = argv[argv.index("--set") + 1:argv.index("--out")]
+    kept = [pair for pair in TINY_SET[1:] if not pair.startswith("batch_size=")]  # batch_size is sampled
+    assert sets[:len(kept)] == kept  # the search's overrides, then its sampled values
+    assert {pair.split("=")[0] for pair in sets[len(kept):]} == {"tau", "batch_size"}
     again = run_cli("sweep", "--resume", str(out), timeout=300)  # a finished search is not rerun
     assert again.returncode == 0, again.stderr
     assert len(_rows(out / "summary.csv")) == 3

@@ -95,7 +95,7 @@ def build_parser() -> _Parser:
 
     sub.add_parser("presets", help="list presets")
 
-    pl = sub.add_parser("plot", help="learning curve and metric grid; several runs: mean and 95% CI across seeds")
+    pl = sub.add_parser("plot", help="learning curve and metric grid; several runs: mean and 95%% CI across seeds")
     pl.add_argument("runs", nargs="+", metavar="RUN")
     pl.add_argument("--out", help="output folder (default RUN/plots; required for several runs)")
 
@@ -355,6 +355,21 @@ def cmd_presets(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def sweep_spec_from_args(args: argparse.Namespace):
+    """The SweepSpec a new `softac sweep` command line describes."""
+    from softac import sweep
+    from softac.config import DEFAULT_ENV
+
+    spec = sweep.SweepSpec(
+        env_id=args.env or DEFAULT_ENV, steps=args.steps or 0, seeds=sweep.parse_seeds(args.seeds, args.first_seed),
+        preset=args.preset, overrides=[pair for group in args.overrides for pair in group],
+        grid=sweep.parse_grid([g for group in args.grid for g in group]),
+        framework=args.framework, search=args.search, samples=args.samples if args.search else 0,
+        space=sweep.load_space(args.space) if args.search else None, asha=args.asha)
+    spec.steps = spec.steps or spec.preset_config().total_steps  # default: the preset's budget
+    return spec
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     from softac import sweep
 
@@ -370,15 +385,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         if not args.out:
             raise SoftacError("softac sweep needs --out DIR (or --resume DIR)")
         out = Path(args.out)
-        from softac.config import DEFAULT_ENV
-
-        spec = sweep.SweepSpec(
-            env_id=args.env or DEFAULT_ENV, steps=args.steps or 0, seeds=sweep.parse_seeds(args.seeds, args.first_seed),
-            preset=args.preset, overrides=[pair for group in args.overrides for pair in group],
-            grid=sweep.parse_grid([g for group in args.grid for g in group]),
-            framework=args.framework, search=args.search, samples=args.samples if args.search else 0,
-            space=sweep.load_space(args.space) if args.search else None, asha=args.asha)
-        spec.steps = spec.steps or spec.preset_config().total_steps  # default: the preset's budget
+        spec = sweep_spec_from_args(args)
     threshold = args.threshold
     if threshold is None:
         threshold = sweep.default_threshold(spec.env_id)

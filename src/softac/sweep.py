@@ -759,6 +759,21 @@ def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
     return "\n".join(lines)
 
 
+def check_command(spec: SweepSpec, values: dict[str, Any], seeds: int = 5, out: str = "DIR") -> str:
+    """The `softac sweep` line that trains the configuration `values` of a search on more seeds: the search's
+    preset and --set overrides, then the sampled values (which replace an override of the same key)."""
+    import shlex
+
+    pairs = [pair for pair in spec.overrides if pair.split("=", 1)[0].strip().replace("-", "_") not in values]
+    pairs += [f"{k}={_value_text(v)}" for k, v in values.items()]
+    cmd = ["softac", "sweep", "--env", spec.env_id, "--seeds", str(seeds), "--steps", str(spec.steps)]
+    if spec.preset:
+        cmd += ["--preset", spec.preset]
+    if pairs:
+        cmd += ["--set", *pairs]
+    return " ".join(shlex.quote(part) for part in [*cmd, "--out", out])
+
+
 def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) -> list[Path]:
     """DIR/summary.csv, DIR/summary.md and DIR/plots/ from the trial run directories."""
     import csv
@@ -789,10 +804,8 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) 
         best = max((r for r in rows if r["final_eval_mean"] is not None), key=lambda r: r["final_eval_mean"],
                    default=None)
         if best is not None:
-            sets = " ".join(f"{k}={_value_text(best[k])}" for k in keys)
             text += [f"Best trial: {best['trial']} (final eval {best['final_eval_mean']:.1f}). Check it on more "
-                     f"seeds: `softac sweep --env {spec.env_id} --seeds 5 --set {sets} --steps {spec.steps} "
-                     f"--out DIR`", ""]
+                     f"seeds: `{check_command(spec, {k: best[k] for k in keys})}`", ""]
     md_path = out / "summary.md"
     write_atomic(md_path, "\n".join(text).encode())
     written = [csv_path, md_path]
