@@ -27,11 +27,13 @@ def test_save_load_gives_identical_predictions(tiny, tmp_path):
     assert not meta["has_buffer"] and not any(k.startswith("buffer/") for k in arrays)
 
 
-@pytest.mark.parametrize("obs_once,n_step", [(False, 1), (True, 1), (False, 3), (True, 3)])
-def test_resume_is_exact(tiny, tmp_path, obs_once, n_step):
-    """N+M steps in one go equals N, save, load, M (same seed, CPU), with either replay buffer, n-step too."""
+@pytest.mark.parametrize("obs_once,n_step,obs_norm", [(False, 1, False), (True, 1, False), (False, 3, False),
+                                                       (True, 3, False), (False, 1, True), (True, 3, True)])
+def test_resume_is_exact(tiny, tmp_path, obs_once, n_step, obs_norm):
+    """N+M steps in one go equals N, save, load, M (same seed, CPU), with either replay buffer, n-step too,
+    and with running observation statistics."""
     cfg = tiny(n_envs=2, gradient_steps=2, policy_frequency=2, eval_interval=300, buffer_obs_once=obs_once,
-               n_step=n_step)
+               n_step=n_step, obs_norm=obs_norm)
     straight = SAC(cfg)
     straight.learn(900, run_dir=tmp_path / "straight", progress=False)
 
@@ -47,6 +49,10 @@ def test_resume_is_exact(tiny, tmp_path, obs_once, n_step):
     assert straight.rng.bit_generator.state == resumed.rng.bit_generator.state
     np.testing.assert_array_equal(straight.buffer.obs, resumed.buffer.obs)
     assert straight.num_episodes == resumed.num_episodes
+    if obs_norm:
+        assert straight.obs_norm.count == resumed.obs_norm.count == 900
+        np.testing.assert_array_equal(straight.obs_norm.mean, resumed.obs_norm.mean)
+        np.testing.assert_array_equal(straight.obs_norm.m2, resumed.obs_norm.m2)
 
 
 def test_env_instance_and_vector_envs(tiny):
@@ -58,9 +64,11 @@ def test_env_instance_and_vector_envs(tiny):
     assert acts.min() >= -2.0 and acts.max() <= 0.5
 
 
-def test_asymmetric_bounds_agent_learns_the_best_action(tiny):
+@pytest.mark.parametrize("obs_norm", [False, True])
+def test_asymmetric_bounds_agent_learns_the_best_action(tiny, obs_norm):
     """Drift-v0 pays most at action 1 inside [-1, 3]: the policy must reach the off-centre optimum."""
-    agent = SAC(tiny(learning_starts=300, gradient_steps=2, actor_lr=3e-3, critic_lr=3e-3, alpha_lr=3e-3))
+    agent = SAC(tiny(learning_starts=300, gradient_steps=2, actor_lr=3e-3, critic_lr=3e-3, alpha_lr=3e-3,
+                     obs_norm=obs_norm))
     agent.learn(2500, progress=False)
     stats = evaluate(agent, episodes=4)
     actions = agent.predict(np.array([[0.0, t] for t in range(0, 25, 5)], np.float32))

@@ -20,6 +20,7 @@ from softac.config import SACConfig
 from softac.device import select_device
 from softac.envs import EnvPool, EnvSource, check_spaces, copy_env, env_name, make_env
 from softac.errors import SoftacError
+from softac.normalization import RunningObsNorm
 
 
 def _versions() -> dict[str, str]:
@@ -89,6 +90,8 @@ class SAC:
         self.act_key = jnp.asarray(keys[0])  # exploration noise while training
         self.predict_key = jnp.asarray(keys[1])  # stochastic predict() / evaluation, kept apart from training
         self.rng = np.random.default_rng(config.seed)  # replay sampling and warm-up actions
+        # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
+        self.obs_norm = RunningObsNorm(self.spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
         self.num_steps = 0
         self.num_episodes = 0
         self.train_time_s = 0.0
@@ -127,6 +130,10 @@ class SAC:
 
     # ---- acting ---------------------------------------------------------------
 
+    def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
+        """What the networks see: raw observations, or with obs_norm the normalised ones."""
+        return obs if self.obs_norm is None else self.obs_norm.normalize(obs)
+
     def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray:
         """Env-scaled action(s) for one observation or a batch of them."""
         obs = np.asarray(obs, np.float32)
@@ -134,6 +141,7 @@ class SAC:
         batch = obs.reshape(1, -1) if single else obs.reshape(obs.shape[0], -1)
         if batch.shape[1] != self.spaces.obs_dim:
             raise SoftacError(f"observation has {batch.shape[1]} values; this agent expects {self.spaces.obs_dim}")
+        batch = self.normalize_obs(batch)
         if deterministic:
             actions = self.scaler.to_env(np.asarray(self.fns.act_deterministic(self.state.actor, batch)))
         else:
@@ -161,6 +169,9 @@ class SAC:
             arrays["state" + jax.tree_util.keystr(path)] = np.asarray(leaf)
         arrays["act_key"] = np.asarray(self.act_key)
         arrays["predict_key"] = np.asarray(self.predict_key)
+        if self.obs_norm is not None:  # in every checkpoint, best too: predict() needs them
+            for k, v in self.obs_norm.state_dict().items():
+                arrays[f"obs_norm/{k}"] = v
         meta: dict[str, Any] = {
             "config": self.config.to_dict(),
             "versions": _versions(),
@@ -230,6 +241,14 @@ class SAC:
         self.num_episodes = int(meta["num_episodes"])
         self.train_time_s = float(meta.get("train_time_s", 0.0))
         self.rng.bit_generator.state = meta["numpy_rng"]
+        if self.obs_norm is not None:
+            stats = {k[len("obs_norm/"):]: v for k, v in arrays.items() if k.startswith("obs_norm/")}
+            if set(stats) != {"count", "mean", "m2"}:
+                raise ckpt.CheckpointError(f"checkpoint {where} has obs_norm on but no observation statistics")
+            try:
+                self.obs_norm.load_state_dict(stats)
+            except SoftacError as exc:
+                raise ckpt.CheckpointError(f"checkpoint {where}: {exc}") from None
         self.trainer_state = dict(meta.get("trainer") or {})
         self.restored_from = Path(where).resolve() if where else None
         from_last = self.restored_from is not None and self.restored_from.name == "last" \

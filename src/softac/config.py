@@ -45,6 +45,8 @@ class SACConfig:
     buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
     buffer_obs_once: bool = _f(False, "store each observation once (next_obs rebuilt from the following row): Pusher 221 -> 145 B per transition")
     batch_size: int = _f(256, "transitions per gradient step")
+    obs_norm: bool = _f(False, "normalise observations by a running mean/std (as SB3's VecNormalize); saved in checkpoints")
+    obs_norm_clip: float = _f(10.0, "with obs_norm: clip normalised observations to [-clip, clip]")
     learning_starts: int = _f(100, "environment steps of uniform random actions before learning")
     # algorithm
     gamma: float = _f(0.99, "discount factor")
@@ -169,6 +171,7 @@ class SACConfig:
         need(self.buffer_size >= 1, "buffer_size", "must be >= 1")
         need(self.batch_size >= 1, "batch_size", "must be >= 1")
         need(self.learning_starts >= 0, "learning_starts", "must be >= 0")
+        need(self.obs_norm_clip > 0.0, "obs_norm_clip", "must be > 0")
         need(0.0 <= self.gamma <= 1.0, "gamma", "must be in [0, 1]")
         need(0.0 < self.tau <= 1.0, "tau", "must be in (0, 1]")
         need(self.target_update_interval >= 1, "target_update_interval", "must be >= 1")

@@ -194,11 +194,14 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                     raise TrainingInterrupted(agent.num_steps, where)
                 before = agent.num_steps
                 obs = pool.obs
+                if agent.obs_norm is not None:  # every observation the policy acts on, warm-up included
+                    agent.obs_norm.update(obs)
                 if before < cfg.learning_starts:
                     actions = agent.rng.uniform(-1.0, 1.0, (n_envs, act_dim)).astype(np.float32)
                     env_actions = scaler.to_env(actions)
                 else:  # NumPy goes straight into the jitted call: jnp.asarray would cost more than the env step
-                    actions, env_actions, agent.act_key = fns.act(agent.state.actor, obs, agent.act_key)
+                    actions, env_actions, agent.act_key = fns.act(agent.state.actor, agent.normalize_obs(obs),
+                                                                  agent.act_key)
                     actions, env_actions = np.asarray(actions), np.asarray(env_actions)
                     if not np.all(np.isfinite(actions)):
                         raise SoftacError(f"training diverged at step {before}: the policy produced non-finite "
@@ -216,6 +219,9 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
 
                 if after >= cfg.learning_starts and cfg.gradient_steps > 0 and len(buffer) > 0:
                     batch = buffer.sample(agent.rng, cfg.batch_size, cfg.gradient_steps)
+                    if agent.obs_norm is not None:  # raw in the buffer, normalised with the current statistics
+                        batch["obs"] = agent.obs_norm.normalize(batch["obs"])
+                        batch["next_obs"] = agent.obs_norm.normalize(batch["next_obs"])
                     agent.state, last_metrics = fns.update(agent.state, Batch(**batch))
 
                 if crossed(before, after, cfg.log_interval):
