@@ -129,3 +129,52 @@ def test_evaluate_reports_the_reward_terms_an_env_puts_in_info(tiny):
     assert stats["reward_terms"]["reward_base"] == pytest.approx(stats["mean_length"])
     assert sum(stats["reward_terms"].values()) == pytest.approx(stats["mean_return"])
     assert evaluate(SAC(tiny()), episodes=2)["reward_terms"] == {}  # an env without them
+
+
+def test_reset_renews_networks_and_optimisers_and_keeps_alpha(tiny):
+    agent = SAC(tiny(alpha=0.5))
+    agent.learn(400, progress=False)
+    before = agent.state
+    after = agent.fns.reset(before, agent.config.seed, 3)
+    fresh = agent.fns.init(agent.config.seed)
+    assert float(after.log_alpha) == float(before.log_alpha) != float(fresh.log_alpha)
+    assert int(after.n_updates) == int(before.n_updates) > 0
+    np.testing.assert_array_equal(np.asarray(after.key), np.asarray(before.key))
+    for online, target in zip(jax.tree_util.tree_leaves(after.critic), jax.tree_util.tree_leaves(after.target_critic)):
+        np.testing.assert_array_equal(online, target)
+    for moment in jax.tree_util.tree_leaves(after.actor_opt) + jax.tree_util.tree_leaves(after.critic_opt):
+        assert not np.any(np.asarray(moment))  # Adam starts again (counts and moments)
+    # the k-th reset draws its own weights: not the initial ones, not another reset's, not the trained ones
+    w = lambda s: np.asarray(s.actor[0]["w"])  # noqa: E731
+    assert not np.array_equal(w(after), w(fresh)) and not np.array_equal(w(after), w(before))
+    assert not np.array_equal(w(after), w(agent.fns.reset(before, agent.config.seed, 4)))
+    np.testing.assert_array_equal(w(after), w(agent.fns.reset(before, agent.config.seed, 3)))
+
+
+@pytest.mark.parametrize("n_envs", [1, 2])
+def test_resets_happen_at_each_multiple_before_total_steps_and_resume_exactly(tiny, tmp_path, n_envs):
+    cfg = tiny(reset_interval=300, total_steps=900, n_envs=n_envs, eval_interval=300)
+
+    def counting(agent):
+        calls = []
+        reset = agent.fns.reset
+        agent.fns = agent.fns._replace(reset=lambda state, seed, k: calls.append(k) or reset(state, seed, k))
+        return calls
+
+    straight = SAC(cfg)
+    calls = counting(straight)
+    straight.learn(1200, progress=False)  # past total_steps: no reset at 900 or later
+    assert calls == [1, 2]
+
+    straight = SAC(cfg)
+    straight.learn(900, run_dir=tmp_path / "straight", progress=False)
+    first = SAC(cfg)
+    first.learn(600, run_dir=tmp_path / "split", progress=False)  # stops exactly at a multiple
+    resumed = SAC.load(tmp_path / "split", which="last")
+    calls = counting(resumed)
+    resumed.learn(300, run_dir=tmp_path / "split", progress=False)
+    assert calls == [2]  # the reset at 600 happens after the checkpoint, in the resumed run
+    for a, b in zip(_state_arrays(straight), _state_arrays(resumed)):
+        np.testing.assert_array_equal(a, b)
+    evals = lambda run: (run / "eval.csv").read_text()  # noqa: E731
+    assert evals(tmp_path / "straight") == evals(tmp_path / "split")

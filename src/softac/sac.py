@@ -120,6 +120,7 @@ def polyak(target: Any, online: Any, tau: float) -> Any:
 
 class SACFunctions(NamedTuple):
     init: Callable[[int], SACState]
+    reset: Callable[[SACState, int, int], SACState]
     update: Callable[[SACState, Batch], tuple[SACState, dict]]
     act: Callable[[Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]]
     act_deterministic: Callable[[Any, jax.Array], jax.Array]
@@ -159,6 +160,15 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         critic = init_critics(rng, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics)
         key = rng.integers(0, 2**32, 2, dtype=np.uint32)  # a raw PRNGKey
         return assemble(actor, critic, key)
+
+    # Periodic resets (Nikishin et al. 2022, "The Primacy Bias in Deep RL"; D'Oro et al. 2023, SR-SAC):
+    # new actor, critics, targets and their optimisers, drawn from the k-th reset's own seed; the replay
+    # buffer, the entropy coefficient (with its optimiser), the key and the update counter carry over.
+    def reset(state: SACState, seed: int, k: int) -> SACState:
+        rng = np.random.default_rng([seed, 0x5AC, k])
+        fresh = assemble(init_actor(rng, obs_dim, act_dim, c.hidden_sizes, c.init),
+                         init_critics(rng, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics), state.key)
+        return fresh._replace(log_alpha=state.log_alpha, alpha_opt=state.alpha_opt, n_updates=state.n_updates)
 
     def alpha_of(state: SACState) -> jax.Array:
         return jnp.exp(state.log_alpha) if c.autotune_alpha else jnp.asarray(c.alpha, jnp.float32)
@@ -254,6 +264,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
 
     return SACFunctions(
         init=init,
+        reset=reset,
         update=jax.jit(update, donate_argnums=0),
         act=jax.jit(act),
         act_deterministic=jax.jit(policy.deterministic),

@@ -193,6 +193,12 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                     where = save_checkpoint("last", with_buffer=True)
                     raise TrainingInterrupted(agent.num_steps, where)
                 before = agent.num_steps
+                # reset_interval: at the first step past each multiple, so the evaluation and checkpoint at
+                # the multiple see the policy before the reset and a resumed run resets where a straight one
+                # does; none at or past total_steps (a rule of the config, not of this call): a reset needs
+                # the rest of the budget to recover
+                if 0 < before < cfg.total_steps and crossed(before - n_envs, before, cfg.reset_interval):
+                    agent.state = fns.reset(agent.state, cfg.seed, before // cfg.reset_interval)
                 obs = pool.obs
                 if agent.obs_norm is not None:  # every observation the policy acts on, warm-up included
                     agent.obs_norm.update(obs)
