@@ -16,7 +16,21 @@ def test_env_presets_set_their_env_and_generic_presets_keep_it():
     assert SACConfig.preset("Pusher-v5").env_id == "Pusher-v5"
     assert SACConfig.preset("sb3").env_id == "InvertedPendulum-v5"
     assert SACConfig.preset("sb3", env_id="Pusher-v5").env_id == "Pusher-v5"
-    assert SACConfig.for_env("Hopper-v5").env_id == "Hopper-v5"  # falls back to the default preset
+    assert SACConfig.for_env("Swimmer-v5").env_id == "Swimmer-v5"  # no preset of its own: the default one
+    assert SACConfig.for_env("Swimmer-v5").replace(env_id="x") == SACConfig.preset("default", env_id="x")
+    assert SACConfig.for_env("Hopper-v5") == SACConfig.preset("Hopper-v5")  # an env's own preset
+
+
+def test_every_preset_has_a_description_and_a_row_in_the_readme():
+    from pathlib import Path
+
+    from softac.config import preset_summary
+
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    table = readme.split("## Presets")[1].split("\n\n")[1]
+    for name in preset_names():
+        assert preset_summary(name), name
+        assert f"| `{name}` |" in table, name
 
 
 def test_cleanrl_preset_has_cleanrl_defaults():

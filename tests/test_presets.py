@@ -1,0 +1,28 @@
+"""Every env preset trains: a few hundred steps with its own networks and settings, through the CLI."""
+
+import json
+
+import pytest
+import yaml
+
+from conftest import run_cli
+from softac.config import GENERIC_PRESETS, SACConfig, preset_names
+
+ENV_PRESETS = [name for name in preset_names() if name not in GENERIC_PRESETS]
+
+
+@pytest.mark.parametrize("name", ENV_PRESETS)
+def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
+    preset = SACConfig.preset(name)
+    steps = 300
+    run = tmp_path / "run"
+    # the preset's networks, batch, rates and flags as they are; only the budget, the warm-up and the
+    # buffer shrink so that a few hundred steps include learning
+    r = run_cli("train", "--env", name, "--steps", str(steps), "--out", str(run), "--no-progress", "--set",
+                "learning_starts=100", "buffer_size=5000", f"eval_interval={steps}", "eval_episodes=1", timeout=600)
+    assert r.returncode == 0, r.stderr
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    for key in ("hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm"):
+        assert config[key] == getattr(preset, key), key
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["steps"] == steps and summary["last_eval"] is not None
