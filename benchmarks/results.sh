@@ -1,14 +1,39 @@
 #!/usr/bin/env bash
-# Regenerates the sweeps behind docs/results.md: softac's presets on 5 seeds, Stable-Baselines3's SAC at its
-# defaults on 3 seeds, same step budgets, same evaluation (10 deterministic episodes), one trial per CPU.
-# Needs the [ray] and [bench] extras (make bench, then pip install -e '.[ray]'). Rerunning continues where it
-# stopped (finished trials are not redone). Then: python benchmarks/results_doc.py $SWEEPS
+# Regenerates the sweeps behind docs/results.md, one trial per CPU (each trial pinned), same evaluation for
+# every framework (10 deterministic episodes every eval_interval steps).
+#   classic: InvertedPendulum-v5/v4 and Pusher-v5, softac's presets on 5 seeds, Stable-Baselines3 on 3
+#   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets on 3 seeds,
+#            SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
+# Usage: bash benchmarks/results.sh [classic|mujoco|ENV ...]   (default: all)
+# Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
+# not redone). Then: python benchmarks/results_doc.py $SWEEPS
 set -euo pipefail
 SOFTAC=${SOFTAC:-.venv/bin/softac}
 SWEEPS=${SWEEPS:-sweeps}
-$SOFTAC sweep --env InvertedPendulum-v5 --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/InvertedPendulum-v5-softac
-$SOFTAC sweep --env InvertedPendulum-v5 --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/InvertedPendulum-v5-sb3
-$SOFTAC sweep --env InvertedPendulum-v4 --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/InvertedPendulum-v4-softac
-$SOFTAC sweep --env InvertedPendulum-v4 --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/InvertedPendulum-v4-sb3
-$SOFTAC sweep --env Pusher-v5 --seeds 5 --steps 30000 --threshold -40 --out $SWEEPS/Pusher-v5-softac
-$SOFTAC sweep --env Pusher-v5 --seeds 3 --steps 30000 --threshold -40 --framework sb3 --out $SWEEPS/Pusher-v5-sb3
+MUJOCO="HalfCheetah-v5 Hopper-v5 Walker2d-v5 Ant-v5 Humanoid-v5"
+CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
+
+classic() {
+  case $1 in
+    InvertedPendulum-v5|InvertedPendulum-v4)
+      $SOFTAC sweep --env $1 --seeds 5 --steps 20000 --threshold 1000 --out $SWEEPS/$1-softac
+      $SOFTAC sweep --env $1 --seeds 3 --steps 20000 --threshold 1000 --framework sb3 --out $SWEEPS/$1-sb3 ;;
+    Pusher-v5)
+      $SOFTAC sweep --env $1 --seeds 5 --steps 30000 --threshold -40 --out $SWEEPS/$1-softac
+      $SOFTAC sweep --env $1 --seeds 3 --steps 30000 --threshold -40 --framework sb3 --out $SWEEPS/$1-sb3 ;;
+  esac
+}
+
+mujoco() {
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --out $SWEEPS/$1-softac
+  $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
+}
+
+targets=${*:-classic mujoco}
+for target in $targets; do
+  case $target in
+    classic) for env in $CLASSIC; do classic $env; done ;;
+    mujoco) for env in $MUJOCO; do mujoco $env; done ;;
+    *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target; else classic $target; fi ;;
+  esac
+done

@@ -2,8 +2,10 @@
 
     python benchmarks/results_doc.py sweeps        # SWEEPS directory of results.sh
 
-Each env has two sweep directories, ENV-softac and ENV-sb3; the threshold of each is the one given to its
-sweep command (kept in results.sh). Tables and figures come from the trial run directories alone.
+Each env has a sweep directory per framework, ENV-softac, ENV-sbx and/or ENV-sb3; the threshold of each is the
+one given to its sweep command (kept in results.sh). Tables and figures come from the trial run directories
+alone. An env none of whose sweeps is in SWEEPS keeps its section of the current docs/results.md, so the
+classic and the MuJoCo sets can be regenerated apart.
 """
 
 from __future__ import annotations
@@ -17,32 +19,42 @@ from softac.bench import machine_description
 from softac.plots import plot_comparison
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
-ENVS = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0}
+# env -> the threshold its sweeps were given (None: no threshold columns)
+ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
+                                 "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
+                                 "Humanoid-v5": None}
+FRAMEWORKS = ("softac", "sbx", "sb3")
 
-INTRO = """# Results: softac and Stable-Baselines3 on the same machine
+INTRO = """# Results: softac beside SBX and Stable-Baselines3 on the same machine
 
-Made with `softac sweep` (Ray Tune, one trial per CPU, two trials at a time) on {machine}.
-softac runs each env's preset on 5 seeds; Stable-Baselines3's SAC runs at its defaults on 3 seeds
-(`softac sweep --framework sb3`), with the same step budget and the same evaluation: every
-`eval_interval` steps, 10 episodes with deterministic actions, episode i seeded `seed + 1000000 + i`.
-Each trial's process is pinned to one CPU, so both frameworks train on one CPU per trial and wall times
-compare like with like.
+Made with `softac sweep` (Ray Tune, one trial per CPU, two trials at a time, each trial's process pinned
+to its CPU); each env's section names the machine its sweeps ran on (this page was last written on
+{machine}). Every framework is evaluated the same way: every `eval_interval` steps, 10 episodes with
+deterministic actions, episode i seeded `seed + 1000000 + i`.
 
+- Classic set (InvertedPendulum-v5/v4, Pusher-v5): softac's env presets on 5 seeds, Stable-Baselines3's
+  SAC at its defaults on 3 seeds (`softac sweep --framework sb3`), the same step budget.
+- MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps; softac's env
+  presets on 3 seeds, SBX's SAC at its defaults on 2 seeds (`softac sweep --framework sbx`; Stable-
+  Baselines3 trains ~3x slower than SBX and is left out of this budget).
+
+Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
 - best eval: the best evaluation of each trial;
-- reached R: trials whose evaluation reached the threshold R at least once, with the median steps and
-  seconds (training wall time, evaluations included) until the first time;
-- wall s: the whole trial's training time.
+- median wall s: the whole trial's training time, evaluations included; steps/s: steps over that time;
+- reached R (classic set): trials whose evaluation reached the threshold R at least once, with the
+  median steps and seconds (training wall time, evaluations included) until the first time.
 
-Regenerate everything (about an hour on a 2-core machine; rerunning continues where it stopped):
+Regenerate (rerunning continues where it stopped; `results.sh Hopper-v5` runs one env, `results.sh mujoco`
+the suite):
 
 ```sh
-make bench && .venv/bin/pip install -e '.[ray]'
+make bench
 SOFTAC=.venv/bin/softac SWEEPS=sweeps bash benchmarks/results.sh
 .venv/bin/python benchmarks/results_doc.py sweeps
 ```
 
-The sweep commands, from `benchmarks/results.sh`:
+The sweep commands, from `benchmarks/results.sh` ($1 is the env id):
 
 ```sh
 {commands}
@@ -50,11 +62,28 @@ The sweep commands, from `benchmarks/results.sh`:
 """
 
 
-def section(env: str, threshold: float, sweeps: Path, figures: Path) -> list[str]:
-    dirs = {fw: sweeps / f"{env}-{fw}" for fw in ("softac", "sb3")}
+def kept_sections(results_md: Path) -> dict[str, list[str]]:
+    """The `## ENV` sections of an existing results.md, by env."""
+    if not results_md.exists():
+        return {}
+    sections: dict[str, list[str]] = {}
+    current: str | None = None
+    for line in results_md.read_text().splitlines():
+        if line.startswith("## "):
+            current = line[3:].strip() if line[3:].strip() in ENVS else None
+            if current:
+                sections[current] = []
+        if current:
+            sections[current].append(line)
+    return sections
+
+
+def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
+            kept: dict[str, list[str]]) -> list[str]:
+    dirs = {fw: sweeps / f"{env}-{fw}" for fw in FRAMEWORKS}
     present = {fw: d for fw, d in dirs.items() if (d / "sweep.json").exists()}
     if not present:
-        return [f"## {env}", "", "Not run yet.", ""]
+        return kept.get(env) or [f"## {env}", "", "Not run yet.", ""]
     rows, runs, steps = [], [], set()
     for fw, d in present.items():
         spec = load_spec(d)
@@ -65,7 +94,7 @@ def section(env: str, threshold: float, sweeps: Path, figures: Path) -> list[str
     figure = figures / f"{env}.png"
     plot_comparison(runs, figure)
     budget = ", ".join(f"{s:,}" for s in sorted(steps))
-    return [f"## {env}", "", f"{budget} env steps per trial. ![{env}](results/{figure.name})", "",
+    return [f"## {env}", "", f"{budget} env steps per trial, on {machine_description()}. ![{env}](results/{figure.name})", "",
             markdown_table(rows, threshold), ""]
 
 
@@ -77,10 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     figures = a.docs / "results"
     figures.mkdir(parents=True, exist_ok=True)
     script = (Path(__file__).parent / "results.sh").read_text().splitlines()
-    commands = "\n".join(line.strip() for line in script if "$SOFTAC sweep" in line or line.startswith("  --"))
+    commands = "\n".join(line.strip() for line in script if "$SOFTAC sweep" in line)
+    kept = kept_sections(a.docs / "results.md")
     text = [INTRO.format(machine=machine_description(), commands=commands)]
     for env, threshold in ENVS.items():
-        text.extend(section(env, threshold, a.sweeps, figures))
+        text.extend(section(env, threshold, a.sweeps, figures, kept))
     notes = a.docs / "results-notes.md"
     if notes.exists():
         text.append(notes.read_text())

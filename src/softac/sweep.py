@@ -722,6 +722,8 @@ def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | No
             entry["best"] = _mean_std_ci(bests)
         entry["wall_s"] = float(np.median([r["wall_s"] for r in members]))
         entry["steps"] = int(np.median([r["steps"] for r in members]))
+        rates = [r["steps"] / r["wall_s"] for r in members if r["wall_s"]]
+        entry["steps_per_s"] = float(np.median(rates)) if rates else None
         if threshold is not None:
             reached = [r for r in members if r.get("steps_to_threshold") is not None]
             entry["reached"] = len(reached)
@@ -741,7 +743,7 @@ def _fmt(x: float | None, digits: int = 1) -> str:
 
 def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
     head = ["configuration", "seeds", "final eval (mean ± std)", "final 95% CI", "best eval (mean ± std)",
-            "median steps", "median wall s"]
+            "median steps", "median wall s", "steps/s"]
     if threshold is not None:
         head += [f"reached {threshold:g}", "median steps to it", "median s to it", "evals held after"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
@@ -750,7 +752,8 @@ def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
         cells = [e["configuration"], f"{e['seeds']}" + ("" if e["done"] == e["seeds"] else f" ({e['done']} done)"),
                  f"{final[0]:.1f} ± {final[1]:.1f}" if final else "-",
                  f"[{final[0] - final[2]:.1f}, {final[0] + final[2]:.1f}]" if final else "-",
-                 f"{best[0]:.1f} ± {best[1]:.1f}" if best else "-", f"{e['steps']}", _fmt(e["wall_s"])]
+                 f"{best[0]:.1f} ± {best[1]:.1f}" if best else "-", f"{e['steps']}", _fmt(e["wall_s"]),
+                 _fmt(e.get("steps_per_s"))]
         if threshold is not None:
             cells += [f"{e['reached']}/{e['seeds']}", _fmt(e.get("steps_to_threshold"), 0),
                       _fmt(e.get("seconds_to_threshold")),
