@@ -7,9 +7,12 @@
 # Usage: bash benchmarks/results.sh [classic|mujoco|ENV ...]   (default: all)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
+# SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
+# progress.csv, episodes.csv, summary.json; .gitignore leaves out weights, TensorBoard files and Ray's state),
+# so later sessions add seeds and envs to the same tables.
 set -euo pipefail
 SOFTAC=${SOFTAC:-.venv/bin/softac}
-SWEEPS=${SWEEPS:-sweeps}
+SWEEPS=${SWEEPS:-benchmarks/sweeps}
 MUJOCO="HalfCheetah-v5 Hopper-v5 Walker2d-v5 Ant-v5 Humanoid-v5"
 CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
 

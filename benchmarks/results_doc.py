@@ -50,8 +50,8 @@ the suite):
 
 ```sh
 make bench
-SOFTAC=.venv/bin/softac SWEEPS=sweeps bash benchmarks/results.sh
-.venv/bin/python benchmarks/results_doc.py sweeps
+SOFTAC=.venv/bin/softac bash benchmarks/results.sh      # sweeps in benchmarks/sweeps
+.venv/bin/python benchmarks/results_doc.py benchmarks/sweeps
 ```
 
 The sweep commands, from `benchmarks/results.sh` ($1 is the env id):

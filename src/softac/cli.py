@@ -350,8 +350,8 @@ def cmd_presets(args: argparse.Namespace) -> int:
     names = preset_names()
     width = max(len(n) for n in names)
     for name in names:
-        kind = "any env" if name in GENERIC_PRESETS else "env"
-        print(f"{name:<{width}}  [{kind}]  {preset_summary(name)}")
+        kind = "[any env]" if name in GENERIC_PRESETS else "[env]"
+        print(f"{name:<{width}}  {kind:<9}  {preset_summary(name)}")
     return EXIT_OK
 
 
