@@ -187,3 +187,25 @@ def test_comparison_labels_name_what_varies_shortly():
     assert _describe_differences([base]) == ["Pusher-v5"]
     # what config.yaml records about the machine (CPU count, versions) does not split seeds into configurations
     assert _describe_differences([{**base, "cpus": 1}, {**other, "cpus": 2}]) == _describe_differences([base, other])
+
+
+def test_a_run_made_before_a_config_key_existed_groups_with_new_runs_at_its_default(tmp_path):
+    """config.yaml of an older softac lacks keys added since (reset_interval, obs_norm): it ran with their
+    defaults, so its seeds belong with new runs of the same settings; a changed value still splits them."""
+    import yaml
+
+    from softac.config import SACConfig
+    from softac.plots import group_runs
+
+    new = SACConfig().to_dict()
+    old = {k: v for k, v in new.items() if k not in ("reset_interval", "obs_norm", "obs_norm_clip")}
+    runs = []
+    for name, config in (("old", {**old, "seed": 0}), ("new", {**new, "seed": 1}),
+                         ("reset", {**new, "seed": 2, "reset_interval": 5000}),
+                         ("sbx", {"framework": "sbx", "env_id": new["env_id"], "seed": 0})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text(yaml.safe_dump(config))
+        runs.append(tmp_path / name)
+    labels, groups = group_runs(runs)
+    assert [[r.name for r in g] for g in groups] == [["old", "new"], ["reset"], ["sbx"]]
+    assert labels == ["softac, reset_interval=0", "softac, reset_interval=5000", "sbx"]

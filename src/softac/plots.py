@@ -167,9 +167,19 @@ def _short(value: Any) -> str:
     return str(value)
 
 
+def _with_defaults(config: dict[str, Any]) -> dict[str, Any]:
+    """A softac run's config with the keys added since it was written at their defaults (what it ran with),
+    so that a run made before a key existed groups with new runs of the same settings."""
+    if config.get("framework", "softac") != "softac":
+        return config
+    from softac.config import SACConfig
+
+    return {**SACConfig().to_dict(), **config}
+
+
 def group_runs(runs: list[Path]) -> tuple[list[str], list[list[Path]]]:
     """Runs grouped by configuration (all but the seed), with a label for each group."""
-    configs = [load_run_config(r) for r in runs]
+    configs = [_with_defaults(load_run_config(r)) for r in runs]
     groups: dict[str, list[int]] = {}
     for i, c in enumerate(configs):
         groups.setdefault(_config_key(c), []).append(i)
