@@ -136,7 +136,7 @@ class SACConfig:
             if "=" not in pair:
                 raise ConfigError(f"--set expects KEY=VALUE, got '{pair}'")
             key, raw = pair.split("=", 1)
-            key = key.strip().replace("-", "_")
+            key = override_key(key)
             try:
                 values[key] = yaml.safe_load(raw) if raw.strip() else raw
             except yaml.YAMLError:
@@ -205,6 +205,11 @@ ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
 GENERIC_PRESETS = ("default", "sb3", "cleanrl")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "buffer_bytes_per_transition", "cpus")
+
+
+def override_key(text: str) -> str:
+    """A key as the command line may spell it (`--set eval-interval=...`) to the field name."""
+    return text.strip().replace("-", "_")
 
 
 def _unknown_key_message(key: str, known: list[str]) -> str:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from softac.config import ConfigError, SACConfig
+from softac.config import ConfigError, SACConfig, override_key
 from softac.cpus import claim_cpus
 from softac.errors import SoftacError
 
@@ -132,7 +132,7 @@ def parse_grid(items: list[str]) -> dict[str, list[Any]]:
         if "=" not in item:
             raise SoftacError(f"--grid expects KEY=V1,V2,..., got {item!r}")
         key, raw = item.split("=", 1)
-        key = key.strip().replace("-", "_")
+        key = override_key(key)
         values = []
         for part in _split_top_level(raw):
             if not part:
@@ -767,7 +767,7 @@ def check_command(spec: SweepSpec, values: dict[str, Any], seeds: int = 5, out: 
     preset and --set overrides, then the sampled values (which replace an override of the same key)."""
     import shlex
 
-    pairs = [pair for pair in spec.overrides if pair.split("=", 1)[0].strip().replace("-", "_") not in values]
+    pairs = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in values]
     pairs += [f"{k}={_value_text(v)}" for k, v in values.items()]
     cmd = ["softac", "sweep", "--env", spec.env_id, "--seeds", str(seeds), "--steps", str(spec.steps)]
     if spec.preset:

@@ -225,9 +225,9 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
 
                 if after >= cfg.learning_starts and cfg.gradient_steps > 0 and len(buffer) > 0:
                     batch = buffer.sample(agent.rng, cfg.batch_size, cfg.gradient_steps)
-                    if agent.obs_norm is not None:  # raw in the buffer, normalised with the current statistics
-                        batch["obs"] = agent.obs_norm.normalize(batch["obs"])
-                        batch["next_obs"] = agent.obs_norm.normalize(batch["next_obs"])
+                    # raw observations in the buffer, normalised (obs_norm) with the current statistics
+                    batch["obs"] = agent.normalize_obs(batch["obs"])
+                    batch["next_obs"] = agent.normalize_obs(batch["next_obs"])
                     agent.state, last_metrics = fns.update(agent.state, Batch(**batch))
 
                 if crossed(before, after, cfg.log_interval):
