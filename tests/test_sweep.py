@@ -172,6 +172,18 @@ def test_peers_need_the_bench_extra_and_take_no_softac_settings(tmp_path):
     assert_clean_error(result, "own defaults")
 
 
+def test_peers_take_eval_settings_spelled_either_way():
+    for pair in ("eval-interval=5000", "eval_interval=5000", " eval_episodes=5"):
+        spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=[pair], framework="sbx")
+        try:
+            sweep.validate(spec)
+        except SoftacError as exc:  # without the [bench] extra: that, not a refusal of the key
+            assert "own defaults" not in str(exc) and "[bench]" in str(exc), str(exc)
+    spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=["tau=0.1"], framework="sbx")
+    with pytest.raises(SoftacError, match="own defaults"):
+        sweep.validate(spec)
+
+
 # ---- on a local Ray ----------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -240,7 +240,7 @@ def validate(spec: SweepSpec) -> SACConfig:
     base = spec.base_config()
     if spec.framework != "softac":
         allowed = {"eval_interval", "eval_episodes", "log_interval"}
-        own = [pair.split("=", 1)[0] for pair in spec.overrides if pair.split("=", 1)[0] not in allowed]
+        own = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in allowed]
         if spec.grid or spec.search or spec.preset or own:
             raise SoftacError(f"--framework {spec.framework} runs its SAC at its own defaults; --grid, --search, "
                               f"--preset and --set (other than eval_interval/eval_episodes/log_interval) "
