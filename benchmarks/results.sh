@@ -4,7 +4,9 @@
 #   classic: InvertedPendulum-v5/v4 and Pusher-v5, softac's presets on 5 seeds, Stable-Baselines3 on 3
 #   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets on 3 seeds,
 #            SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
-# Usage: bash benchmarks/results.sh [classic|mujoco|ENV ...]   (default: all)
+#   options: goal 4 of issue #18, options from the literature on top of each MuJoCo preset, same 3 seeds and
+#            budget; ENV-softac-NAME beside ENV-softac, tabled as "softac KEY=VALUE ..." (options:ENV for one env)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -32,11 +34,18 @@ mujoco() {
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
 }
 
+options() {
+  # SimBa-style inputs and critics at ~1x cost (Lee et al. 2024): running observation normalisation, LayerNorm
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set obs_norm=true critic_layer_norm=true --out $SWEEPS/$1-softac-norm
+}
+
 targets=${*:-classic mujoco}
 for target in $targets; do
   case $target in
     classic) for env in $CLASSIC; do classic $env; done ;;
     mujoco) for env in $MUJOCO; do mujoco $env; done ;;
+    options) for env in $MUJOCO; do options $env; done ;;
+    options:*) options ${target#options:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target; else classic $target; fi ;;
   esac
 done

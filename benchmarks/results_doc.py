@@ -24,6 +24,7 @@ ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulu
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
                                  "Humanoid-v5": None}
 FRAMEWORKS = ("softac", "sbx", "sb3")
+# ENV-softac-NAME: softac's preset with the options of benchmarks/results.sh's `options` target (goal 4 of #18)
 
 INTRO = """# Results: softac beside SBX and Stable-Baselines3 on the same machine
 
@@ -37,6 +38,8 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
 - MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps; softac's env
   presets on 3 seeds, SBX's SAC at its defaults on 2 seeds (`softac sweep --framework sbx`; Stable-
   Baselines3 trains ~3x slower than SBX and is left out of this budget).
+- Options (issue #18, goal 4): rows named `softac KEY=VALUE ...` are softac's env preset with those
+  options, on the same seeds and budget (`results.sh options`).
 
 Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
@@ -78,17 +81,29 @@ def kept_sections(results_md: Path) -> dict[str, list[str]]:
     return sections
 
 
+def env_sweeps(env: str, sweeps: Path) -> dict[str, Path]:
+    """The env's sweep directories by table name: softac's preset, its option variants, then the peers."""
+    found = {d.name[len(env) + 1:]: d for d in sweeps.glob(f"{env}-*") if (d / "sweep.json").exists()}
+    variants = sorted(name for name in found if name.startswith("softac-"))
+    order = ["softac", *variants, "sbx", "sb3"]
+    named = {}
+    for name in order:
+        if name in found:
+            overrides = load_spec(found[name]).overrides if name in variants else []
+            named[" ".join(["softac", *overrides]) if overrides else name] = found[name]
+    return named
+
+
 def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
             kept: dict[str, list[str]]) -> list[str]:
-    dirs = {fw: sweeps / f"{env}-{fw}" for fw in FRAMEWORKS}
-    present = {fw: d for fw, d in dirs.items() if (d / "sweep.json").exists()}
+    present = env_sweeps(env, sweeps)
     if not present:
         return kept.get(env) or [f"## {env}", "", "Not run yet.", ""]
     rows, runs, steps = [], [], set()
-    for fw, d in present.items():
+    for name, d in present.items():
         spec = load_spec(d)
         steps.add(spec.steps)
-        table = aggregate(trial_rows(d, spec, threshold), [], threshold, name=fw)
+        table = aggregate(trial_rows(d, spec, threshold), [], threshold, name=name)
         rows.extend(table)
         runs.extend(trial_dirs(d))
     figure = figures / f"{env}.png"
