@@ -272,7 +272,7 @@ def test_set_fuzz_parses_or_refuses(key, text):
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(pairs=st.lists(st.tuples(st.sampled_from(["batch_size", "hidden_sizes", "gamma", "tau", "n_critics",
-                                                 "gradient_steps", "policy_frequency", "log_std_min", "alpha",
+                                                 "gradient_steps", "policy_frequency", "policy_delay", "log_std_min", "alpha",
                                                  "target_entropy", "n_envs", "learning_starts", "eval_episodes",
                                                  "buffer_size", "matmul_dtype", "init", "log_std_mode"]),
                                 st.sampled_from(["0", "1", "2", "-1", "1e9", "0.5", "nan", "abc", "3,3", "[]",

@@ -176,6 +176,20 @@ def test_delayed_policy_updates_and_critic_ensemble():
     assert any(not np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))
 
 
+def _adam_steps(opt_state) -> int:
+    return int(opt_state[0].count)
+
+
+@pytest.mark.parametrize("frequency,delay,actor_steps", [(1, 1, 6), (2, 1, 6), (1, 2, 3), (1, 3, 2), (2, 3, 2)])
+def test_policy_schedule_counts_actor_and_alpha_steps(frequency, delay, actor_steps):
+    """Over 6 critic steps: CleanRL's policy_frequency catches up (same count), TD3's policy_delay does not."""
+    cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, policy_frequency=frequency, policy_delay=delay)
+    fns = sac.build(cfg, 3, 2)
+    state, _ = fns.update(fns.init(0), _batch(np.random.default_rng(0), 6, 8, 3, 2))
+    assert _adam_steps(state.critic_opt) == 6
+    assert (_adam_steps(state.actor_opt), _adam_steps(state.alpha_opt)) == (actor_steps, actor_steps)
+
+
 def test_bfloat16_matmuls_stay_close_to_float32():
     f32 = sac.build(SACConfig().replace(hidden_sizes=[64, 64]), 3, 2)
     bf16 = sac.build(SACConfig().replace(hidden_sizes=[64, 64], matmul_dtype="bfloat16"), 3, 2)

@@ -217,6 +217,8 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
 
     # CleanRL's delayed policy update: every `policy_frequency` critic steps, that many actor
     # steps (same batch, fresh noise), so actor and critic take the same number of steps overall.
+    # TD3's policy delay (Fujimoto et al. 2018, sec. 5.2) spaces the rounds `policy_delay` times further
+    # apart with no catch-up: the actor takes 1/policy_delay of the steps, and the update costs less.
     def policy_round(state: SACState, obs: jax.Array, key: jax.Array) -> tuple[SACState, dict]:
         metrics = None
         for k in jax.random.split(key, c.policy_frequency):
@@ -228,11 +230,12 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         key, critic_key, actor_key = jax.random.split(state.key, 3)
         state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key)
         n = state.n_updates + 1
-        if c.policy_frequency == 1:
+        period = c.policy_frequency * c.policy_delay
+        if period == 1:
             state, policy_metrics = policy_round(state, batch.obs, actor_key)
         else:
             state, policy_metrics = jax.lax.cond(
-                n % c.policy_frequency == 0,
+                n % period == 0,
                 lambda s: policy_round(s, batch.obs, actor_key),
                 lambda s: (s, policy_metrics),
                 state,
