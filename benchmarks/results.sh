@@ -6,7 +6,9 @@
 #            SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
 #   options: goal 4 of issue #18, options from the literature on top of each MuJoCo preset, same 3 seeds and
 #            budget; ENV-softac-NAME beside ENV-softac, tabled as "softac KEY=VALUE ..." (options:ENV for one env)
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|ENV|options:ENV ...]   (default: classic mujoco)
+#   delay:   goal 3 of issue #18, each MuJoCo preset with TD3's policy delay 2 (the actor's half of the update
+#            runs every other step: ~20% less compute per update), same seeds and budget (delay:ENV for one env)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|delay|ENV|options:ENV|delay:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -39,6 +41,10 @@ options() {
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set obs_norm=true critic_layer_norm=true --out $SWEEPS/$1-softac-norm
 }
 
+delay() {
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set policy_delay=2 --out $SWEEPS/$1-softac-delay2
+}
+
 targets=${*:-classic mujoco}
 for target in $targets; do
   case $target in
@@ -46,6 +52,8 @@ for target in $targets; do
     mujoco) for env in $MUJOCO; do mujoco $env; done ;;
     options) for env in $MUJOCO; do options $env; done ;;
     options:*) options ${target#options:} ;;
+    delay) for env in $MUJOCO; do delay $env; done ;;
+    delay:*) delay ${target#delay:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target; else classic $target; fi ;;
   esac
 done

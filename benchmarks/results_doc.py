@@ -24,7 +24,7 @@ ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulu
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
                                  "Humanoid-v5": None}
 FRAMEWORKS = ("softac", "sbx", "sb3")
-# ENV-softac-NAME: softac's preset with the options of benchmarks/results.sh's `options` target (goal 4 of #18)
+# ENV-softac-NAME: softac's preset with the options of benchmarks/results.sh's `options` and `delay` targets (#18)
 
 INTRO = """# Results: softac beside SBX and Stable-Baselines3 on the same machine
 
@@ -38,8 +38,9 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
 - MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps; softac's env
   presets on 3 seeds, SBX's SAC at its defaults on 2 seeds (`softac sweep --framework sbx`; Stable-
   Baselines3 trains ~3x slower than SBX and is left out of this budget).
-- Options (issue #18, goal 4): rows named `softac KEY=VALUE ...` are softac's env preset with those
-  options, on the same seeds and budget (`results.sh options`).
+- Options (issue #18, goals 3 and 4): rows named `softac KEY=VALUE ...` are softac's env preset with
+  those options, on the same seeds and budget (`results.sh options` for observation normalisation with
+  LayerNorm critics, `results.sh delay` for TD3's policy delay).
 
 Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);

@@ -54,7 +54,7 @@ class SACConfig:
     target_update_interval: int = _f(1, "gradient steps between target-critic updates")
     gradient_steps: int = _f(1, "gradient steps per vector-env step (all fused in one jitted call)")
     policy_frequency: int = _f(1, "critic updates per actor/alpha update round; each round does this many actor updates (CleanRL's delayed update)")
-    policy_delay: int = _f(1, "critic updates per actor/alpha update, with no catch-up (TD3's policy_delay): 2 halves the actor's steps, about a quarter of the update's compute")
+    policy_delay: int = _f(1, "critic updates per actor/alpha update, with no catch-up (TD3's policy_delay): 2 halves the actor's steps and takes ~20% off the update's compute")
     reset_interval: int = _f(0, "environment steps between resets of actor, critics and their optimisers (the buffer and alpha stay; none at or past total_steps; Nikishin et al. 2022); 0 = never")
     n_step: int = _f(1, "rewards summed before bootstrapping (n-step returns, as RLlib's n_step; the walk stops at episode ends); 1 = plain SAC")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum")
