@@ -6,9 +6,11 @@
 #            SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
 #   options: goal 4 of issue #18, options from the literature on top of each MuJoCo preset, same 3 seeds and
 #            budget; ENV-softac-NAME beside ENV-softac, tabled as "softac KEY=VALUE ..." (options:ENV for one env)
+#   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
+#            the `default` preset beside the MuJoCo presets' settings (Hopper-v5's) and SBX, 100k steps
 #   delay:   goal 3 of issue #18, each MuJoCo preset with TD3's policy delay 2 (the actor's half of the update
 #            runs every other step: ~20% less compute per update), same seeds and budget (delay:ENV for one env)
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|delay|ENV|options:ENV|delay:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|delay|fallback|ENV|options:ENV|delay:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -19,6 +21,7 @@ SOFTAC=${SOFTAC:-.venv/bin/softac}
 SWEEPS=${SWEEPS:-benchmarks/sweeps}
 MUJOCO="HalfCheetah-v5 Hopper-v5 Walker2d-v5 Ant-v5 Humanoid-v5"
 CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
+FALLBACK="Swimmer-v5 Reacher-v5 InvertedDoublePendulum-v5"
 
 classic() {
   case $1 in
@@ -41,6 +44,12 @@ options() {
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set obs_norm=true critic_layer_norm=true --out $SWEEPS/$1-softac-norm
 }
 
+fallback() {
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset default --out $SWEEPS/$1-softac-default
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset Hopper-v5 --out $SWEEPS/$1-softac-family
+  $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
+}
+
 delay() {
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set policy_delay=2 --out $SWEEPS/$1-softac-delay2
 }
@@ -53,7 +62,10 @@ for target in $targets; do
     options) for env in $MUJOCO; do options $env; done ;;
     options:*) options ${target#options:} ;;
     delay) for env in $MUJOCO; do delay $env; done ;;
+    fallback) for env in $FALLBACK; do fallback $env; done ;;
     delay:*) delay ${target#delay:} ;;
-    *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target; else classic $target; fi ;;
+    *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
+       elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
+       else classic $target; fi ;;
   esac
 done

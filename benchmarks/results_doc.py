@@ -22,7 +22,8 @@ from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial
 # env -> the threshold its sweeps were given (None: no threshold columns)
 ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
-                                 "Humanoid-v5": None}
+                                 "Humanoid-v5": None, "Swimmer-v5": None, "Reacher-v5": None,
+                                 "InvertedDoublePendulum-v5": None}
 FRAMEWORKS = ("softac", "sbx", "sb3")
 # ENV-softac-NAME: softac's preset with the options of benchmarks/results.sh's `options` and `delay` targets (#18)
 
@@ -90,8 +91,9 @@ def env_sweeps(env: str, sweeps: Path) -> dict[str, Path]:
     named = {}
     for name in order:
         if name in found:
-            overrides = load_spec(found[name]).overrides if name in variants else []
-            named[" ".join(["softac", *overrides]) if overrides else name] = found[name]
+            spec = load_spec(found[name])
+            options = ([f"preset={spec.preset}"] if spec.preset else []) + list(spec.overrides)
+            named[" ".join(["softac", *options]) if name in variants and options else name] = found[name]
     return named
 
 

@@ -21,7 +21,7 @@ def load_results_doc():
 
 
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
-def test_results_doc_tables_presets_options_and_peers_and_keeps_other_sections(tmp_path):
+def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_other_sections(tmp_path):
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
     for name in ("Hopper-v5-softac", "Hopper-v5-sbx"):
         shutil.copytree(KEPT / name, sweeps / name)
@@ -31,6 +31,12 @@ def test_results_doc_tables_presets_options_and_peers_and_keeps_other_sections(t
     spec = json.loads((variant / "sweep.json").read_text())
     spec["overrides"] = ["obs_norm=true", "critic_layer_norm=true"]
     (variant / "sweep.json").write_text(json.dumps(spec))
+    # a preset variant (results.sh fallback: another preset on the env), named by its preset
+    other = sweeps / "Hopper-v5-softac-default"
+    shutil.copytree(KEPT / "Hopper-v5-softac", other)
+    spec = json.loads((other / "sweep.json").read_text())
+    spec["preset"] = "default"
+    (other / "sweep.json").write_text(json.dumps(spec))
     docs.mkdir()
     (docs / "results.md").write_text("# old\n\n## Pusher-v5\n\nkept Pusher table\n\n## Hopper-v5\n\nold Hopper table\n")
 
@@ -41,6 +47,6 @@ def test_results_doc_tables_presets_options_and_peers_and_keeps_other_sections(t
     assert "## Walker2d-v5\n\nNot run yet." in text
     hopper = text.split("## Hopper-v5")[1].split("\n## ")[0]
     rows = {line.split("|")[1].strip(): line for line in hopper.splitlines() if line.startswith("| ")}
-    assert {"softac", "softac obs_norm=true critic_layer_norm=true", "sbx"} <= set(rows)
+    assert {"softac", "softac obs_norm=true critic_layer_norm=true", "softac preset=default", "sbx"} <= set(rows)
     assert rows["softac"].split("|")[2].strip() == "3" and rows["sbx"].split("|")[2].strip() == "2"
     assert (docs / "results" / "Hopper-v5.png").stat().st_size > 10_000
