@@ -215,7 +215,8 @@ def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
         assert float(row["final_eval_mean"]) == pytest.approx(float(evals[-1]["mean_return"]), abs=0.01)
     # an ordinary run directory: `softac eval` loads it
     ev = run_cli("eval", str(out / rows[0]["trial"]), "--episodes", "2", "--json", timeout=120)
-    assert ev.returncode == 0, ev.stderr and "mean_return" in json.loads(ev.stdout)
+    assert ev.returncode == 0, ev.stderr
+    assert "mean_return" in json.loads(ev.stdout)
     md = (out / "summary.md").read_text()
     assert "| tau=0.05 | 2 |" in md and "| tau=0.2 | 2 |" in md and "±" in md
     assert "| 2/2 |" in md and "| 100% |" in md  # reached the threshold and held it, per configuration
