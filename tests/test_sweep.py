@@ -121,6 +121,7 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     table = sweep.markdown_table(sweep.aggregate([row], [], 1000, name="softac"), 1000)
     assert "| softac | 1 (0 done) |" in table and "| 1/1 | 200 | 2.0 | 67% |" in table
     assert "| 400 | 4.0 | 100.0 |" in table  # median steps, wall s and steps per second
+    assert "| final 95% CI | final IQM |" in table and "| [1000.0, 1000.0] | 1000.0 |" in table
     spec.steps = 400  # a trial whose evaluations reached the last step is complete, summary.json or not
     assert sweep.trial_rows(tmp_path / "sweep", spec)[0]["status"] == "done"
 

@@ -31,6 +31,7 @@ import yaml
 from softac.config import ConfigError, SACConfig, override_key
 from softac.cpus import claim_cpus
 from softac.errors import SoftacError
+from softac.stats import summarize
 
 SPEC_FILE = "sweep.json"
 RAY_DIR = "_ray"
@@ -696,14 +697,6 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None) -> li
     return rows
 
 
-def _mean_std_ci(values: list[float]) -> tuple[float, float, float]:
-    from softac.plots import t_critical_95
-
-    arr = np.asarray(values, float)
-    std = float(arr.std(ddof=1)) if len(arr) > 1 else 0.0
-    return float(arr.mean()), std, t_critical_95(len(arr)) * std / math.sqrt(len(arr)) if len(arr) > 1 else 0.0
-
-
 def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | None,
               name: str = "all") -> list[dict[str, Any]]:
     """One row per configuration (the swept keys' values), over its seeds."""
@@ -717,9 +710,9 @@ def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | No
         entry: dict[str, Any] = {"configuration": ", ".join(f"{k}={members[0].get(k)}" for k in keys) or name,
                                  "seeds": len(members), "done": sum(r["status"] == "done" for r in members)}
         if finals:
-            entry["final"] = _mean_std_ci(finals)
+            entry["final"] = summarize(finals)
         if bests:
-            entry["best"] = _mean_std_ci(bests)
+            entry["best"] = summarize(bests)
         entry["wall_s"] = float(np.median([r["wall_s"] for r in members]))
         entry["steps"] = int(np.median([r["steps"] for r in members]))
         rates = [r["steps"] / r["wall_s"] for r in members if r["wall_s"]]
@@ -733,7 +726,7 @@ def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | No
                 entry["seconds_to_threshold"] = float(np.median(secs)) if secs else None
                 entry["held_threshold"] = float(np.mean([r["held_threshold"] for r in reached]))
         table.append(entry)
-    table.sort(key=lambda e: -(e["final"][0] if "final" in e else -math.inf))
+    table.sort(key=lambda e: -(e["final"].mean if "final" in e else -math.inf))
     return table
 
 
@@ -742,7 +735,7 @@ def _fmt(x: float | None, digits: int = 1) -> str:
 
 
 def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
-    head = ["configuration", "seeds", "final eval (mean ± std)", "final 95% CI", "best eval (mean ± std)",
+    head = ["configuration", "seeds", "final eval (mean ± std)", "final 95% CI", "final IQM", "best eval (mean ± std)",
             "median steps", "median wall s", "steps/s"]
     if threshold is not None:
         head += [f"reached {threshold:g}", "median steps to it", "median s to it", "evals held after"]
@@ -750,9 +743,10 @@ def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
     for e in table:
         final, best = e.get("final"), e.get("best")
         cells = [e["configuration"], f"{e['seeds']}" + ("" if e["done"] == e["seeds"] else f" ({e['done']} done)"),
-                 f"{final[0]:.1f} ± {final[1]:.1f}" if final else "-",
-                 f"[{final[0] - final[2]:.1f}, {final[0] + final[2]:.1f}]" if final else "-",
-                 f"{best[0]:.1f} ± {best[1]:.1f}" if best else "-", f"{e['steps']}", _fmt(e["wall_s"]),
+                 f"{final.mean:.1f} ± {final.std:.1f}" if final else "-",
+                 f"[{final.mean - final.ci_half:.1f}, {final.mean + final.ci_half:.1f}]" if final else "-",
+                 f"{final.iqm:.1f}" if final else "-",
+                 f"{best.mean:.1f} ± {best.std:.1f}" if best else "-", f"{e['steps']}", _fmt(e["wall_s"]),
                  _fmt(e.get("steps_per_s"))]
         if threshold is not None:
             cells += [f"{e['reached']}/{e['seeds']}", _fmt(e.get("steps_to_threshold"), 0),
@@ -801,7 +795,8 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) 
     text = [f"# Sweep on {spec.env_id}: {what}, {spec.steps} steps per trial", "",
             f"{len(rows)} of {planned_trials(spec)} trials with results, seeds {spec.seeds}" + (f"; overrides: {' '.join(spec.overrides)}"
                                                         if spec.overrides else "") + ".",
-            "Final eval: the last deterministic evaluation of each trial; 95% CI: Student t over seeds.", "",
+            "Final eval: the last deterministic evaluation of each trial; 95% CI: Student t over seeds; IQM: the "
+            "interquartile mean over seeds (rliable's; the plain mean below 4 seeds).", "",
             markdown_table(table, threshold), ""]
     if spec.search and table:
         best = max((r for r in rows if r["final_eval_mean"] is not None), key=lambda r: r["final_eval_mean"],
