@@ -43,8 +43,9 @@ def tiny():
 
 
 def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
-    """A failure during training: exit 2, no traceback, the error as the last line (after progress lines)."""
-    assert result.returncode == 2, (result.returncode, result.stderr)
+    """A run that started and then failed: exit 3, no traceback, the error as the last line (after progress
+    lines)."""
+    assert result.returncode == 3, (result.returncode, result.stderr)
     assert "Traceback" not in result.stderr
     last = [line for line in result.stderr.splitlines() if line.strip()][-1]
     assert last.startswith("softac: error: "), last

@@ -192,7 +192,7 @@ def test_full_disk_on_a_real_small_filesystem(tmp_path):
     ("BrokenReset-v0", "BrokenReset-v0 raised in reset at step"),
     ("HugeReward-v0", "training diverged at step"),
 ])
-def test_bad_env_or_divergence_stops_with_exit_2_and_keeps_the_checkpoint(tmp_path, env_id, fragment):
+def test_bad_env_or_divergence_stops_with_exit_3_and_keeps_the_checkpoint(tmp_path, env_id, fragment):
     run = tmp_path / "run"
     r = run_cli("train", "--env", f"softac_test_envs:{env_id}", "--steps", "3000", "--out", str(run), *TINY_SETS,
                 "checkpoint_interval=20", "--no-progress")

@@ -14,7 +14,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
-from softac.envs import EnvError, copy_env, env_name
+from softac.envs import EnvError, EnvFailed, copy_env, env_name
 
 MAX_PARALLEL = 32
 EVAL_SEED_OFFSET = 1_000_000
@@ -39,7 +39,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
         try:
             o, _ = envs[slot].reset(seed=seed + ep)
         except Exception as exc:
-            raise EnvError(f"env {env_name(envs[slot])} raised in reset during evaluation: "
+            raise EnvFailed(f"env {env_name(envs[slot])} raised in reset during evaluation: "
                            f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
         obs[slot] = np.asarray(o, np.float32).reshape(-1)
         active[slot] = ep
@@ -56,7 +56,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
             try:
                 o, r, terminated, truncated, info = envs[slot].step(action)
             except Exception as exc:
-                raise EnvError(f"env {env_name(envs[slot])} raised in step during evaluation: "
+                raise EnvFailed(f"env {env_name(envs[slot])} raised in step during evaluation: "
                                f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
             returns[ep] += float(r)
             lengths[ep] += 1

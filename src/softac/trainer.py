@@ -20,7 +20,7 @@ import numpy as np
 
 from softac import checkpoint as ckpt
 from softac.cpus import usable_cpus
-from softac.errors import SoftacError, TrainingInterrupted
+from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
 from softac.logs import Progress, RunLogger, write_config, write_summary
 from softac.sac import Batch
@@ -60,8 +60,8 @@ class StopSignal:
 def _check_finite(metrics: dict[str, float], step: int) -> None:
     bad = [k for k, v in metrics.items() if not np.isfinite(v)]
     if bad:
-        raise SoftacError(f"training diverged at step {step}: {', '.join(bad)} became non-finite "
-                          "(try lower learning rates); the last good checkpoint is kept")
+        raise RunFailed(f"training diverged at step {step}: {', '.join(bad)} became non-finite "
+                        "(try lower learning rates); the last good checkpoint is kept")
 
 
 def _holds_run(run: Path) -> bool:
@@ -144,8 +144,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
         try:
             return str(ckpt.save(run / "checkpoints" / name, meta, arrays))
         except OSError as exc:
-            raise SoftacError(f"could not write checkpoint {run / 'checkpoints' / name}: {exc.strerror or exc}; "
-                              "the previous checkpoint is kept") from None
+            raise RunFailed(f"could not write checkpoint {run / 'checkpoints' / name}: {exc.strerror or exc}; "
+                            "the previous checkpoint is kept") from None
 
     def evaluate_now(step: int, stop: StopSignal) -> dict[str, Any] | None:
         nonlocal eval_envs
@@ -210,8 +210,8 @@ def train(agent: Any, steps: int, run_dir: str | Path | None = None, target_retu
                                                                   agent.act_key)
                     actions, env_actions = np.asarray(actions), np.asarray(env_actions)
                     if not np.all(np.isfinite(actions)):
-                        raise SoftacError(f"training diverged at step {before}: the policy produced non-finite "
-                                          "actions; the last good checkpoint is kept")
+                        raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "
+                                        "actions; the last good checkpoint is kept")
                 result = pool.step(env_actions, before)
                 buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated,
                            result.terminated | result.truncated)
