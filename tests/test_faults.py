@@ -101,6 +101,7 @@ def test_kill_9_before_the_first_periodic_checkpoint_resumes_from_step_0(tmp_pat
     assert steps == sorted(set(steps)) and steps[-1] == 300  # the killed run's rows were replaced, none twice
 
 
+@pytest.mark.faults
 def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
     run = tmp_path / "run"
     proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
@@ -120,6 +121,7 @@ def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
     assert _checkpoint_step(run) >= 100
 
 
+@pytest.mark.faults
 def test_sigterm_during_a_checkpoint_write_finishes_it_then_exits(tmp_path, monkeypatch):
     from softac import checkpoint as ckpt
     from softac.agent import SAC

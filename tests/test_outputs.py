@@ -14,14 +14,9 @@ SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "
         "log_interval=100", "eval_interval=200", "eval_episodes=2"]
 
 
-@pytest.fixture(scope="module")
-def pendulum_run(tmp_path_factory):
-    run = tmp_path_factory.mktemp("runs") / "pendulum"
-    r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", *SETS)
-    assert r.returncode == 0, r.stderr
-    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--out", str(run))
-    assert r.returncode == 0, r.stderr
-    return run
+@pytest.fixture
+def pendulum_run(trained_run):
+    return trained_run
 
 
 def _png_size(path):

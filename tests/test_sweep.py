@@ -195,6 +195,7 @@ def grid_sweep(tmp_path_factory):
     return out, result
 
 
+@pytest.mark.ray
 def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
     out, result = grid_sweep
     assert result.returncode == 0, result.stderr
@@ -226,6 +227,7 @@ def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
     assert "[4/4] finished" in result.stderr
 
 
+@pytest.mark.ray
 def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
     out, first = grid_sweep
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")}
@@ -240,6 +242,7 @@ def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
     assert_clean_error(different, "differs in seeds", "--resume")
 
 
+@pytest.mark.ray
 def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
     out, _ = grid_sweep
     result = run_cli("plot", str(out), "--out", str(tmp_path / "figs"), timeout=120)
@@ -248,6 +251,7 @@ def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
     assert (tmp_path / "figs" / "tau=0.2,seed=1" / "learning_curve.png").exists()
 
 
+@pytest.mark.ray
 def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
     out = tmp_path / "sweep"
     env = dict(os.environ, PYTHONPATH=str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -285,6 +289,7 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
     assert steps == sorted(set(steps)) and steps[-1] == 2500
 
 
+@pytest.mark.ray
 @pytest.mark.parametrize("search, asha", [("optuna", True), ("random", False)])
 def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
     space = tmp_path / "space.yaml"
@@ -310,6 +315,7 @@ def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
     assert len(_rows(out / "summary.csv")) == 3
 
 
+@pytest.mark.ray
 def test_python_api_runs_a_sweep(tmp_path, monkeypatch):
     monkeypatch.setenv("PYTHONPATH", str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     tiny = [pair for pair in TINY_SET[1:]]
@@ -320,6 +326,7 @@ def test_python_api_runs_a_sweep(tmp_path, monkeypatch):
     assert {p.name for p in result["files"]} >= {"summary.csv", "summary.md", "comparison.png"}
 
 
+@pytest.mark.ray
 def test_a_failing_trial_is_reported_with_its_log_and_the_others_finish(tmp_path):
     out = tmp_path / "sweep"
     broken, fine = "softac_test_envs:BrokenStep-v0", DRIFT  # BrokenStep raises in step at step 30
