@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from softac.bench import machine_description
+from softac.cpus import machine_description
 from softac.plots import plot_comparison
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 

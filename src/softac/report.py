@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from softac.bench import machine_description
+from softac.cpus import machine_description
 from softac.logs import read_csv
 from softac.plots import load_baselines, load_run_config, plot_runs
 
