@@ -202,7 +202,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         choose_gl_backend()
     from softac.agent import SAC
     from softac.buffer import check_buffer_memory
-    from softac.trainer import check_new_run_dir
+    from softac.rundir import check_new_run_dir
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -334,7 +334,7 @@ def cmd_baselines(args: argparse.Namespace) -> int:
         raise SoftacError(f"--out {args.out} is not a run directory")
     result = run_baselines(args.env, episodes=args.episodes, seed=args.seed)
     if args.out:
-        from softac.checkpoint import write_atomic
+        from softac.rundir import write_atomic
 
         write_atomic(Path(args.out) / "baselines.json", json.dumps(result, indent=1).encode())
     if args.json:

@@ -93,7 +93,8 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     from stable_baselines3.common.callbacks import BaseCallback
 
     from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-    from softac.logs import EPISODE_COLUMNS, EVAL_COLUMNS, PROGRESS_COLUMNS, CsvLog, write_config, write_summary
+    from softac.logs import EPISODE_COLUMNS, EVAL_COLUMNS, PROGRESS_COLUMNS, CsvLog
+    from softac.rundir import write_config, write_summary
 
     SAC, kwargs = peer_sac(framework)
     out.mkdir(parents=True, exist_ok=True)

@@ -148,7 +148,7 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) 
     """DIR/summary.csv, DIR/summary.md and DIR/plots/ from the trial run directories."""
     import csv
 
-    from softac.checkpoint import write_atomic
+    from softac.rundir import write_atomic
 
     rows = trial_rows(out, spec, threshold)
     if not rows:

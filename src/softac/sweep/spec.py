@@ -272,7 +272,7 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
         return
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise SoftacError(f"{out} exists and is not a sweep directory; pick another --out")
-    from softac.checkpoint import write_atomic
+    from softac.rundir import write_atomic
 
     try:
         out.mkdir(parents=True, exist_ok=True)
