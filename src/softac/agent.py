@@ -25,6 +25,8 @@ from softac.rundir import versions
 from softac.runstate import RunState
 
 if TYPE_CHECKING:  # sac imports JAX, which the agent loads only when it is made
+    import gymnasium as gym
+
     from softac.sac import SACState
 
 
@@ -101,7 +103,7 @@ class SAC:
     def buffer_bytes_per_transition(self) -> float:
         return buffer_bytes_per_transition(self.config, self.spaces.obs_dim, self.spaces.act_dim)
 
-    def make_env(self, render_mode: str | None = None, **kwargs: Any):
+    def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
         return copy_env(self.env_source, render_mode, **kwargs)
 
     def training_parts(self) -> tuple[ReplayBuffer | ObsOnceReplayBuffer, EnvPool]:

@@ -9,12 +9,15 @@ the key).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import gymnasium as gym
 import numpy as np
 
-from softac.envs import EnvError, EnvFailed, copy_env, env_name
+from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name
+
+if TYPE_CHECKING:
+    from softac.agent import SAC
 
 MAX_PARALLEL = 32
 EVAL_SEED_OFFSET = 1_000_000
@@ -81,7 +84,7 @@ def add_reward_terms(terms: dict[str, np.ndarray], info: Any, episode: int, epis
             terms[key][episode] += float(value)
 
 
-def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: Any, episodes: int,
+def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: EnvSource, episodes: int,
                   seed: int) -> dict[str, Any]:
     """`run_episodes` on fresh copies of `source` (an id or an instance), closed afterwards."""
     envs = [copy_env(source) for _ in range(min(episodes, MAX_PARALLEL))]
@@ -109,7 +112,7 @@ def summarize(returns: np.ndarray, lengths: np.ndarray,
     }
 
 
-def evaluate(agent: Any, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
+def evaluate(agent: SAC, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
              env: Any = None) -> dict[str, Any]:
     """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env."""
     if episodes < 1:
