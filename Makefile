@@ -59,9 +59,9 @@ demo: $(STAMP) render-deps
 test: $(TEST_STAMP) system-deps
 	$(BIN)/python -m pytest -q
 
-# unit tests only: skips the learning tests
+# without the learning test, the kill/signal campaigns, the Ray sweeps and the bench runs (CI runs them all)
 test-fast: $(TEST_STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow and not faults and not ray and not bench"
 
 # softac vs Stable-Baselines3 vs SBX on this machine; torch 2.13.0 (CPU build) goes in first so that
 # no CUDA packages are pulled. BENCH_ARGS adds options, e.g. BENCH_ARGS="--repeats 5".

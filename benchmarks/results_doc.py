@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from softac.bench import machine_description
+from softac.cpus import machine_description
 from softac.plots import plot_comparison
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
@@ -45,6 +45,7 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
 
 Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
+  final IQM: its interquartile mean over seeds (rliable's; the plain mean below 4 seeds);
 - best eval: the best evaluation of each trial;
 - median wall s: the whole trial's training time, evaluations included; steps/s: steps over that time;
 - reached R (classic set): trials whose evaluation reached the threshold R at least once, with the

@@ -42,9 +42,24 @@ def tiny():
     return tiny_config
 
 
+@pytest.fixture(scope="session")
+def trained_run(tmp_path_factory):
+    """One short InvertedPendulum-v5 run (800 steps, evaluations, checkpoints, baselines.json), trained once
+    for the tests that only read a run or add outputs to it (plots, videos, reports)."""
+    run = tmp_path_factory.mktemp("runs") / "pendulum"
+    r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", "--set", "hidden_sizes=32,32",
+                "batch_size=32", "learning_starts=200", "buffer_size=5000", "log_interval=100", "eval_interval=200",
+                "eval_episodes=2")
+    assert r.returncode == 0, r.stderr
+    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--out", str(run))
+    assert r.returncode == 0, r.stderr
+    return run
+
+
 def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
-    """A failure during training: exit 2, no traceback, the error as the last line (after progress lines)."""
-    assert result.returncode == 2, (result.returncode, result.stderr)
+    """A run that started and then failed: exit 3, no traceback, the error as the last line (after progress
+    lines)."""
+    assert result.returncode == 3, (result.returncode, result.stderr)
     assert "Traceback" not in result.stderr
     last = [line for line in result.stderr.splitlines() if line.strip()][-1]
     assert last.startswith("softac: error: "), last

@@ -21,6 +21,7 @@ def test_bench_without_peers_says_how_to_install():
     assert_clean_error(run_cli("bench", "--frameworks", "softac,sb3"), "make bench")
 
 
+@pytest.mark.bench
 def test_bench_softac_only_reports_json():
     r = run_cli("bench", "--frameworks", "softac", "--steps", "60", "--warmup", "300", "--repeats", "1", "--json")
     assert r.returncode == 0, r.stderr
@@ -30,6 +31,7 @@ def test_bench_softac_only_reports_json():
     assert "softac" in r.stderr  # the human-readable table goes to stderr with --json
 
 
+@pytest.mark.bench
 def test_bench_runs_the_bf16_variant_beside_softac():
     r = run_cli("bench", "--frameworks", "softac,softac-bf16", "--steps", "40", "--warmup", "300", "--repeats", "1",
                 "--json")

@@ -78,6 +78,7 @@ def test_resume_without_steps_finishes_the_configured_total(tmp_path):
     assert r.returncode == 0 and "training 0 more steps" in r.stderr
 
 
+@pytest.mark.faults
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
     run = tmp_path / "run"

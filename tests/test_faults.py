@@ -101,6 +101,7 @@ def test_kill_9_before_the_first_periodic_checkpoint_resumes_from_step_0(tmp_pat
     assert steps == sorted(set(steps)) and steps[-1] == 300  # the killed run's rows were replaced, none twice
 
 
+@pytest.mark.faults
 def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
     run = tmp_path / "run"
     proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
@@ -120,6 +121,7 @@ def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
     assert _checkpoint_step(run) >= 100
 
 
+@pytest.mark.faults
 def test_sigterm_during_a_checkpoint_write_finishes_it_then_exits(tmp_path, monkeypatch):
     from softac import checkpoint as ckpt
     from softac.agent import SAC
@@ -179,7 +181,8 @@ def test_full_disk_on_a_real_small_filesystem(tmp_path):
                            "the previous checkpoint is kept")
         from softac.agent import SAC
 
-        assert SAC.load(run, which="last").num_steps >= 0
+        kept = SAC.load(run, which="last").num_steps  # a checkpoint written before the disk filled
+        assert kept >= 1000 and kept % 1000 == 0, kept
     finally:
         subprocess.run(["umount", str(mount)], capture_output=True)
 
@@ -191,7 +194,7 @@ def test_full_disk_on_a_real_small_filesystem(tmp_path):
     ("BrokenReset-v0", "BrokenReset-v0 raised in reset at step"),
     ("HugeReward-v0", "training diverged at step"),
 ])
-def test_bad_env_or_divergence_stops_with_exit_2_and_keeps_the_checkpoint(tmp_path, env_id, fragment):
+def test_bad_env_or_divergence_stops_with_exit_3_and_keeps_the_checkpoint(tmp_path, env_id, fragment):
     run = tmp_path / "run"
     r = run_cli("train", "--env", f"softac_test_envs:{env_id}", "--steps", "3000", "--out", str(run), *TINY_SETS,
                 "checkpoint_interval=20", "--no-progress")

@@ -14,14 +14,9 @@ SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "
         "log_interval=100", "eval_interval=200", "eval_episodes=2"]
 
 
-@pytest.fixture(scope="module")
-def pendulum_run(tmp_path_factory):
-    run = tmp_path_factory.mktemp("runs") / "pendulum"
-    r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", *SETS)
-    assert r.returncode == 0, r.stderr
-    r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--out", str(run))
-    assert r.returncode == 0, r.stderr
-    return run
+@pytest.fixture
+def pendulum_run(trained_run):
+    return trained_run
 
 
 def _png_size(path):
@@ -60,13 +55,25 @@ def test_plot_several_runs_groups_configs(tmp_path):
 
 
 def test_confidence_band_maths():
-    from softac.plots import aligned_eval_curves, mean_and_ci, moving_average, t_critical_95
+    from softac.plots import aligned_eval_curves, moving_average
+    from softac.stats import interquartile_mean, mean_and_ci, summarize, t_critical_95
 
     values = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
     mean, half, n = mean_and_ci(values)
     np.testing.assert_allclose(mean, [3.0, 4.0])
-    np.testing.assert_allclose(half, [t_critical_95(3) * 2.0 / np.sqrt(3)] * 2)
-    assert t_critical_95(2) == pytest.approx(12.706) and t_critical_95(1000) == pytest.approx(1.96)
+    np.testing.assert_allclose(half, [4.302653 * 2.0 / np.sqrt(3)] * 2, rtol=1e-6)
+    # Student t's two-sided 95% quantiles (printed tables): 1 dof 12.706, 2 dof 4.303, 30 dof 2.042,
+    # 40 dof 2.021 (a table that jumps to 1.96 past 30 dof gets this wrong), and 1.96 in the limit
+    assert [round(t_critical_95(n), 3) for n in (2, 3, 31, 41)] == [12.706, 4.303, 2.042, 2.021]
+    assert t_critical_95(100_000) == pytest.approx(1.96, abs=1e-3)
+    # IQM: the middle half of the seeds (rliable), the mean below 4 seeds
+    assert interquartile_mean([1.0, 2.0, 3.0, 100.0]) == pytest.approx(2.5)
+    assert interquartile_mean([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 1000.0]) == pytest.approx(3.5)
+    assert interquartile_mean([1.0, 2.0, 9.0]) == pytest.approx(4.0)
+    s = summarize([2.0, 4.0, 6.0])
+    assert (s.mean, s.std, s.iqm, s.n) == (4.0, 2.0, 4.0, 3)
+    assert s.ci_half == pytest.approx(4.302653 * 2.0 / np.sqrt(3), rel=1e-6)
+    assert summarize([5.0]).ci_half == 0.0
     np.testing.assert_allclose(moving_average(np.array([1.0, 3.0, 5.0, 7.0]), 2), [1.0, 2.0, 4.0, 6.0])
     assert aligned_eval_curves([])[0].size == 0
 

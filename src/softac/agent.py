@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -21,18 +21,13 @@ from softac.device import select_device
 from softac.envs import EnvPool, EnvSource, check_spaces, copy_env, env_name, make_env
 from softac.errors import SoftacError
 from softac.normalization import RunningObsNorm
+from softac.rundir import versions
+from softac.runstate import RunState
 
+if TYPE_CHECKING:  # sac imports JAX, which the agent loads only when it is made
+    import gymnasium as gym
 
-def _versions() -> dict[str, str]:
-    from importlib import metadata
-
-    out = {}
-    for pkg in ("softac", "jax", "jaxlib", "optax", "numpy", "gymnasium", "mujoco"):
-        try:
-            out[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            pass
-    return out
+    from softac.sac import SACState
 
 
 def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5) -> None:
@@ -59,8 +54,6 @@ class SAC:
     """A Soft Actor-Critic agent for one env (an id or a gym.Env instance)."""
 
     def __init__(self, config: SACConfig | None = None, env: EnvSource | None = None):
-        import jax.numpy as jnp
-
         if config is None:
             config = SACConfig.for_env(env if isinstance(env, str) else None)
         if env is None:
@@ -85,24 +78,24 @@ class SAC:
 
         self.fns = sac.build(config, self.spaces.obs_dim, self.spaces.act_dim, self.spaces.low, self.spaces.high)
         self.scaler = self.fns.scaler
-        self.state = self.fns.init(config.seed)
-        keys = np.random.default_rng([config.seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)
-        self.act_key = jnp.asarray(keys[0])  # exploration noise while training
-        self.predict_key = jnp.asarray(keys[1])  # stochastic predict() / evaluation, kept apart from training
-        self.rng = np.random.default_rng(config.seed)  # replay sampling and warm-up actions
+        self.state: SACState = self.fns.init(config.seed)  # what the agent knows
+        self.run = RunState.new(config.seed)  # where its training stands (counters, RNGs, evaluations, its run)
         # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
         self.obs_norm = RunningObsNorm(self.spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
-        self.num_steps = 0
-        self.num_episodes = 0
-        self.train_time_s = 0.0
-        self.trainer_state: dict[str, Any] = {}
-        self.restored_from: Path | None = None  # the checkpoint directory this agent was loaded from
-        # the run directory this agent is the latest state of (loaded from its checkpoints/last, or last trained
-        # into): the only run it may go on writing into; any other directory must hold no run (never overwritten)
-        self.run_dir: Path | None = None
         self.buffer: ReplayBuffer | ObsOnceReplayBuffer | None = None
         self.pool: EnvPool | None = None
         self.pool_started = False
+
+    # ---- the run state, as attributes (the API before RunState) ------------------
+
+    num_steps = property(lambda self: self.run.num_steps, lambda self, v: setattr(self.run, "num_steps", v))
+    num_episodes = property(lambda self: self.run.num_episodes, lambda self, v: setattr(self.run, "num_episodes", v))
+    train_time_s = property(lambda self: self.run.train_time_s, lambda self, v: setattr(self.run, "train_time_s", v))
+    act_key = property(lambda self: self.run.act_key, lambda self, v: setattr(self.run, "act_key", v))
+    predict_key = property(lambda self: self.run.predict_key, lambda self, v: setattr(self.run, "predict_key", v))
+    rng = property(lambda self: self.run.rng)
+    run_dir = property(lambda self: self.run.run_dir)
+    restored_from = property(lambda self: self.run.restored_from)
 
     # ---- parts made on first use ----------------------------------------------
 
@@ -110,7 +103,7 @@ class SAC:
     def buffer_bytes_per_transition(self) -> float:
         return buffer_bytes_per_transition(self.config, self.spaces.obs_dim, self.spaces.act_dim)
 
-    def make_env(self, render_mode: str | None = None, **kwargs: Any):
+    def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
         return copy_env(self.env_source, render_mode, **kwargs)
 
     def training_parts(self) -> tuple[ReplayBuffer | ObsOnceReplayBuffer, EnvPool]:
@@ -145,7 +138,7 @@ class SAC:
         if deterministic:
             actions = self.scaler.to_env(np.asarray(self.fns.act_deterministic(self.state.actor, batch)))
         else:
-            _, actions, self.predict_key = self.fns.act(self.state.actor, batch, self.predict_key)
+            _, actions, self.run.predict_key = self.fns.act(self.state.actor, batch, self.run.predict_key)
             actions = np.asarray(actions)
         return actions[0] if single else actions
 
@@ -167,22 +160,18 @@ class SAC:
         leaves = jax.tree_util.tree_flatten_with_path(self.state)[0]
         for path, leaf in leaves:
             arrays["state" + jax.tree_util.keystr(path)] = np.asarray(leaf)
-        arrays["act_key"] = np.asarray(self.act_key)
-        arrays["predict_key"] = np.asarray(self.predict_key)
+        run_meta, run_arrays = self.run.checkpoint_parts()
+        arrays.update(run_arrays)
         if self.obs_norm is not None:  # in every checkpoint, best too: predict() needs them
             for k, v in self.obs_norm.state_dict().items():
                 arrays[f"obs_norm/{k}"] = v
         meta: dict[str, Any] = {
             "config": self.config.to_dict(),
-            "versions": _versions(),
+            "versions": versions(),
             "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "spaces": {"obs_dim": self.spaces.obs_dim, "act_dim": self.spaces.act_dim,
                        "low": self.spaces.low.tolist(), "high": self.spaces.high.tolist()},
-            "num_steps": self.num_steps,
-            "num_episodes": self.num_episodes,
-            "train_time_s": self.train_time_s,
-            "numpy_rng": self.rng.bit_generator.state,
-            "trainer": self.trainer_state,
+            **run_meta,
             "has_buffer": bool(include_buffer and self.buffer is not None),
             "has_envs": bool(include_buffer and self.pool is not None and self.pool_started),
         }
@@ -235,12 +224,7 @@ class SAC:
                 raise ckpt.CheckpointError(f"checkpoint {where} does not match this config/env at {name}")
             leaves.append(jnp.asarray(value))
         self.state = jax.tree_util.tree_unflatten(treedef, leaves)
-        self.act_key = jnp.asarray(arrays["act_key"])
-        self.predict_key = jnp.asarray(arrays["predict_key"])
-        self.num_steps = int(meta["num_steps"])
-        self.num_episodes = int(meta["num_episodes"])
-        self.train_time_s = float(meta.get("train_time_s", 0.0))
-        self.rng.bit_generator.state = meta["numpy_rng"]
+        self.run.restore(meta, arrays, where)
         if self.obs_norm is not None:
             stats = {k[len("obs_norm/"):]: v for k, v in arrays.items() if k.startswith("obs_norm/")}
             if set(stats) != {"count", "mean", "m2"}:
@@ -249,11 +233,6 @@ class SAC:
                 self.obs_norm.load_state_dict(stats)
             except SoftacError as exc:
                 raise ckpt.CheckpointError(f"checkpoint {where}: {exc}") from None
-        self.trainer_state = dict(meta.get("trainer") or {})
-        self.restored_from = Path(where).resolve() if where else None
-        from_last = self.restored_from is not None and self.restored_from.name == "last" \
-            and self.restored_from.parent.name == "checkpoints"
-        self.run_dir = self.restored_from.parent.parent if from_last else None
         if meta.get("has_buffer"):
             self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
             self.buffer.load_state_dict({k[len("buffer/"):]: v for k, v in arrays.items() if k.startswith("buffer/")})

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -30,8 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from softac.errors import SoftacError
+from softac.cpus import machine_description
+from softac.peers import PEER_MODULES, peer_run, peer_solve, peer_throughput
 
-PEER_MODULES = {"sb3": "stable_baselines3", "sbx": "sbx"}
 # softac variants: the same preset with these settings added (the driver passes them as --set)
 VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
 FRAMEWORKS = (*VARIANTS, *PEER_MODULES)
@@ -52,40 +52,6 @@ def default_frameworks() -> list[str]:
 
 # ---- workers: each runs in its own process and prints one JSON line -----------------
 
-def _peer_sac(framework: str):
-    if framework == "sb3":
-        import torch
-        from stable_baselines3 import SAC
-
-        torch.set_num_threads(int(os.environ.get("SOFTAC_THREADS", 0)) or os.cpu_count() or 1)
-        return SAC, {"device": "cpu"}
-    from sbx import SAC
-
-    return SAC, {}
-
-
-def _throughput_peer(framework: str, env_id: str, warmup: int, steps: int, seed: int) -> dict[str, Any]:
-    import gymnasium as gym
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    SAC, kwargs = _peer_sac(framework)
-
-    class Clock(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.t_start = None
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps == warmup:
-                self.t_start = time.perf_counter()
-            return True
-
-    clock = Clock()
-    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
-    model.learn(warmup + steps, callback=clock)
-    elapsed = time.perf_counter() - clock.t_start
-    return {"steps_per_s": steps / elapsed}
-
 
 def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, overrides: list[str]) -> dict[str, Any]:
     from softac.agent import SAC
@@ -97,115 +63,6 @@ def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, override
     t0 = time.perf_counter()
     agent.learn(steps, progress=False)
     return {"steps_per_s": steps / (time.perf_counter() - t0)}
-
-
-def _solve_peer(framework: str, env_id: str, seed: int, target: float, max_steps: int) -> dict[str, Any]:
-    import gymnasium as gym
-    from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
-
-    SAC, kwargs = _peer_sac(framework)
-
-    class TimedEval(EvalCallback):
-        eval_s = 0.0
-
-        def _on_step(self) -> bool:
-            t0 = time.perf_counter()
-            result = super()._on_step()
-            self.eval_s += time.perf_counter() - t0
-            return result
-
-    stop = StopTrainingOnRewardThreshold(reward_threshold=target, verbose=0)
-    evaluator = TimedEval(gym.make(env_id), eval_freq=1000, n_eval_episodes=10, deterministic=True,
-                          callback_on_new_best=stop, verbose=0)
-    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
-    t0 = time.perf_counter()
-    model.learn(max_steps, callback=evaluator)
-    total = time.perf_counter() - t0
-    return {"steps": int(model.num_timesteps), "solved": bool(evaluator.best_mean_reward >= target),
-            "train_s": total - evaluator.eval_s, "best_eval": float(evaluator.best_mean_reward)}
-
-
-def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
-             eval_episodes: int, log_interval: int) -> dict[str, Any]:
-    """Train a peer's SAC at its defaults and write a softac-style run directory (config.yaml, progress.csv,
-    episodes.csv, eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions,
-    episode i of every evaluation seeded `seed + EVAL_SEED_OFFSET + i`."""
-    import gymnasium as gym
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-    from softac.logs import EPISODE_COLUMNS, EVAL_COLUMNS, PROGRESS_COLUMNS, CsvLog, write_config, write_summary
-
-    SAC, kwargs = _peer_sac(framework)
-    out.mkdir(parents=True, exist_ok=True)
-    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
-    hyper = {k: getattr(model, k) for k in ("learning_rate", "buffer_size", "batch_size", "learning_starts", "tau",
-                                            "gamma", "train_freq", "gradient_steps", "ent_coef", "target_entropy")
-             if hasattr(model, k)}
-    if "train_freq" in hyper:
-        hyper["train_freq"] = f"{hyper['train_freq'].frequency} {hyper['train_freq'].unit.value}"
-    config = {"framework": framework, "env_id": env_id, "seed": seed, "total_steps": steps,
-              "eval_interval": eval_interval, "eval_episodes": eval_episodes,
-              **{k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in hyper.items()},
-              "policy_kwargs": str(model.policy_kwargs)}
-    write_config(out, config, {"versions": {framework: _peer_version(framework)}})
-    progress = CsvLog(out / "progress.csv", PROGRESS_COLUMNS)
-    episodes_log = CsvLog(out / "episodes.csv", EPISODE_COLUMNS)
-    evals = CsvLog(out / "eval.csv", EVAL_COLUMNS)
-    eval_envs = [gym.make(env_id) for _ in range(min(eval_episodes, MAX_PARALLEL))]
-    t0 = time.perf_counter()
-    state: dict[str, Any] = {"best": None, "best_step": None, "last": None, "episodes": 0, "recent": []}
-
-    def evaluate(step: int) -> None:
-        stats = run_episodes(lambda obs: model.predict(obs, deterministic=True)[0], lambda: gym.make(env_id),
-                             eval_episodes, seed + EVAL_SEED_OFFSET, envs=eval_envs)
-        evals.write({"step": step, "mean_return": stats["mean_return"], "std_return": stats["std_return"],
-                     "episodes": stats["episodes"]})
-        state["last"] = stats["mean_return"]
-        if state["best"] is None or stats["mean_return"] > state["best"]:
-            state["best"], state["best_step"] = stats["mean_return"], step
-
-    class Logger(BaseCallback):
-        def _on_step(self) -> bool:
-            step = self.num_timesteps
-            for info in self.locals.get("infos", []):
-                if "episode" in info:
-                    state["episodes"] += 1
-                    state["recent"] = (state["recent"] + [float(info["episode"]["r"])])[-100:]
-                    episodes_log.write({"step": step, "return": float(info["episode"]["r"]),
-                                        "length": int(info["episode"]["l"])})
-            if step % log_interval == 0:
-                elapsed = time.perf_counter() - t0
-                progress.write({"step": step, "time_s": round(elapsed, 3), "fps": round(step / elapsed, 1),
-                                "episodes": state["episodes"],
-                                "return_mean": sum(state["recent"]) / len(state["recent"]) if state["recent"]
-                                else float("nan")})
-            if eval_interval > 0 and step % eval_interval == 0:
-                evaluate(step)
-            return True
-
-    model.learn(steps, callback=Logger())
-    if eval_interval > 0 and steps % eval_interval != 0:
-        evaluate(steps)
-    for log in (progress, episodes_log, evals):
-        log.close()
-    for env in eval_envs:
-        env.close()
-    summary = {"steps": int(model.num_timesteps), "episodes": state["episodes"],
-               "train_time_s": time.perf_counter() - t0, "wall_s": time.perf_counter() - t0,
-               "last_eval": state["last"], "best_eval": state["best"], "stopped_early": False,
-               "best_step": state["best_step"], "total_steps": steps, "framework": framework}
-    write_summary(out, summary)
-    return summary
-
-
-def _peer_version(framework: str) -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version({"sb3": "stable-baselines3", "sbx": "sbx-rl"}[framework])
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def worker(argv: list[str]) -> None:
@@ -235,9 +92,9 @@ def worker(argv: list[str]) -> None:
         if a.framework in VARIANTS:
             out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)
         else:
-            out = _throughput_peer(a.framework, a.env, a.warmup, a.steps, a.seed)
+            out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
     else:
-        out = _solve_peer(a.framework, a.env, a.seed, a.target, a.max_steps)
+        out = peer_solve(a.framework, a.env, a.seed, a.target, a.max_steps)
     print(json.dumps(out), flush=True)
 
 
@@ -285,21 +142,6 @@ def available_frameworks(requested: list[str]) -> tuple[list[str], list[str]]:
         module = PEER_MODULES.get(name)
         (ok if module is None or importlib.util.find_spec(module) else missing).append(name)
     return ok, missing
-
-
-def machine_description() -> str:
-    """CPU model, core count and Python version: the line every benchmark and report is labelled with."""
-    import platform
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repeats: int, solve_seeds: list[int],

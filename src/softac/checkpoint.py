@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
+from softac.rundir import fsync_dir, write_atomic
 
 FORMAT = "softac-checkpoint"
 FORMAT_VERSION = 1
@@ -31,34 +32,12 @@ class CheckpointError(SoftacError):
     pass
 
 
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 def _sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
 
 
 def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Path:
@@ -85,7 +64,7 @@ def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarr
         with contextlib.suppress(FileNotFoundError):
             final.unlink()
         raise
-    _fsync_dir(directory)
+    fsync_dir(directory)
     for old in directory.glob("arrays-*.npz"):
         if old.name != name:
             with contextlib.suppress(OSError):

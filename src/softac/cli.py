@@ -1,7 +1,9 @@
 """The `softac` command: parse, call the library, map errors to exit codes.
 
-Exit codes: 0 success; 2 bad input (one line on stderr, no traceback);
-130 interrupted (Ctrl-C or SIGTERM) after a checkpoint was written.
+Exit codes: 0 success; 1 a bug of ours (one line; SOFTAC_DEBUG=1 shows the traceback); 2 bad input
+(one line on stderr, no traceback); 3 a run that started and then failed (divergence, an env that raised
+or returned NaN, a full disk; one line, the last good checkpoint kept); 130 interrupted (Ctrl-C or
+SIGTERM) after a checkpoint was written.
 """
 
 from __future__ import annotations
@@ -14,9 +16,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from softac.errors import SoftacError, TrainingInterrupted
+from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 
-EXIT_OK, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_INTERNAL = 0, 2, 130, 1
+EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_RUN_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
 class _Parser(argparse.ArgumentParser):
@@ -200,7 +202,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         choose_gl_backend()
     from softac.agent import SAC
     from softac.buffer import check_buffer_memory
-    from softac.trainer import check_new_run_dir
+    from softac.rundir import check_new_run_dir
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -332,7 +334,7 @@ def cmd_baselines(args: argparse.Namespace) -> int:
         raise SoftacError(f"--out {args.out} is not a run directory")
     result = run_baselines(args.env, episodes=args.episodes, seed=args.seed)
     if args.out:
-        from softac.checkpoint import write_atomic
+        from softac.rundir import write_atomic
 
         write_atomic(Path(args.out) / "baselines.json", json.dumps(result, indent=1).encode())
     if args.json:
@@ -397,8 +399,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if result["unfinished"]:
         print(f"softac: {len(result['unfinished'])} of {result['trials']} trials unfinished; continue with "
               f"`softac sweep --resume {out}`", file=sys.stderr)
-        return EXIT_INTERNAL if result["failed"] else EXIT_INTERRUPTED
-    return EXIT_OK
+        return EXIT_RUN_FAILED if result["failed"] else EXIT_INTERRUPTED
+    return EXIT_RUN_FAILED if result["failed"] else EXIT_OK
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -425,6 +427,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help(sys.stderr)
             return EXIT_BAD_INPUT
         return COMMANDS[args.command](args)
+    except RunFailed as exc:
+        print(f"softac: error: {exc}", file=sys.stderr)
+        return EXIT_RUN_FAILED
     except SoftacError as exc:
         print(f"softac: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

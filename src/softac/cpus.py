@@ -5,6 +5,7 @@ depend on that thread count. A process pinned to n CPUs therefore runs n XLA thr
 beside it: its numbers do not depend on the neighbours, and side-by-side runs stop competing for the
 same cores (two sb3-preset trainings side by side on 2 cores: 1.24x faster pinned to one CPU each;
 docs/performance.md). `softac sweep` pins each trial this way, `softac train --cpus N` a single run.
+Also the one-line machine description that benchmarks and reports are labelled with.
 """
 
 from __future__ import annotations
@@ -75,3 +76,18 @@ def pin_this_process(n: int) -> tuple[list[int], bool]:
         os.sched_setaffinity(0, cpus)
     _held.extend(locks)
     return cpus, bool(cpus) and not locks
+
+
+def machine_description() -> str:
+    """CPU model, core count and Python version: the line every benchmark and report is labelled with."""
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"

@@ -23,13 +23,17 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 
-from softac.errors import SoftacError
+from softac.errors import RunFailed, SoftacError
 
 EnvSource = Any  # a Gymnasium id string or a gym.Env instance
 
 
 class EnvError(SoftacError):
-    pass
+    """An env that cannot be used: an unknown id, a space SAC cannot act in (bad input, exit 2)."""
+
+
+class EnvFailed(EnvError, RunFailed):
+    """An env that raised or returned non-finite values once the run had started (exit 3)."""
 
 
 def env_name(source: EnvSource) -> str:
@@ -225,7 +229,7 @@ class EnvPool:
         try:
             obs, _ = self.envs[i].reset(seed=seed)
         except Exception as exc:
-            raise EnvError(f"env {self.name} raised in reset at step {step}: {type(exc).__name__}: {exc}") from None
+            raise EnvFailed(f"env {self.name} raised in reset at step {step}: {type(exc).__name__}: {exc}") from None
         self.obs[i] = np.asarray(obs, np.float32).reshape(-1)
         self.resets[i] += 1
         self.episode_return[i] = 0.0
@@ -247,7 +251,7 @@ class EnvPool:
             try:
                 obs, reward, term, trunc, _ = env.step(actions[i])
             except Exception as exc:
-                raise EnvError(f"env {self.name} raised in step at step {step}: "
+                raise EnvFailed(f"env {self.name} raised in step at step {step}: "
                                f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
             next_obs[i] = np.asarray(obs, np.float32).reshape(-1)
             rewards[i], terminated[i], truncated[i] = reward, term, trunc
@@ -255,7 +259,7 @@ class EnvPool:
             self.episode_length[i] += 1
         if not (np.all(np.isfinite(next_obs)) and np.all(np.isfinite(rewards))):
             what = "observation" if not np.all(np.isfinite(next_obs)) else "reward"
-            raise EnvError(f"env {self.name} returned a non-finite {what} at step {step}")
+            raise EnvFailed(f"env {self.name} returned a non-finite {what} at step {step}")
         self.obs = next_obs.copy()
         for i in np.flatnonzero(terminated | truncated):
             finished.append((int(i), float(self.episode_return[i]), int(self.episode_length[i])))

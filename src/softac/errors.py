@@ -1,8 +1,14 @@
-"""Errors that mean bad input: the CLI prints their message on one line and exits 2."""
+"""User-facing errors: the CLI prints their message on one line and exits 2 (bad input) or 3 (a run that
+started and then failed)."""
 
 
 class SoftacError(Exception):
     """A user-facing error: bad input, a missing or corrupt checkpoint, a bad env."""
+
+
+class RunFailed(SoftacError):
+    """A run that started and then failed: the loss diverged, the env returned NaN or raised mid-run, a
+    checkpoint could not be written (a full disk). The last good checkpoint is kept; the CLI exits 3."""
 
 
 class TrainingInterrupted(Exception):

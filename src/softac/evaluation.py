@@ -9,12 +9,15 @@ the key).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import gymnasium as gym
 import numpy as np
 
-from softac.envs import EnvError, copy_env, env_name
+from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name
+
+if TYPE_CHECKING:
+    from softac.agent import SAC
 
 MAX_PARALLEL = 32
 EVAL_SEED_OFFSET = 1_000_000
@@ -39,7 +42,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
         try:
             o, _ = envs[slot].reset(seed=seed + ep)
         except Exception as exc:
-            raise EnvError(f"env {env_name(envs[slot])} raised in reset during evaluation: "
+            raise EnvFailed(f"env {env_name(envs[slot])} raised in reset during evaluation: "
                            f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
         obs[slot] = np.asarray(o, np.float32).reshape(-1)
         active[slot] = ep
@@ -56,7 +59,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
             try:
                 o, r, terminated, truncated, info = envs[slot].step(action)
             except Exception as exc:
-                raise EnvError(f"env {env_name(envs[slot])} raised in step during evaluation: "
+                raise EnvFailed(f"env {env_name(envs[slot])} raised in step during evaluation: "
                                f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
             returns[ep] += float(r)
             lengths[ep] += 1
@@ -81,7 +84,7 @@ def add_reward_terms(terms: dict[str, np.ndarray], info: Any, episode: int, epis
             terms[key][episode] += float(value)
 
 
-def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: Any, episodes: int,
+def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: EnvSource, episodes: int,
                   seed: int) -> dict[str, Any]:
     """`run_episodes` on fresh copies of `source` (an id or an instance), closed afterwards."""
     envs = [copy_env(source) for _ in range(min(episodes, MAX_PARALLEL))]
@@ -109,7 +112,7 @@ def summarize(returns: np.ndarray, lengths: np.ndarray,
     }
 
 
-def evaluate(agent: Any, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
+def evaluate(agent: SAC, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
              env: Any = None) -> dict[str, Any]:
     """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env."""
     if episodes < 1:

@@ -9,8 +9,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
                     "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
 EPISODE_COLUMNS = ["step", "return", "length"]
@@ -36,7 +34,7 @@ class CsvLog:
         """Keep the header and the whole rows up to `step`: a kill can leave a half-written last row."""
         import io
 
-        from softac.checkpoint import write_atomic
+        from softac.rundir import write_atomic  # (rundir imports this module)
 
         with open(self.path, newline="") as f:
             rows = list(csv.reader(f))
@@ -104,23 +102,6 @@ class RunLogger:
             log.close()
         if self.tb is not None:
             self.tb.close()
-
-
-def write_config(run_dir: Path, config: dict[str, Any], extra: dict[str, Any]) -> None:
-    from softac.checkpoint import write_atomic
-
-    data = dict(config)
-    data.update(extra)
-    write_atomic(run_dir / "config.yaml", yaml.safe_dump(data, sort_keys=False).encode())
-
-
-def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:
-    """RUN/summary.json: written when a training call ends normally (not when killed or interrupted)."""
-    import json
-
-    from softac.checkpoint import write_atomic
-
-    write_atomic(run_dir / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
 
 
 class Progress:

@@ -17,6 +17,7 @@ import yaml
 from softac.config import RECORD_ONLY_KEYS
 from softac.errors import SoftacError
 from softac.logs import read_csv
+from softac.stats import mean_and_ci
 
 METRIC_GRID = [  # (column, title), the notebooks' 2x3 grid
     ("critic_loss", "critic loss"),
@@ -202,32 +203,6 @@ def aligned_eval_curves(runs: list[Path]) -> tuple[np.ndarray, np.ndarray]:
         inside = (grid >= s.min()) & (grid <= s.max())
         values[i, inside] = np.interp(grid[inside], s, v)
     return grid, values
-
-
-def t_critical_95(n: int) -> float:
-    """Two-sided 95% Student-t quantile for n samples (n - 1 degrees of freedom)."""
-    table = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262,
-             10: 2.228, 12: 2.179, 15: 2.131, 20: 2.086, 30: 2.042}
-    dof = max(n - 1, 1)
-    if dof in table:
-        return table[dof]
-    known = sorted(table)
-    if dof > known[-1]:
-        return 1.96
-    above = min(k for k in known if k > dof)
-    below = max(k for k in known if k < dof)
-    return table[below] + (table[above] - table[below]) * (dof - below) / (above - below)
-
-
-def mean_and_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per column: mean, and the 95% confidence interval's half width (Student t over seeds)."""
-    n = np.sum(~np.isnan(values), axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.nanmean(values, axis=0)
-        std = np.nanstd(values, axis=0, ddof=1) if values.shape[0] > 1 else np.zeros(values.shape[1])
-        half = np.array([t_critical_95(int(k)) if k > 1 else 0.0 for k in n]) * np.nan_to_num(std) / np.sqrt(
-            np.maximum(n, 1))
-    return mean, half, n
 
 
 def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | None = None) -> Path:

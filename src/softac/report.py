@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from softac.bench import machine_description
+from softac.cpus import machine_description
 from softac.logs import read_csv
 from softac.plots import load_baselines, load_run_config, plot_runs
 
@@ -117,7 +117,7 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
             f"<style>{STYLE}</style><script>{LOAD_CHECK}</script></head><body>"
             + "\n".join(parts) + "</body></html>")
     out = out or run / "report.html"
-    from softac.checkpoint import write_atomic
+    from softac.rundir import write_atomic
 
     write_atomic(out, page.encode())
     return out

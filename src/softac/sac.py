@@ -111,6 +111,56 @@ class ActionScaler:
         return np.clip((np.asarray(env_action, np.float32) - self.bias) / self.scale, -1.0, 1.0)
 
 
+# ---- the critics -------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Critics:
+    """How the critic ensemble is evaluated (its settings; the parameters are passed to `q_values`)."""
+    activation: str
+    matmul_dtype: str = "float32"
+    layer_norm: bool = False
+    unroll: bool = False  # critic by critic (faster on CPU, see critics_apply) instead of vmap
+
+    def q_values(self, critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
+        """Q-values of every critic, shape [n_critics, batch]."""
+        return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll)
+
+
+# ---- the losses: pure functions of (parameters, batch, key, settings) ---------
+
+def critic_loss(critic: Any, target_critic: Any, actor: Any, alpha: jax.Array, batch: Batch, key: jax.Array,
+                policy: Policy, critics: Critics, gamma: float, n_step: int = 1) -> tuple[jax.Array, dict]:
+    """Soft Bellman error with the minimum over target critics (clipped double Q, Fujimoto et al. 2018).
+
+    Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps. With n-step returns
+    the buffer has summed `steps` discounted rewards (no entropy terms in between, as RLlib and SB3 do),
+    so the bootstrap is discounted by gamma^steps (Sutton & Barto 2018, sec. 7.1).
+    """
+    next_actions, next_log_prob = policy.sample(actor, batch.next_obs, key)
+    next_q = jnp.min(critics.q_values(target_critic, batch.next_obs, next_actions), axis=0)
+    next_v = next_q - alpha * next_log_prob
+    discount = gamma ** batch.steps if n_step > 1 else gamma
+    target = jax.lax.stop_gradient(batch.rewards + discount * (1.0 - batch.terminated) * next_v)
+    q = critics.q_values(critic, batch.obs, batch.actions)
+    loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
+    return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
+
+
+def actor_loss(actor: Any, critic: Any, alpha: jax.Array, obs: jax.Array, key: jax.Array, policy: Policy,
+               critics: Critics) -> tuple[jax.Array, jax.Array]:
+    """Maximise E[min_i Q_i(s, a) - alpha log pi(a|s)] over reparameterised actions (Haarnoja et al.
+    2018a, eq. 12); returns the loss and the actions' log-probabilities, which the alpha loss reuses."""
+    actions, log_prob = policy.sample(actor, obs, key)
+    q = jnp.min(critics.q_values(critic, obs, actions), axis=0)
+    return jnp.mean(alpha * log_prob - q), log_prob
+
+
+def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float) -> jax.Array:
+    """Entropy coefficient, learned on log(alpha) so alpha stays positive (Haarnoja et al. 2018b, sec. 5):
+    alpha grows while the policy's entropy -log_prob is below the target, and shrinks above it."""
+    return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
+
+
 # ---- the learner ------------------------------------------------------------
 
 def polyak(target: Any, online: Any, tau: float) -> Any:
@@ -139,10 +189,8 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     critic_tx = optax.adam(c.critic_lr)
     alpha_tx = optax.adam(c.alpha_lr)
 
-    unroll = jax.default_backend() == "cpu" and c.n_critics <= 8  # see critics_apply
-
-    def q_values(critic: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
-        return critics_apply(critic, obs, actions, c.activation, c.matmul_dtype, c.critic_layer_norm, unroll)
+    critics = Critics(c.activation, c.matmul_dtype, c.critic_layer_norm,
+                      unroll=jax.default_backend() == "cpu" and c.n_critics <= 8)
 
     def assemble(actor: Any, critic: Any, key: jax.Array) -> SACState:
         log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
@@ -173,44 +221,22 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     def alpha_of(state: SACState) -> jax.Array:
         return jnp.exp(state.log_alpha) if c.autotune_alpha else jnp.asarray(c.alpha, jnp.float32)
 
-    # Critic: soft Bellman target with the minimum over target critics (clipped double Q).
-    # Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps.
-    # With n-step returns the buffer has summed `steps` discounted rewards (no entropy terms in between,
-    # as RLlib and SB3 do), so the bootstrap is discounted by gamma^steps (Sutton & Barto 2018, sec. 7.1).
-    def critic_loss(critic: Any, state: SACState, batch: Batch, key: jax.Array) -> tuple[jax.Array, dict]:
-        next_actions, next_log_prob = policy.sample(state.actor, batch.next_obs, key)
-        next_q = jnp.min(q_values(state.target_critic, batch.next_obs, next_actions), axis=0)
-        next_v = next_q - alpha_of(state) * next_log_prob
-        discount = c.gamma ** batch.steps if c.n_step > 1 else c.gamma
-        target = jax.lax.stop_gradient(batch.rewards + discount * (1.0 - batch.terminated) * next_v)
-        q = q_values(critic, batch.obs, batch.actions)
-        loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
-        return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, c.n_critics - 1)])}
-
-    # Actor: maximise E[min_i Q_i(s, a) - alpha log pi(a|s)]. Gradients flow to the actor only.
-    def actor_loss(actor: Any, critic: Any, alpha: jax.Array, obs: jax.Array, key: jax.Array):
-        actions, log_prob = policy.sample(actor, obs, key)
-        q = jnp.min(q_values(critic, obs, actions), axis=0)
-        return jnp.mean(alpha * log_prob - q), log_prob
-
-    # Entropy coefficient: learned on log(alpha) so alpha stays positive (Haarnoja et al. 2018b, sec. 5).
-    def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array) -> jax.Array:
-        return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
-
     def critic_step(state: SACState, batch: Batch, key: jax.Array) -> tuple[SACState, dict]:
-        grads, metrics = jax.grad(critic_loss, has_aux=True)(state.critic, state, batch, key)
+        grads, metrics = jax.grad(critic_loss, has_aux=True)(
+            state.critic, state.target_critic, state.actor, alpha_of(state), batch, key, policy, critics, c.gamma,
+            c.n_step)
         updates, critic_opt = critic_tx.update(grads, state.critic_opt, state.critic)
         return state._replace(critic=optax.apply_updates(state.critic, updates), critic_opt=critic_opt), metrics
 
     def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array) -> tuple[SACState, dict]:
         alpha = alpha_of(state)
         (loss, log_prob), grads = jax.value_and_grad(actor_loss, has_aux=True)(
-            state.actor, state.critic, alpha, obs, key)
+            state.actor, state.critic, alpha, obs, key, policy, critics)
         updates, actor_opt = actor_tx.update(grads, state.actor_opt, state.actor)
         state = state._replace(actor=optax.apply_updates(state.actor, updates), actor_opt=actor_opt)
-        a_loss = alpha_loss(state.log_alpha, log_prob)
+        a_loss = alpha_loss(state.log_alpha, log_prob, target_entropy)
         if c.autotune_alpha:
-            grad = jax.grad(alpha_loss)(state.log_alpha, log_prob)
+            grad = jax.grad(alpha_loss)(state.log_alpha, log_prob, target_entropy)
             updates, alpha_opt = alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
             state = state._replace(log_alpha=optax.apply_updates(state.log_alpha, updates), alpha_opt=alpha_opt)
         return state, {"actor_loss": loss, "alpha_loss": a_loss, "log_prob_mean": jnp.mean(log_prob)}

@@ -1,0 +1,75 @@
+"""`RunState`: a run's progress beside the learner's parameters, checkpointed as one unit.
+
+The learner (`sac.SACState`: networks, targets, optimisers, alpha, its key) says what the agent knows;
+the run state says where its training stands: the step and episode counters, the random streams the
+loop draws from (exploration noise, evaluation noise, replay sampling and warm-up actions), the best
+and last evaluation, the returns behind the progress bar, and the run directory it belongs to. The
+agent owns one; the training loop reads and advances it; a checkpoint saves and restores all of it, so
+a resumed run continues exactly where a straight one would be.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class RunState:
+    act_key: Any  # raw uint32[2] JAX key: exploration noise while training
+    predict_key: Any  # raw uint32[2] JAX key: stochastic predict() and evaluation, kept apart from training
+    rng: np.random.Generator  # replay sampling and warm-up actions
+    num_steps: int = 0
+    num_episodes: int = 0
+    train_time_s: float = 0.0
+    best_eval: float | None = None
+    best_step: int | None = None
+    last_eval: float | None = None
+    last_eval_step: int | None = None
+    recent_returns: list[float] = field(default_factory=list)  # the last episodes' returns (progress bar, logs)
+    # the run directory this state is the latest of (loaded from its checkpoints/last, or last trained into):
+    # the only run it may go on writing into; any other directory must hold no run (never overwritten)
+    run_dir: Path | None = None
+    restored_from: Path | None = None  # the checkpoint directory it was loaded from
+
+    @classmethod
+    def new(cls, seed: int) -> "RunState":
+        import jax.numpy as jnp
+
+        keys = np.random.default_rng([seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)
+        return cls(act_key=jnp.asarray(keys[0]), predict_key=jnp.asarray(keys[1]), rng=np.random.default_rng(seed))
+
+    def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The checkpoint's meta entries and arrays for this state (the format of checkpoint version 1)."""
+        meta = {
+            "num_steps": self.num_steps,
+            "num_episodes": self.num_episodes,
+            "train_time_s": self.train_time_s,
+            "numpy_rng": self.rng.bit_generator.state,
+            "trainer": {"best_eval": self.best_eval, "best_step": self.best_step, "last_eval": self.last_eval,
+                        "last_eval_step": self.last_eval_step, "recent_returns": list(self.recent_returns)},
+        }
+        return meta, {"act_key": np.asarray(self.act_key), "predict_key": np.asarray(self.predict_key)}
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], where: Path | str = "") -> None:
+        """Take the state a checkpoint saved; `where` is its directory (a run's checkpoints/last makes this
+        state that run's latest, so it may go on writing into it)."""
+        import jax.numpy as jnp
+
+        self.act_key = jnp.asarray(arrays["act_key"])
+        self.predict_key = jnp.asarray(arrays["predict_key"])
+        self.num_steps = int(meta["num_steps"])
+        self.num_episodes = int(meta["num_episodes"])
+        self.train_time_s = float(meta.get("train_time_s", 0.0))
+        self.rng.bit_generator.state = meta["numpy_rng"]
+        trainer = meta.get("trainer") or {}
+        self.best_eval, self.best_step = trainer.get("best_eval"), trainer.get("best_step")
+        self.last_eval, self.last_eval_step = trainer.get("last_eval"), trainer.get("last_eval_step")
+        self.recent_returns = list(trainer.get("recent_returns", []))
+        self.restored_from = Path(where).resolve() if where else None
+        from_last = self.restored_from is not None and self.restored_from.name == "last" \
+            and self.restored_from.parent.name == "checkpoints"
+        self.run_dir = self.restored_from.parent.parent if from_last else None

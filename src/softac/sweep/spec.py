@@ -1,0 +1,295 @@
+"""What a sweep is: its spec (env, seeds, grid or search space, overrides), parsing and checking it, and
+the sweep directory's spec file (DIR/sweep.json)."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from softac.config import ConfigError, SACConfig, override_key
+from softac.errors import SoftacError
+
+
+SPEC_FILE = "sweep.json"
+
+
+RAY_DIR = "_ray"
+
+
+LOG_DIR = "_logs"
+
+
+PLOT_DIR = "plots"
+
+
+FRAMEWORKS = ("softac", "sb3", "sbx")
+
+
+SEARCHES = ("random", "optuna")
+
+
+METRIC = "eval_mean_return"
+
+
+INSTALL_RAY = "softac sweep needs Ray Tune: pip install 'softac[ray]' (from a checkout: pip install -e '.[ray]')"
+
+
+# The documented SAC search space (docs/sweeps.md); `--space FILE` replaces it. Each key is a config key,
+# each value one of: {loguniform: [lo, hi]}, {uniform: [lo, hi]}, {randint: [lo, hi]} (hi excluded),
+# {choice: [v1, v2, ...]}.
+DEFAULT_SPACE: dict[str, dict[str, list[Any]]] = {
+    "actor_lr": {"loguniform": [1e-4, 3e-3]},
+    "critic_lr": {"loguniform": [1e-4, 3e-3]},
+    "tau": {"loguniform": [0.002, 0.1]},
+    "gamma": {"choice": [0.95, 0.98, 0.99, 0.995]},
+    "batch_size": {"choice": [64, 128, 256]},
+    "hidden_sizes": {"choice": [[64, 64], [128, 128], [256, 256]]},
+    "gradient_steps": {"choice": [1, 2]},
+}
+
+
+SPACE_KINDS = ("loguniform", "uniform", "randint", "choice")
+
+
+@dataclasses.dataclass
+class SweepSpec:
+    """Everything that defines a sweep's trials (stored as DIR/sweep.json; a rerun must match it)."""
+
+    env_id: str
+    steps: int
+    seeds: list[int]
+    preset: str | None = None
+    overrides: list[str] = dataclasses.field(default_factory=list)
+    grid: dict[str, list[Any]] = dataclasses.field(default_factory=dict)
+    framework: str = "softac"
+    search: str | None = None
+    samples: int = 0
+    space: dict[str, dict[str, list[Any]]] | None = None
+    asha: bool = False
+
+    def preset_config(self) -> SACConfig:
+        """The preset (or the env's own) with the overrides, before the sweep's step budget."""
+        config = SACConfig.preset(self.preset, env_id=self.env_id) if self.preset else SACConfig.for_env(self.env_id)
+        return config.with_overrides(self.overrides)
+
+    def base_config(self) -> SACConfig:
+        return self.preset_config().replace(total_steps=self.steps)
+
+    def swept_keys(self) -> list[str]:
+        return list(self.space or {}) if self.search else list(self.grid)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "SweepSpec":
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+
+def parse_seeds(text: str, first: int = 0) -> list[int]:
+    """`N` means seeds first..first+N-1; `a,b,c` lists them."""
+    try:
+        if "," in text:
+            seeds = [int(s) for s in text.split(",") if s.strip()]
+        else:
+            count = int(text)
+            if count < 1:
+                raise ValueError
+            seeds = list(range(first, first + count))
+    except ValueError:
+        raise SoftacError(f"--seeds takes a count N or a comma list of seeds, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise SoftacError(f"--seeds needs distinct seeds >= 0, got {text!r}")
+    return seeds
+
+
+def _split_top_level(text: str) -> list[str]:
+    """Split on commas outside brackets: `hidden_sizes=[64,64],[256,256]` has two values."""
+    parts, depth, current = [], 0, ""
+    for ch in text:
+        depth += ch in "[{("
+        depth -= ch in "]})"
+        if ch == "," and depth == 0:
+            parts.append(current)
+            current = ""
+        else:
+            current += ch
+    parts.append(current)
+    return [p.strip() for p in parts]
+
+
+def parse_grid(items: list[str]) -> dict[str, list[Any]]:
+    grid: dict[str, list[Any]] = {}
+    for item in items:
+        if "=" not in item:
+            raise SoftacError(f"--grid expects KEY=V1,V2,..., got {item!r}")
+        key, raw = item.split("=", 1)
+        key = override_key(key)
+        values = []
+        for part in _split_top_level(raw):
+            if not part:
+                raise SoftacError(f"--grid {key}: empty value in {raw!r}")
+            try:
+                values.append(yaml.safe_load(part))
+            except yaml.YAMLError:
+                values.append(part)
+        if key in grid:
+            raise SoftacError(f"--grid {key} given twice")
+        if len({json.dumps(v) for v in values}) != len(values):
+            raise SoftacError(f"--grid {key} repeats a value: {raw!r}")
+        grid[key] = values
+    return grid
+
+
+def value_text(value: Any) -> str:
+    """A value as a `--set` accepts it (JSON is YAML) and as a short directory-name part."""
+    return json.dumps(value, separators=(",", ":"))  # no spaces: the summary's --set line pastes into a shell
+
+
+def _name_part(value: Any) -> str:
+    if isinstance(value, list):
+        return "x".join(str(v) for v in value)
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value).replace("/", "_").replace(" ", "")
+
+
+def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    keys = list(grid)
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
+
+
+def trial_name(values: dict[str, Any], seed: int) -> str:
+    return ",".join([f"{k}={_name_part(v)}" for k, v in values.items()] + [f"seed={seed}"])
+
+
+def grid_trials(spec: SweepSpec) -> list[dict[str, Any]]:
+    return [{"name": trial_name(values, seed), "seed": seed, "values": values}
+            for values in grid_points(spec.grid) for seed in spec.seeds]
+
+
+def load_space(path: str | None) -> dict[str, dict[str, list[Any]]]:
+    if path is None:
+        return json.loads(json.dumps(DEFAULT_SPACE))
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise SoftacError(f"cannot read search space {path}: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise SoftacError(f"search space {path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+    if not isinstance(data, dict) or not data:
+        raise SoftacError(f"search space {path} must map config keys to {{kind: values}}")
+    return data
+
+
+def check_space(space: dict[str, Any], base: SACConfig) -> None:
+    for key, dist in space.items():
+        if not (isinstance(dist, dict) and len(dist) == 1 and next(iter(dist)) in SPACE_KINDS):
+            raise SoftacError(f"search space key {key}: expected one of {', '.join(SPACE_KINDS)} "
+                              f"with a list, got {dist!r}")
+        kind, values = next(iter(dist.items()))
+        if not isinstance(values, list) or not values:
+            raise SoftacError(f"search space key {key}: {kind} needs a list")
+        if kind != "choice":
+            if len(values) != 2 or not all(isinstance(v, (int, float)) for v in values) or values[0] >= values[1]:
+                raise SoftacError(f"search space key {key}: {kind} needs [low, high] with low < high")
+            if kind == "loguniform" and values[0] <= 0:
+                raise SoftacError(f"search space key {key}: loguniform needs low > 0")
+        probes = values if kind == "choice" else [values[0]]
+        for value in probes:  # unknown keys and impossible values fail here, before Ray starts
+            base.with_overrides([f"{key}={value_text(value)}"])
+
+
+def default_threshold(env_id: str) -> float | None:
+    """The env's registered reward_threshold (InvertedPendulum: 950), if it has one."""
+    import gymnasium as gym
+
+    try:
+        threshold = gym.spec(env_id).reward_threshold
+    except Exception:  # unknown ids are reported by validate()
+        return None
+    return None if threshold is None else float(threshold)
+
+
+def validate(spec: SweepSpec) -> SACConfig:
+    """Every trial's config, checked before Ray starts (bad input fails in a second, with one line)."""
+    from softac.envs import resolve_env_id
+
+    if spec.framework not in FRAMEWORKS:
+        raise SoftacError(f"--framework must be one of {', '.join(FRAMEWORKS)}")
+    resolve_env_id(spec.env_id)
+    base = spec.base_config()
+    if spec.framework != "softac":
+        allowed = {"eval_interval", "eval_episodes", "log_interval"}
+        own = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in allowed]
+        if spec.grid or spec.search or spec.preset or own:
+            raise SoftacError(f"--framework {spec.framework} runs its SAC at its own defaults; --grid, --search, "
+                              f"--preset and --set (other than eval_interval/eval_episodes/log_interval) "
+                              f"are for softac")
+        from softac.bench import available_frameworks
+
+        if available_frameworks([spec.framework])[1]:
+            raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
+                              "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
+    if spec.search:
+        if spec.grid:
+            raise SoftacError("--grid and --search are alternatives: a grid sweeps listed values, a search samples")
+        if spec.samples < 1:
+            raise SoftacError("--samples must be >= 1")
+        if len(spec.seeds) != 1:
+            raise SoftacError("a search runs each sampled configuration on one seed (--seeds 1); run the best "
+                              "configurations again with --grid and several seeds")
+        check_space(spec.space or {}, base)
+    elif spec.asha:
+        raise SoftacError("--asha stops trials early and needs --search (random or optuna)")
+    for values in grid_points(spec.grid):
+        try:
+            base.with_overrides([f"{k}={value_text(v)}" for k, v in values.items()])
+        except ConfigError as exc:
+            raise SoftacError(f"--grid: {exc}") from None
+    return base
+
+
+def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
+    """A new sweep takes an empty or missing DIR; an existing sweep continues only with the same spec."""
+    spec_path = out / SPEC_FILE
+    if spec_path.exists():
+        try:
+            stored = json.loads(spec_path.read_text())
+        except (OSError, ValueError) as exc:
+            raise SoftacError(f"cannot read {spec_path}: {exc}") from None
+        mine = spec.to_dict()
+        differs = sorted(k for k in set(stored) | set(mine) if stored.get(k) != mine.get(k))
+        if differs:
+            raise SoftacError(f"{out} holds a different sweep (differs in {', '.join(differs)}); continue it with "
+                              f"`softac sweep --resume {out}` or pick another --out")
+        return
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise SoftacError(f"{out} exists and is not a sweep directory; pick another --out")
+    from softac.rundir import write_atomic
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_atomic(spec_path, (json.dumps(spec.to_dict(), indent=1) + "\n").encode())
+    except OSError as exc:
+        raise SoftacError(f"cannot create sweep directory {out}: {exc.strerror or exc}") from None
+
+
+def load_spec(out: Path) -> SweepSpec:
+    path = out / SPEC_FILE
+    if not path.exists():
+        raise SoftacError(f"{out} is not a sweep directory (no {SPEC_FILE})")
+    try:
+        return SweepSpec.from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError) as exc:
+        raise SoftacError(f"cannot read {path}: {exc}") from None
+
+
+def planned_trials(spec: SweepSpec) -> int:
+    return spec.samples if spec.search else len(spec.seeds) * len(grid_points(spec.grid))

@@ -1,0 +1,138 @@
+"""One trial: the `softac train` (or peer) process that a Ray trial starts, pins to its CPUs and watches,
+reporting each new evaluation to Tune."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from softac.config import SACConfig
+from softac.cpus import claim_cpus
+from softac.sweep.spec import LOG_DIR, METRIC, SweepSpec, value_text
+
+
+def trial_state(run: Path) -> str:
+    """'done', 'partial' (a checkpoint to continue from) or 'new', from the run directory alone."""
+    try:
+        summary = json.loads((run / "summary.json").read_text())
+        if summary.get("stopped_early") or summary["steps"] >= summary["total_steps"]:
+            return "done"
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return "partial" if (run / "checkpoints" / "last").exists() else "new"
+
+
+def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: Path) -> list[str]:
+    if spec.framework != "softac":
+        return [sys.executable, "-m", "softac.bench", "run", spec.framework, "--env", spec.env_id,
+                "--seed", str(trial["seed"]), "--steps", str(spec.steps), "--out", str(run),
+                "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
+                "--log-interval", str(base.log_interval)]
+    if trial_state(run) == "partial":
+        return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--no-progress"]
+    pairs = list(spec.overrides) + [f"{k}={value_text(v)}" for k, v in trial["values"].items()]
+    cmd = [sys.executable, "-m", "softac", "train", "--env", spec.env_id, "--seed", str(trial["seed"]),
+           "--steps", str(spec.steps), "--out", str(run), "--no-progress"]
+    if spec.preset:
+        cmd += ["--preset", spec.preset]
+    if pairs:
+        cmd += ["--set", *pairs]
+    return cmd
+
+
+def _thread_env(threads: int) -> dict[str, str]:
+    """Thread counts for the libraries that read them (PyTorch for the peers, OpenMP, MKL); XLA takes
+    its own from the CPUs of `claim_cpus`."""
+    env = dict(os.environ)
+    env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
+    return env
+
+
+def trial_process_setup(cpus: list[int]):
+    """What the trial's process runs before `exec`: pinned to its CPUs; SIGTERM when the Ray worker dies."""
+    def setup() -> None:
+        if cpus:
+            os.sched_setaffinity(0, cpus)
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG (Linux)
+    return setup
+
+
+def read_evals(run: Path) -> list[tuple[int, float]]:
+    from softac.logs import read_csv
+
+    out = []
+    for row in read_csv(run / "eval.csv"):
+        with contextlib.suppress(ValueError, TypeError):
+            out.append((int(float(row["step"])), float(row["mean_return"])))
+    return out
+
+
+def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: float) -> None:
+    """A Ray Tune function trainable: one trial = one `softac train` process, its evals reported to Tune."""
+    from ray import tune
+
+    sweep = SweepSpec.from_dict(spec)
+    base = sweep.base_config()
+    if sweep.search:
+        trial = {"name": f"trial={tune.get_context().get_trial_id()},seed={sweep.seeds[0]}", "seed": sweep.seeds[0],
+                 "values": {k: params[k] for k in sweep.space or {}}}
+    else:
+        trial = params["trial"]
+    root = Path(out)
+    run = root / trial["name"]
+    if trial_state(run) == "done":
+        return
+    if sweep.framework != "softac" and run.exists():  # peers cannot resume: keep the partial run aside
+        n = 1
+        while run.with_name(f"{run.name}.incomplete-{n}").exists():
+            n += 1
+        os.replace(run, run.with_name(f"{run.name}.incomplete-{n}"))
+    (root / LOG_DIR).mkdir(parents=True, exist_ok=True)
+    log_path = root / LOG_DIR / f"{trial['name']}.log"
+    previous = read_evals(run)  # a resumed trial has reported these already
+    reported = {step for step, _ in previous}
+    best = max((v for _, v in previous), default=-math.inf)
+    cmd = trial_command(sweep, base, trial, run)
+    threads = max(1, int(cpus))
+    pinned, locks = claim_cpus(threads)
+    with open(log_path, "a") as log, contextlib.ExitStack() as held:
+        for lock in locks:
+            held.callback(lock.close)
+        log.write(f"$ {' '.join(cmd)}" + (f"  (CPUs {pinned})" if pinned else "") + "\n")
+        log.flush()
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_thread_env(threads),
+                                preexec_fn=trial_process_setup(pinned) if os.name == "posix" else None)
+        try:
+            while True:
+                code = proc.poll()
+                for step, value in read_evals(run):
+                    if step not in reported:
+                        reported.add(step)
+                        best = max(best, value)
+                        tune.report({METRIC: value, "best_eval_mean_return": best, "step": step})
+                if code is not None:
+                    break
+                time.sleep(1.0)
+        finally:
+            if proc.poll() is None:  # the trial was stopped (ASHA, Ctrl-C): the run checkpoints and exits 130
+                proc.terminate()
+                try:
+                    proc.wait(60)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+    if code not in (0, 130):  # 130: stopped by a signal, with a checkpoint; it resumes later
+        # reported, not raised: a raised error makes Tune print a traceback; this way the user gets one line
+        lines = [ln for ln in log_path.read_text().splitlines() if ln.strip()]
+        tune.report({METRIC: best, "step": max(reported, default=0),
+                     "trial_error": f"{trial['name']} exited {code}: {lines[-1] if lines else ''} (log: {log_path})"})

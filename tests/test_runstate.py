@@ -1,0 +1,61 @@
+"""The run state as one unit: saved and restored whole, older checkpoints still load, and the modules that
+make up training import one way (config -> ... -> trainer; the agent composes them)."""
+
+import numpy as np
+
+from softac.runstate import RunState
+
+
+def test_run_state_round_trips_through_its_checkpoint_parts(tmp_path):
+    state = RunState.new(seed=3)
+    state.num_steps, state.num_episodes, state.train_time_s = 1200, 14, 31.5
+    state.best_eval, state.best_step, state.last_eval, state.last_eval_step = 90.0, 1000, 80.0, 1200
+    state.recent_returns = [1.0, 2.5]
+    state.rng.uniform(size=5)  # advance the stream: the restored one must continue from here
+    meta, arrays = state.checkpoint_parts()
+
+    last = tmp_path / "run" / "checkpoints" / "last"
+    restored = RunState.new(seed=0)
+    restored.restore(meta, arrays, last)
+    for name in ("num_steps", "num_episodes", "train_time_s", "best_eval", "best_step", "last_eval",
+                 "last_eval_step", "recent_returns"):
+        assert getattr(restored, name) == getattr(state, name), name
+    np.testing.assert_array_equal(np.asarray(restored.act_key), np.asarray(state.act_key))
+    np.testing.assert_array_equal(np.asarray(restored.predict_key), np.asarray(state.predict_key))
+    assert restored.rng.uniform() == state.rng.uniform()
+    # restored from a run's checkpoints/last, it is that run's latest state; from anywhere else, of no run
+    assert restored.run_dir == (tmp_path / "run").resolve() and restored.restored_from == last.resolve()
+    elsewhere = RunState.new(seed=0)
+    elsewhere.restore(meta, arrays, tmp_path / "run" / "checkpoints" / "best")
+    assert elsewhere.run_dir is None
+
+
+def test_a_checkpoint_from_before_the_run_state_loads():
+    """Checkpoints written before RunState kept only the trainer keys that had been set."""
+    state = RunState.new(seed=1)
+    meta, arrays = state.checkpoint_parts()
+    meta["trainer"] = {"best_eval": None, "last_eval": None}
+    del meta["train_time_s"]
+    restored = RunState.new(seed=2)
+    restored.restore(meta, arrays)
+    assert (restored.best_step, restored.last_eval_step, restored.recent_returns, restored.train_time_s) == \
+        (None, None, [], 0.0)
+
+
+def test_the_training_modules_import_one_way():
+    """Only the agent composes the parts: none of them imports it, not even inside a function (the trainer
+    once did, for one helper), except for type annotations."""
+    import ast
+    from pathlib import Path
+
+    import softac
+
+    package = Path(softac.__file__).parent
+    for name in ("trainer", "rundir", "runstate", "checkpoint", "logs", "sac", "buffer", "envs", "evaluation",
+                 "networks", "normalization", "config"):
+        tree = ast.parse((package / f"{name}.py").read_text())
+        typing_only = {id(node) for block in ast.walk(tree) if isinstance(block, ast.If)
+                       and getattr(block.test, "id", None) == "TYPE_CHECKING" for node in ast.walk(block)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and id(node) not in typing_only:
+                assert node.module != "softac.agent", f"{name}.py imports softac.agent"
