@@ -56,7 +56,7 @@ def test_plot_several_runs_groups_configs(tmp_path):
 
 def test_confidence_band_maths():
     from softac.plots import aligned_eval_curves, moving_average
-    from softac.stats import interquartile_mean, mean_and_ci, summarize, t_critical_95
+    from softac.stats import interquartile_mean, mean_and_ci, summarize_seeds, t_critical_95
 
     values = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
     mean, half, n = mean_and_ci(values)
@@ -70,10 +70,10 @@ def test_confidence_band_maths():
     assert interquartile_mean([1.0, 2.0, 3.0, 100.0]) == pytest.approx(2.5)
     assert interquartile_mean([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 1000.0]) == pytest.approx(3.5)
     assert interquartile_mean([1.0, 2.0, 9.0]) == pytest.approx(4.0)
-    s = summarize([2.0, 4.0, 6.0])
+    s = summarize_seeds([2.0, 4.0, 6.0])
     assert (s.mean, s.std, s.iqm, s.n) == (4.0, 2.0, 4.0, 3)
     assert s.ci_half == pytest.approx(4.302653 * 2.0 / np.sqrt(3), rel=1e-6)
-    assert summarize([5.0]).ci_half == 0.0
+    assert summarize_seeds([5.0]).ci_half == 0.0
     np.testing.assert_allclose(moving_average(np.array([1.0, 3.0, 5.0, 7.0]), 2), [1.0, 2.0, 4.0, 6.0])
     assert aligned_eval_curves([])[0].size == 0
 

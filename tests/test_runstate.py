@@ -59,3 +59,36 @@ def test_the_training_modules_import_one_way():
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and id(node) not in typing_only:
                 assert node.module != "softac.agent", f"{name}.py imports softac.agent"
+
+
+def test_the_package_has_no_import_cycle():
+    """No module of softac imports, at run time (a function-level import counts), one that imports it back."""
+    import ast
+    from pathlib import Path
+
+    import softac
+
+    package = Path(softac.__file__).parent
+    imports: dict[str, set[str]] = {}
+    for path in [*package.glob("*.py"), *package.glob("sweep/*.py")]:
+        name = ".".join(["softac", *path.relative_to(package).with_suffix("").parts]).removesuffix(".__init__")
+        tree = ast.parse(path.read_text())
+        typing_only = {id(node) for block in ast.walk(tree) if isinstance(block, ast.If)
+                       and getattr(block.test, "id", None) == "TYPE_CHECKING" for node in ast.walk(block)}
+        found = set()
+        for node in ast.walk(tree):
+            if id(node) in typing_only or not isinstance(node, ast.ImportFrom) or not node.module:
+                continue
+            if node.module == "softac":
+                found |= {f"softac.{alias.name}" for alias in node.names}
+            elif node.module.startswith("softac."):
+                found.add(node.module)
+        imports[name] = found - {name}
+
+    def reaches(start: str, goal: str, seen: set[str]) -> bool:
+        for module in imports.get(start, ()):
+            if module == goal or (module not in seen and reaches(module, goal, seen | {module})):
+                return True
+        return False
+
+    assert [m for m in sorted(imports) if reaches(m, m, {m})] == []

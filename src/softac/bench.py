@@ -28,8 +28,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from softac.errors import SoftacError
 from softac.cpus import machine_description
+from softac.errors import SoftacError
 from softac.peers import PEER_MODULES, peer_run, peer_solve, peer_throughput
 
 # softac variants: the same preset with these settings added (the driver passes them as --set)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
-from softac.rundir import fsync_dir, write_atomic
+from softac.rundir import checkpoint_path, fsync_dir, write_atomic
 
 FORMAT = "softac-checkpoint"
 FORMAT_VERSION = 1
@@ -92,11 +92,11 @@ def resolve(path: str | Path, which: str | None = None) -> Path:
         return path
     order = [which] if which else ["best", "last"]
     for name in order:
-        candidate = path / "checkpoints" / name
+        candidate = checkpoint_path(path, name)
         if is_checkpoint(candidate):
             return candidate
     if which:
-        raise CheckpointError(f"{path} has no {which} checkpoint (looked for {path / 'checkpoints' / which})")
+        raise CheckpointError(f"{path} has no {which} checkpoint (looked for {checkpoint_path(path, which)})")
     raise CheckpointError(f"{path} holds no checkpoint (neither {META} nor checkpoints/best|last)")
 
 

@@ -9,6 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from softac.rundir import write_atomic
+
 PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
                     "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
 EPISODE_COLUMNS = ["step", "return", "length"]
@@ -33,8 +35,6 @@ class CsvLog:
     def _truncate_after(self, step: int) -> None:
         """Keep the header and the whole rows up to `step`: a kill can leave a half-written last row."""
         import io
-
-        from softac.rundir import write_atomic  # (rundir imports this module)
 
         with open(self.path, newline="") as f:
             rows = list(csv.reader(f))

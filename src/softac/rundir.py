@@ -1,5 +1,5 @@
 """The run directory: its layout, atomic writes, the config and summary files, the checks before writing,
-and `RunWriter`, which owns everything one training call writes into it.
+and where a checkpoint sits in a run. (What one training call writes is the trainer's `RunWriter`.)
 
     RUN/config.yaml         the resolved config, library versions, machine facts
     RUN/progress.csv        a row every log_interval steps (losses, alpha, fps, recent return)
@@ -21,12 +21,14 @@ import json
 import os
 import secrets
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from softac.errors import RunFailed, SoftacError
-from softac.logs import RunLogger
+from softac.errors import SoftacError
+
+if TYPE_CHECKING:
+    from softac.runstate import RunState
 
 CHECKPOINTS = "checkpoints"
 
@@ -78,7 +80,19 @@ def write_summary(run_dir: Path, summary: dict[str, Any]) -> None:
     write_atomic(run_dir / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
 
 
-# ---- the checks before writing ---------------------------------------------------------
+# ---- the layout and the checks before writing ---------------------------------------------
+
+def checkpoint_path(run: Path, name: str) -> Path:
+    """RUN/checkpoints/NAME (`last` or `best`)."""
+    return run / CHECKPOINTS / name
+
+
+def run_of_last_checkpoint(directory: Path) -> Path | None:
+    """The run whose checkpoints/last `directory` is, or None for any other checkpoint directory."""
+    if directory.name == "last" and directory.parent.name == CHECKPOINTS:
+        return directory.parent.parent
+    return None
+
 
 def holds_run(run: Path) -> bool:
     return (run / CHECKPOINTS).is_dir() and any((run / CHECKPOINTS).iterdir())
@@ -92,53 +106,14 @@ def check_new_run_dir(run: Path) -> None:
         raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
 
 
-def check_run_dir_for(num_steps: int, own_run: Path | None, restored_from: Path | None, run: Path) -> None:
-    """An agent writes only into a new directory or the run it is the latest state of (`own_run`): a loaded
-    agent never writes over another run, nor rewinds its own from an older (best) checkpoint. Its own run
-    includes one killed (kill -9, power loss) before its first periodic checkpoint, continued from the
-    step-0 checkpoint."""
-    if own_run == run.resolve():
+def check_run_dir_for(state: RunState, run: Path) -> None:
+    """An agent writes only into a new directory or the run its state is the latest of: a loaded agent never
+    writes over another run, nor rewinds its own from an older (best) checkpoint. Its own run includes one
+    killed (kill -9, power loss) before its first periodic checkpoint, continued from the step-0 checkpoint."""
+    if state.run_dir == run.resolve():
         return
-    if num_steps > 0 and holds_run(run):
+    if state.num_steps > 0 and holds_run(run):
         raise SoftacError(f"{run} already holds a run that this agent is not the latest state of (it was loaded "
-                          f"from {restored_from or 'elsewhere'}); train into a new directory, or load "
-                          f"{run / CHECKPOINTS / 'last'} to continue that run")
+                          f"from {state.restored_from or 'elsewhere'}); train into a new directory, or load "
+                          f"{checkpoint_path(run, 'last')} to continue that run")
     check_new_run_dir(run)
-
-
-# ---- what one training call writes ---------------------------------------------------------
-
-class RunWriter:
-    """The run directory of one training call: made (after the checks), its config written, its logs
-    opened; checkpoints written atomically (a failed write keeps the previous one and fails the run, exit 3);
-    the summary written at a normal end."""
-
-    def __init__(self, run: Path, config: dict[str, Any], extra: dict[str, Any], resume_step: int):
-        try:
-            run.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
-        self.run = run
-        write_config(run, config, {"versions": versions(), **extra})
-        self.logs = RunLogger(run, resume_step=resume_step)
-
-    def has_checkpoint(self, name: str) -> bool:
-        return (self.run / CHECKPOINTS / name).exists()
-
-    def checkpoint_path(self, name: str) -> Path:
-        return self.run / CHECKPOINTS / name
-
-    def save_checkpoint(self, name: str, meta: dict[str, Any], arrays: dict[str, Any]) -> str:
-        from softac import checkpoint as ckpt
-
-        try:
-            return str(ckpt.save(self.checkpoint_path(name), meta, arrays))
-        except OSError as exc:
-            raise RunFailed(f"could not write checkpoint {self.checkpoint_path(name)}: {exc.strerror or exc}; "
-                            "the previous checkpoint is kept") from None
-
-    def write_summary(self, summary: dict[str, Any]) -> None:
-        write_summary(self.run, summary)
-
-    def close(self) -> None:
-        self.logs.close()

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from softac.rundir import run_of_last_checkpoint
+
 
 @dataclass
 class RunState:
@@ -70,6 +72,4 @@ class RunState:
         self.last_eval, self.last_eval_step = trainer.get("last_eval"), trainer.get("last_eval_step")
         self.recent_returns = list(trainer.get("recent_returns", []))
         self.restored_from = Path(where).resolve() if where else None
-        from_last = self.restored_from is not None and self.restored_from.name == "last" \
-            and self.restored_from.parent.name == "checkpoints"
-        self.run_dir = self.restored_from.parent.parent if from_last else None
+        self.run_dir = run_of_last_checkpoint(self.restored_from) if self.restored_from else None

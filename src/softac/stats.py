@@ -36,14 +36,18 @@ class SeedSummary(NamedTuple):
     n: int
 
 
-def summarize(values: Iterable[float]) -> SeedSummary:
+def ci_half_width(std: float, n: int) -> float:
+    """Half width of the 95% Student-t interval of a mean of n values with sample std `std`; 0 for n < 2."""
+    return t_critical_95(n) * std / math.sqrt(n) if n > 1 else 0.0
+
+
+def summarize_seeds(values: Iterable[float]) -> SeedSummary:
     """Mean, std, 95% interval half width and IQM of one value per seed."""
     arr = np.asarray(list(values), float)
     if arr.size == 0:
         raise ValueError("no values to summarise")
     std = float(arr.std(ddof=1)) if arr.size > 1 else 0.0
-    half = t_critical_95(arr.size) * std / math.sqrt(arr.size) if arr.size > 1 else 0.0
-    return SeedSummary(float(arr.mean()), std, half, interquartile_mean(arr), int(arr.size))
+    return SeedSummary(float(arr.mean()), std, ci_half_width(std, arr.size), interquartile_mean(arr), int(arr.size))
 
 
 def mean_and_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -53,6 +57,5 @@ def mean_and_ci(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.nanmean(values, axis=0)
         std = np.nanstd(values, axis=0, ddof=1) if values.shape[0] > 1 else np.zeros(values.shape[1])
-        half = np.array([t_critical_95(int(k)) if k > 1 else 0.0 for k in n]) * np.nan_to_num(std) / np.sqrt(
-            np.maximum(n, 1))
+        half = np.array([ci_half_width(float(s), int(k)) for s, k in zip(np.nan_to_num(std), n)])
     return mean, half, n

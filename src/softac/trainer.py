@@ -18,11 +18,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from softac import checkpoint as ckpt
 from softac.cpus import usable_cpus
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-from softac.logs import Progress
-from softac.rundir import RunWriter, check_run_dir_for
+from softac.logs import Progress, RunLogger
+from softac.rundir import check_run_dir_for, checkpoint_path, versions, write_config, write_summary
 from softac.sac import Batch
 
 if TYPE_CHECKING:  # the agent imports this module when it trains
@@ -67,6 +68,38 @@ def _check_finite(metrics: dict[str, float], step: int) -> None:
                         "(try lower learning rates); the last good checkpoint is kept")
 
 
+class RunWriter:
+    """What one training call writes into its run directory: the directory (made after the checks), its
+    config, its logs; checkpoints written atomically (a failed write keeps the previous one and fails the
+    run, exit 3); the summary at a normal end."""
+
+    def __init__(self, run: Path, config: dict[str, Any], extra: dict[str, Any], resume_step: int):
+        try:
+            run.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
+        self.run = run
+        write_config(run, config, {"versions": versions(), **extra})
+        self.logs = RunLogger(run, resume_step=resume_step)
+
+    def has_checkpoint(self, name: str) -> bool:
+        return checkpoint_path(self.run, name).exists()
+
+    def save_checkpoint(self, name: str, meta: dict[str, Any], arrays: dict[str, Any]) -> str:
+        path = checkpoint_path(self.run, name)
+        try:
+            return str(ckpt.save(path, meta, arrays))
+        except OSError as exc:
+            raise RunFailed(f"could not write checkpoint {path}: {exc.strerror or exc}; "
+                            "the previous checkpoint is kept") from None
+
+    def write_summary(self, summary: dict[str, Any]) -> None:
+        write_summary(self.run, summary)
+
+    def close(self) -> None:
+        self.logs.close()
+
+
 def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
           progress: bool | None = None) -> dict[str, Any]:
     """Train `agent` for `steps` more env steps; with `run_dir`, write the run directory as it goes."""
@@ -80,10 +113,11 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     writer: RunWriter | None = None
     if run_dir is not None:
         run = Path(run_dir)
-        check_run_dir_for(run_state.num_steps, run_state.run_dir, run_state.restored_from, run)
-        writer = RunWriter(run, cfg.to_dict(), {"resolved_target_entropy": fns.target_entropy,
-                                                "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1),
-                                                "cpus": len(usable_cpus()) or os.cpu_count()}, resume_step=start_step)
+        check_run_dir_for(run_state, run)
+        extra = {"resolved_target_entropy": fns.target_entropy,
+                 "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1),
+                 "cpus": len(usable_cpus()) or os.cpu_count()}
+        writer = RunWriter(run, cfg.to_dict(), extra, resume_step=start_step)
         run_state.run_dir = run.resolve()
     logs = writer.logs if writer is not None else None
 
@@ -229,7 +263,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
             save_checkpoint("last", with_buffer=True)
             if stop.requested:
                 raise TrainingInterrupted(run_state.num_steps,
-                                          str(writer.checkpoint_path("last")) if writer is not None else None)
+                                          str(checkpoint_path(writer.run, "last")) if writer is not None else None)
     finally:
         show.close(run_state.num_steps)
         run_state.train_time_s = elapsed()

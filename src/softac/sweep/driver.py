@@ -9,9 +9,10 @@ from pathlib import Path
 from typing import Any
 
 from softac.errors import SoftacError
-from softac.sweep.spec import INSTALL_RAY, METRIC, RAY_DIR, SweepSpec, grid_trials, planned_trials, prepare_out_dir, validate
-from softac.sweep.trial import run_trial, trial_state
 from softac.sweep.results import unfinished_trials, write_summaries
+from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SweepSpec, grid_trials, planned_trials, prepare_out_dir,
+                               validate)
+from softac.sweep.trial import run_trial, trial_state
 
 
 def _require_ray() -> None:

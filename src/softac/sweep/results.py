@@ -15,8 +15,8 @@ import yaml
 
 from softac.config import override_key
 from softac.errors import SoftacError
-from softac.stats import summarize
-from softac.sweep.spec import PLOT_DIR, SweepSpec, value_text, grid_trials, planned_trials
+from softac.stats import summarize_seeds
+from softac.sweep.spec import PLOT_DIR, SweepSpec, grid_trials, planned_trials, value_text
 from softac.sweep.trial import read_evals, trial_state
 
 
@@ -83,9 +83,9 @@ def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | No
         entry: dict[str, Any] = {"configuration": ", ".join(f"{k}={members[0].get(k)}" for k in keys) or name,
                                  "seeds": len(members), "done": sum(r["status"] == "done" for r in members)}
         if finals:
-            entry["final"] = summarize(finals)
+            entry["final"] = summarize_seeds(finals)
         if bests:
-            entry["best"] = summarize(bests)
+            entry["best"] = summarize_seeds(bests)
         entry["wall_s"] = float(np.median([r["wall_s"] for r in members]))
         entry["steps"] = int(np.median([r["steps"] for r in members]))
         rates = [r["steps"] / r["wall_s"] for r in members if r["wall_s"]]
