@@ -27,13 +27,14 @@ def test_save_load_gives_identical_predictions(tiny, tmp_path):
     assert not meta["has_buffer"] and not any(k.startswith("buffer/") for k in arrays)
 
 
-@pytest.mark.parametrize("obs_once,n_step,obs_norm", [(False, 1, False), (True, 1, False), (False, 3, False),
-                                                       (True, 3, False), (False, 1, True), (True, 3, True)])
-def test_resume_is_exact(tiny, tmp_path, obs_once, n_step, obs_norm):
+@pytest.mark.parametrize("obs_once,n_step,obs_norm,crossq", [
+    (False, 1, False, False), (True, 1, False, False), (False, 3, False, False), (True, 3, False, False),
+    (False, 1, True, False), (True, 3, True, False), (False, 1, False, True), (True, 3, True, True)])
+def test_resume_is_exact(tiny, tmp_path, obs_once, n_step, obs_norm, crossq):
     """N+M steps in one go equals N, save, load, M (same seed, CPU), with either replay buffer, n-step too,
-    and with running observation statistics."""
+    with running observation statistics, and with CrossQ's batch statistics."""
     cfg = tiny(n_envs=2, gradient_steps=2, policy_frequency=2, eval_interval=300, buffer_obs_once=obs_once,
-               n_step=n_step, obs_norm=obs_norm)
+               n_step=n_step, obs_norm=obs_norm, crossq=crossq, batch_renorm_warmup=400)
     straight = SAC(cfg)
     straight.learn(900, run_dir=tmp_path / "straight", progress=False)
 

@@ -40,10 +40,10 @@ def test_predict_eval_and_every_checkpoint_use_the_statistics(tiny, tmp_path):
     agent.learn(600, run_dir=tmp_path / "run", progress=False)
     assert agent.obs_norm.count == 600 and agent.obs_norm.var[1] > 1.0  # the step count in Drift's observation
     obs = np.random.default_rng(1).normal(size=(32, 2)).astype(np.float32) * [0.1, 10.0]
-    by_hand = agent.scaler.to_env(np.asarray(agent.fns.act_deterministic(agent.state.actor,
+    by_hand = agent.scaler.to_env(np.asarray(agent.fns.act_deterministic(agent.state.actor, (),
                                                                         agent.obs_norm.normalize(obs))))
     np.testing.assert_array_equal(agent.predict(obs), by_hand)
-    raw = agent.scaler.to_env(np.asarray(agent.fns.act_deterministic(agent.state.actor, obs)))
+    raw = agent.scaler.to_env(np.asarray(agent.fns.act_deterministic(agent.state.actor, (), obs)))
     assert not np.allclose(raw, by_hand)  # the statistics matter for this agent
 
     for which in ("best", "last"):

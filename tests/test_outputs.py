@@ -159,6 +159,7 @@ def test_gl_backend_choice(monkeypatch):
     import softac.video as video
 
     monkeypatch.delenv("MUJOCO_GL", raising=False)
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)  # restored after: the choice below sets both
     monkeypatch.setattr(video, "gl_backend_works", lambda backend: False)
     monkeypatch.setattr(video.sys, "modules", {k: v for k, v in video.sys.modules.items() if k != "mujoco"})
     with pytest.raises(video.SoftacError, match="libosmesa6"):

@@ -195,7 +195,7 @@ def test_bfloat16_matmuls_stay_close_to_float32():
     bf16 = sac.build(SACConfig().replace(hidden_sizes=[64, 64], matmul_dtype="bfloat16"), 3, 2)
     state = f32.init(0)
     obs = jnp.asarray(np.random.default_rng(0).normal(size=(32, 3)), jnp.float32)
-    a32, a16 = f32.act_deterministic(state.actor, obs), bf16.act_deterministic(state.actor, obs)
+    a32, a16 = f32.act_deterministic(state.actor, (), obs), bf16.act_deterministic(state.actor, (), obs)
     assert a16.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(a16), np.asarray(a32), atol=2e-2)
     new_state, metrics = bf16.update(bf16.init(0), _batch(np.random.default_rng(0), 2, 8, 3, 2))

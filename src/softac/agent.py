@@ -136,9 +136,11 @@ class SAC:
             raise SoftacError(f"observation has {batch.shape[1]} values; this agent expects {self.spaces.obs_dim}")
         batch = self.normalize_obs(batch)
         if deterministic:
-            actions = self.scaler.to_env(np.asarray(self.fns.act_deterministic(self.state.actor, batch)))
+            actions = np.asarray(self.fns.act_deterministic(self.state.actor, self.state.actor_stats, batch))
+            actions = self.scaler.to_env(actions)
         else:
-            _, actions, self.run.predict_key = self.fns.act(self.state.actor, batch, self.run.predict_key)
+            _, actions, self.run.predict_key = self.fns.act(self.state.actor, self.state.actor_stats, batch,
+                                                           self.run.predict_key)
             actions = np.asarray(actions)
         return actions[0] if single else actions
 

@@ -3,10 +3,16 @@
 Parameters are lists of {"w", "b"} dicts, one per layer. The critic ensemble
 holds every critic's parameters stacked on a leading axis and is evaluated
 with one `jax.vmap`, so n critics cost one batched matmul per layer.
+
+With batch renormalisation (CrossQ) each layer also has "norm_scale" and
+"norm_bias", the affine part of the normalisation of that layer's input; the
+running statistics are kept apart from the parameters (`init_norm_stats`),
+so the optimisers never see them.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import math
@@ -40,13 +46,23 @@ def _init_layer(rng: np.random.Generator, fan_in: int, fan_out: int, init: str, 
     return {"w": w.astype(np.float32), "b": b.astype(np.float32)}
 
 
-def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: float = 1.0) -> Params:
-    """An MLP with layer sizes [in, hidden..., out]."""
+def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: float = 1.0,
+             norm: bool = False) -> Params:
+    """An MLP with layer sizes [in, hidden..., out]; `norm` adds each layer's input normalisation (scale 1,
+    bias 0)."""
     layers = []
     for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
         last = i == len(sizes) - 2
-        layers.append(_init_layer(rng, fan_in, fan_out, init, out_gain if last else math.sqrt(2.0)))
+        layer = _init_layer(rng, fan_in, fan_out, init, out_gain if last else math.sqrt(2.0))
+        if norm:
+            layer.update(norm_scale=np.ones(fan_in, np.float32), norm_bias=np.zeros(fan_in, np.float32))
+        layers.append(layer)
     return layers
+
+
+def init_norm_stats(sizes: list[int]) -> Params:
+    """Running mean and variance of each layer's input (mean 0, variance 1 to start)."""
+    return [{"mean": np.zeros(n, np.float32), "var": np.ones(n, np.float32)} for n in sizes[:-1]]
 
 
 @jax.custom_vjp
@@ -102,6 +118,53 @@ def layer_norm(x: jax.Array, eps: float = 1e-5) -> jax.Array:
     return (x - mean) * jax.lax.rsqrt(var + eps)
 
 
+@dataclass(frozen=True)
+class BatchRenorm:
+    """Batch renormalisation (Ioffe 2017) with the settings CrossQ uses (Bhatt et al. 2024): plain batch
+    normalisation until `renorm` is switched on, then the batch statistics corrected towards the running
+    ones by r in [1/r_max, r_max] and d in [-d_max, d_max], so that training and acting see the same
+    normalisation. Evaluation mode (acting, and the critics inside the actor's loss) uses the running ones."""
+    momentum: float = 0.99
+    eps: float = 1e-3
+    r_max: float = 3.0
+    d_max: float = 5.0
+
+    def __call__(self, x: jax.Array, layer: dict, stats: dict, train: bool,
+                 renorm: jax.Array | bool = False) -> tuple[jax.Array, dict]:
+        """(the normalised x, the new running statistics); the statistics change only in training mode."""
+        if not train:
+            x_hat = (x - stats["mean"]) * jax.lax.rsqrt(stats["var"] + self.eps)
+            return x_hat * layer["norm_scale"] + layer["norm_bias"], stats
+        mean = jnp.mean(x, axis=0)
+        var = jnp.mean(jnp.square(x - mean), axis=0)
+        std = jnp.sqrt(var + self.eps)
+        running_std = jnp.sqrt(stats["var"] + self.eps)
+        r = jax.lax.stop_gradient(jnp.clip(std / running_std, 1.0 / self.r_max, self.r_max))
+        d = jax.lax.stop_gradient(jnp.clip((mean - stats["mean"]) / running_std, -self.d_max, self.d_max))
+        r, d = jnp.where(renorm, r, 1.0), jnp.where(renorm, d, 0.0)
+        x_hat = (x - mean) / std * r + d
+        m = self.momentum
+        new_stats = {"mean": m * stats["mean"] + (1.0 - m) * jax.lax.stop_gradient(mean),
+                     "var": m * stats["var"] + (1.0 - m) * jax.lax.stop_gradient(var)}
+        return x_hat * layer["norm_scale"] + layer["norm_bias"], new_stats
+
+
+def normalized_mlp(params: Params, stats: Params, x: jax.Array, activation: str, norm: BatchRenorm,
+                   train: bool, renorm: jax.Array | bool = False,
+                   matmul_dtype: str = "float32") -> tuple[jax.Array, Params]:
+    """An MLP whose every layer normalises its input first (CrossQ's networks: the observation, then each
+    hidden activation); returns the output and the new running statistics."""
+    act = ACTIVATIONS[activation]
+    new_stats = []
+    for i, (layer, layer_stats) in enumerate(zip(params, stats)):
+        x, layer_stats = norm(x, layer, layer_stats, train, renorm)
+        new_stats.append(layer_stats)
+        x = dense(x, layer, matmul_dtype)
+        if i < len(params) - 1:
+            x = act(x)
+    return x, new_stats
+
+
 def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
         normalize: bool = False) -> jax.Array:
     """`normalize` puts a LayerNorm (no affine) before each hidden activation (Ball et al. 2023, RLPD):
@@ -113,17 +176,55 @@ def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "floa
     return dense(x, params[-1], matmul_dtype)
 
 
-def init_actor(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str) -> Params:
+def actor_sizes(obs_dim: int, act_dim: int, hidden: list[int]) -> list[int]:
+    return [obs_dim, *hidden, 2 * act_dim]
+
+
+def critic_sizes(obs_dim: int, act_dim: int, hidden: list[int]) -> list[int]:
+    return [obs_dim + act_dim, *hidden, 1]
+
+
+def init_actor(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,
+               norm: bool = False) -> Params:
     """The actor outputs [mean, log_std] for each action dimension."""
     # with orthogonal init a small last layer starts the policy near zero mean (Andrychowicz et al. 2021)
-    return init_mlp(rng, [obs_dim, *hidden, 2 * act_dim], init, out_gain=0.01)
+    return init_mlp(rng, actor_sizes(obs_dim, act_dim, hidden), init, out_gain=0.01, norm=norm)
 
 
 def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,
-                 n: int) -> Params:
+                 n: int, norm: bool = False) -> Params:
     """n critics Q(s, a), parameters stacked on a leading axis of size n."""
-    critics = [init_mlp(rng, [obs_dim + act_dim, *hidden, 1], init) for _ in range(n)]
-    return jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *critics)
+    critics = [init_mlp(rng, critic_sizes(obs_dim, act_dim, hidden), init, norm=norm) for _ in range(n)]
+    return stack(critics)
+
+
+def stack(trees: list[Params]) -> Params:
+    """Trees of the same shape stacked leaf by leaf on a new leading axis (the critic ensemble's layout)."""
+    return jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *trees)
+
+
+def _each_critic(params: Params, i: int) -> Params:
+    return jax.tree_util.tree_map(lambda p: p[i], params)
+
+
+def normalized_critics_apply(params: Params, stats: Params, obs: jax.Array, actions: jax.Array, activation: str,
+                             norm: BatchRenorm, train: bool, renorm: jax.Array | bool = False,
+                             matmul_dtype: str = "float32", unroll: bool = False) -> tuple[jax.Array, Params]:
+    """`critics_apply` for critics with batch renormalisation: Q-values [n_critics, batch] and the new
+    running statistics (each critic keeps its own)."""
+    x = jnp.concatenate([obs, actions], axis=-1)
+
+    def one(p: Params, s: Params) -> tuple[jax.Array, Params]:
+        return normalized_mlp(p, s, x, activation, norm, train, renorm, matmul_dtype)
+
+    if unroll:
+        n = jax.tree_util.tree_leaves(params)[0].shape[0]
+        outs = [one(_each_critic(params, i), _each_critic(stats, i)) for i in range(n)]
+        q = jnp.stack([out for out, _ in outs])
+        new_stats = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *[s for _, s in outs])
+    else:
+        q, new_stats = jax.vmap(one)(params, stats)
+    return q[..., 0], new_stats
 
 
 def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
@@ -137,8 +238,7 @@ def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation
     x = jnp.concatenate([obs, actions], axis=-1)
     if unroll:
         n = jax.tree_util.tree_leaves(params)[0].shape[0]
-        q = jnp.stack([mlp(jax.tree_util.tree_map(lambda p, i=i: p[i], params), x, activation, matmul_dtype,
-                           normalize) for i in range(n)])
+        q = jnp.stack([mlp(_each_critic(params, i), x, activation, matmul_dtype, normalize) for i in range(n)])
     else:
         q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype, normalize))(params)
     return q[..., 0]

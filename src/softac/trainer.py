@@ -157,8 +157,8 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
             actions = run_state.rng.uniform(-1.0, 1.0, (n_envs, act_dim)).astype(np.float32)
             env_actions = agent.scaler.to_env(actions)
         else:  # NumPy goes straight into the jitted call: jnp.asarray would cost more than the env step
-            actions, env_actions, run_state.act_key = fns.act(agent.state.actor, agent.normalize_obs(obs),
-                                                              run_state.act_key)
+            actions, env_actions, run_state.act_key = fns.act(agent.state.actor, agent.state.actor_stats,
+                                                              agent.normalize_obs(obs), run_state.act_key)
             actions, env_actions = np.asarray(actions), np.asarray(env_actions)
             if not np.all(np.isfinite(actions)):
                 raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "

@@ -1,0 +1,172 @@
+"""CrossQ (Bhatt et al. 2024): batch renormalisation, the joint critic pass without target critics, the
+actor's update with the critics in evaluation mode, Adam's b1, and what CrossQ keeps in the state."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softac import SAC, sac
+from softac.config import SACConfig
+from softac.networks import BatchRenorm, init_norm_stats
+
+from conftest import assert_clean_error, run_cli
+from test_sac_losses import ACT, BATCH, OBS, batch, constant_actor, constant_critics
+
+NORM = BatchRenorm(momentum=0.9)
+POLICY = sac.Policy("relu", -20.0, 2.0, "clamp", norm=NORM)
+CRITICS = sac.Critics("relu", unroll=True, norm=NORM)
+
+
+def _layer(n, scale=1.0, bias=0.0):
+    return {"norm_scale": np.full(n, scale, np.float32), "norm_bias": np.full(n, bias, np.float32)}
+
+
+def test_training_mode_normalises_with_the_batch_and_moves_the_running_statistics():
+    x = jnp.asarray(np.random.default_rng(0).normal(3.0, 2.0, size=(64, 4)), jnp.float32)
+    stats = {"mean": np.zeros(4, np.float32), "var": np.ones(4, np.float32)}
+    y, new = NORM(x, _layer(4, scale=2.0, bias=1.0), stats, train=True)
+    z = (np.asarray(y) - 1.0) / 2.0
+    np.testing.assert_allclose(z.mean(0), 0.0, atol=1e-5)
+    np.testing.assert_allclose(z.var(0), np.asarray(x).var(0) / (np.asarray(x).var(0) + NORM.eps), rtol=1e-4)
+    np.testing.assert_allclose(new["mean"], 0.1 * np.asarray(x).mean(0), rtol=1e-5)
+    np.testing.assert_allclose(new["var"], 0.9 + 0.1 * np.asarray(x).var(0), rtol=1e-5)
+
+
+def test_evaluation_mode_uses_the_running_statistics_and_keeps_them():
+    x = jnp.asarray([[1.0, 5.0], [3.0, -1.0]], jnp.float32)
+    stats = {"mean": np.asarray([1.0, 2.0], np.float32), "var": np.asarray([4.0, 9.0], np.float32)}
+    y, same = NORM(x, _layer(2), stats, train=False)
+    expected = (np.asarray(x) - stats["mean"]) / np.sqrt(stats["var"] + NORM.eps)
+    np.testing.assert_allclose(np.asarray(y), expected, rtol=1e-6)
+    assert same is stats
+
+
+def test_renormalisation_corrects_the_batch_statistics_towards_the_running_ones():
+    """After the warm-up, x_hat = (x - mean_B) / std_B * r + d with r = std_B / std_run clipped to [1/3, 3]
+    and d = (mean_B - mean_run) / std_run clipped to [-5, 5] (Ioffe 2017): with r and d inside their clips
+    this is exactly the running statistics' normalisation; outside, the clipped correction."""
+    x = jnp.asarray(np.random.default_rng(1).normal(0.5, 1.5, size=(256, 3)), jnp.float32)
+    near = {"mean": np.full(3, 0.4, np.float32), "var": np.full(3, 2.0, np.float32)}
+    y, _ = NORM(x, _layer(3), near, train=True, renorm=True)
+    np.testing.assert_allclose(np.asarray(y), (np.asarray(x) - 0.4) / np.sqrt(2.0 + NORM.eps), rtol=1e-4, atol=1e-5)
+    plain, _ = NORM(x, _layer(3), near, train=True, renorm=False)
+    assert not np.allclose(np.asarray(plain), np.asarray(y), atol=1e-3)
+
+    far = {"mean": np.full(3, -100.0, np.float32), "var": np.full(3, 1e-4, np.float32)}  # r, d both clip
+    y, _ = NORM(x, _layer(3), far, train=True, renorm=True)
+    xs = np.asarray(x)
+    z = (xs - xs.mean(0)) / np.sqrt(xs.var(0) + NORM.eps)
+    np.testing.assert_allclose(np.asarray(y), z * 3.0 + 5.0, rtol=1e-4, atol=1e-4)
+
+
+def test_crossq_critic_loss_bootstraps_from_the_online_critics():
+    """No target critics: the target takes the smaller of the online critics' Q(s', a')."""
+    mean, log_std, alpha, gamma = [0.3, -0.2], [-1.0, -0.5], 0.2, 0.9
+    b = batch([1.0, -2.0, 0.5, 3.0], [0.0, 0.0, 1.0, 0.0])
+    actor = constant_actor(mean, log_std)
+    actor = [{**layer, **_layer(layer["w"].shape[0])} for layer in actor]
+    actor_stats = init_norm_stats([OBS, 4, 2 * ACT])
+    critic = constant_critics(1.0, 2.0)
+    critic = [{**layer, "norm_scale": np.ones((2, layer["w"].shape[1]), np.float32),
+               "norm_bias": np.zeros((2, layer["w"].shape[1]), np.float32)} for layer in critic]
+    critic_stats = jax.tree_util.tree_map(lambda *x: np.stack(x), *[init_norm_stats([OBS + ACT, 4, 1])] * 2)
+    key = jax.random.PRNGKey(3)
+    loss, (metrics, new_stats) = sac.crossq_critic_loss(critic, critic_stats, actor, actor_stats, jnp.float32(alpha),
+                                                        b, key, POLICY, CRITICS, gamma)
+    _, log_prob = POLICY.sample(actor, b.next_obs, key, actor_stats)
+    target = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (1.0 - alpha * np.asarray(log_prob))
+    expected = 0.5 * (np.mean((1.0 - target) ** 2) + np.mean((2.0 - target) ** 2))
+    assert float(loss) == pytest.approx(expected, rel=1e-5)
+    assert float(metrics["q1_mean"]) == pytest.approx(1.0) and float(metrics["q2_mean"]) == pytest.approx(2.0)
+    # one pass over (s, a) and (s', a') together: the input layer's statistics are those of all 2B rows
+    rows = np.concatenate([np.asarray(b.obs), np.asarray(b.next_obs)])
+    np.testing.assert_allclose(np.asarray(new_stats[0]["mean"])[:, :OBS], np.tile(0.1 * rows.mean(0), (2, 1)),
+                               rtol=1e-5)
+    # the gradient lowers Q_2 (above every target) and keeps the target fixed (stop_gradient)
+    grads = jax.grad(lambda c: sac.crossq_critic_loss(c, critic_stats, actor, actor_stats, jnp.float32(alpha), b, key,
+                                                      POLICY, CRITICS, gamma)[0])(critic)
+    assert float(grads[-1]["b"][1, 0]) == pytest.approx(np.mean(2.0 - target), rel=1e-5)
+
+
+def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_actors():
+    actor = constant_actor([0.1, 0.1], [-1.0, -1.0])
+    actor = [{**layer, **_layer(layer["w"].shape[0])} for layer in actor]
+    actor_stats = init_norm_stats([OBS, 4, 2 * ACT])
+    fns = sac.build(SACConfig().replace(crossq=True, hidden_sizes=[8], batch_size=BATCH), OBS, ACT)
+    state = fns.init(0)
+    obs = jnp.asarray(np.random.default_rng(2).normal(2.0, 1.0, size=(BATCH, OBS)), jnp.float32)
+    key = jax.random.PRNGKey(0)
+    critics = sac.Critics("relu", unroll=True, norm=BatchRenorm())
+
+    def loss(critic_stats):
+        return sac.crossq_actor_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,
+                                     critics)
+
+    value, (log_prob, new_actor_stats) = loss(state.critic_stats)
+    shifted = jax.tree_util.tree_map(lambda s: s + 1.0, state.critic_stats)
+    assert float(loss(shifted)[0]) != pytest.approx(float(value))  # the critics read their running statistics
+    np.testing.assert_allclose(np.asarray(new_actor_stats[0]["mean"]), 0.1 * np.asarray(obs).mean(0), rtol=1e-5)
+    assert log_prob.shape == (BATCH,)
+
+
+def _batches(rng, steps, size, obs_dim=3, act_dim=2):
+    return sac.Batch(obs=rng.standard_normal((steps, size, obs_dim), dtype=np.float32),
+                     actions=rng.uniform(-1, 1, (steps, size, act_dim)).astype(np.float32),
+                     rewards=rng.standard_normal((steps, size), dtype=np.float32),
+                     next_obs=rng.standard_normal((steps, size, obs_dim), dtype=np.float32),
+                     terminated=np.zeros((steps, size), np.float32), steps=np.ones((steps, size), np.float32))
+
+
+def test_crossq_update_keeps_no_targets_and_moves_both_networks_statistics():
+    cfg = SACConfig().replace(crossq=True, hidden_sizes=[16, 16], batch_size=8, policy_delay=3)
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(0)
+    assert state.target_critic == () and len(state.actor_stats) == 3 and len(state.critic_stats) == 3
+    state, metrics = fns.update(state, _batches(np.random.default_rng(0), 2, 8))
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+    assert np.any(np.asarray(state.critic_stats[1]["var"]) != 1.0)
+    assert not np.any(np.asarray(state.actor_stats[0]["mean"]))  # no actor step yet (policy_delay 3)
+    state, _ = fns.update(state, _batches(np.random.default_rng(1), 1, 8))
+    assert np.any(np.asarray(state.actor_stats[0]["mean"]))
+
+
+def test_adam_b1_sets_the_first_moment_decay():
+    """After one step Adam's first moment is (1 - b1) * gradient: b1 0.5 keeps 5x what b1 0.9 keeps."""
+    moments = {}
+    for b1 in (0.5, 0.9):
+        fns = sac.build(SACConfig().replace(hidden_sizes=[16], batch_size=8, adam_b1=b1), 3, 2)
+        state, _ = fns.update(fns.init(0), _batches(np.random.default_rng(0), 1, 8))
+        moments[b1] = np.asarray(state.critic_opt[0].mu[0]["w"])
+    np.testing.assert_allclose(moments[0.5], 5.0 * moments[0.9], rtol=1e-4, atol=1e-9)
+
+
+def test_crossq_reset_renews_the_statistics(tiny):
+    agent = SAC(tiny(crossq=True))
+    agent.learn(400, progress=False)
+    after = agent.fns.reset(agent.state, agent.config.seed, 1)
+    assert np.any(np.asarray(agent.state.critic_stats[0]["mean"]))
+    for leaf, fresh in zip(jax.tree_util.tree_leaves(after.critic_stats),
+                           jax.tree_util.tree_leaves(agent.fns.init(0).critic_stats)):
+        np.testing.assert_array_equal(leaf, fresh)
+
+
+def test_a_crossq_agent_learns_and_predicts_with_its_statistics(tiny, tmp_path):
+    agent = SAC(tiny(crossq=True, adam_b1=0.5, policy_delay=3, eval_interval=300))
+    agent.learn(600, run_dir=tmp_path / "run", progress=False)
+    obs = np.random.default_rng(0).normal(size=(8, 2)).astype(np.float32)
+    loaded = SAC.load(tmp_path / "run", which="last")
+    np.testing.assert_array_equal(agent.predict(obs), loaded.predict(obs))
+    zeroed = agent.fns.act_deterministic(agent.state.actor, jax.tree_util.tree_map(jnp.zeros_like,
+                                                                                   agent.state.actor_stats), obs)
+    assert not np.allclose(np.asarray(zeroed), np.asarray(agent.fns.act_deterministic(
+        agent.state.actor, agent.state.actor_stats, obs)))  # acting reads the running statistics
+
+
+def test_crossq_with_layer_norm_critics_is_refused_in_one_line(tmp_path):
+    r = run_cli("train", "--steps", "10", "--out", str(tmp_path / "run"), "--set", "crossq=true",
+                "critic_layer_norm=true")
+    assert_clean_error(r, "critic_layer_norm", "crossq")
+    assert not (tmp_path / "run").exists()
+    r = run_cli("train", "--steps", "10", "--out", str(tmp_path / "run"), "--set", "adam_b1=1")
+    assert_clean_error(r, "adam_b1")
