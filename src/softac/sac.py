@@ -263,8 +263,10 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     critic_tx = optax.adam(c.critic_lr, b1=c.adam_b1)
     alpha_tx = optax.adam(c.alpha_lr, b1=c.adam_b1)
 
+    # critics with batch renormalisation stay vmapped: on CPU their unrolled form was no faster (CrossQ update
+    # at HalfCheetah's sizes, batch 128: bf16 1.58 vs 1.54 ms, f32 1.87 vs 1.80)
     critics = Critics(c.activation, c.matmul_dtype, c.critic_layer_norm,
-                      unroll=jax.default_backend() == "cpu" and c.n_critics <= 8, norm=norm)
+                      unroll=jax.default_backend() == "cpu" and c.n_critics <= 8 and not c.crossq, norm=norm)
 
     def assemble(actor: Any, critic: Any, key: jax.Array, actor_stats: Any, critic_stats: Any) -> SACState:
         log_alpha = jnp.asarray(np.log(max(c.alpha, 1e-30)), jnp.float32)
