@@ -240,3 +240,11 @@ def test_unrolled_and_vmapped_critics_agree():
     obs, act = jnp.asarray(rng.normal(size=(7, 3)), jnp.float32), jnp.asarray(rng.uniform(-1, 1, (7, 2)), jnp.float32)
     np.testing.assert_allclose(np.asarray(critics_apply(params, obs, act, "relu", unroll=True)),
                                np.asarray(critics_apply(params, obs, act, "relu", unroll=False)), rtol=1e-5, atol=1e-6)
+
+
+def test_matmul_dtype_auto_picks_bfloat16_only_where_it_is_fast(monkeypatch):
+    monkeypatch.setattr(sac, "cpu_has_bf16", lambda: False)
+    assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
+    monkeypatch.setattr(sac, "cpu_has_bf16", lambda: True)
+    assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "bfloat16"
+    assert sac.build(SACConfig().replace(matmul_dtype="float32"), 3, 2).matmul_dtype == "float32"

@@ -28,22 +28,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from softac.cpus import machine_description
+from softac.cpus import cpu_has_bf16, machine_description
 from softac.errors import SoftacError
 from softac.peers import PEER_MODULES, peer_run, peer_solve, peer_throughput
 
 # softac variants: the same preset with these settings added (the driver passes them as --set)
 VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
 FRAMEWORKS = (*VARIANTS, *PEER_MODULES)
-
-
-def cpu_has_bf16() -> bool:
-    """AVX-512 BF16 or AMX: bf16 matmuls are fast here, so the bench shows them by default."""
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
 def default_frameworks() -> list[str]:

@@ -66,7 +66,7 @@ class SACConfig:
     hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
     activation: str = _f("relu", "hidden activation: relu, tanh, elu or gelu")
     init: str = _f("default", "weight init: default (fan-in uniform, as PyTorch) or orthogonal")
-    matmul_dtype: str = _f("float32", "matmul inputs: float32, or bfloat16 (f32 accumulation and parameters; fast on AMX/AVX-512 BF16 CPUs and GPUs)")
+    matmul_dtype: str = _f("float32", "matmul inputs: float32, bfloat16 (f32 accumulation and parameters; fast on AMX/AVX-512 BF16 CPUs and GPUs), or auto (bfloat16 where it is fast, else float32)")
     actor_lr: float = _f(3e-4, "Adam learning rate of the actor")
     critic_lr: float = _f(3e-4, "Adam learning rate of the critics")
     alpha_lr: float = _f(3e-4, "Adam learning rate of log(alpha)")
@@ -198,7 +198,7 @@ class SACConfig:
         need(all(1 <= h <= 65_536 for h in self.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
         need(self.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
         need(self.init in ("default", "orthogonal"), "init", "must be default or orthogonal")
-        need(self.matmul_dtype in ("float32", "bfloat16"), "matmul_dtype", "must be float32 or bfloat16")
+        need(self.matmul_dtype in ("float32", "bfloat16", "auto"), "matmul_dtype", "must be float32, bfloat16 or auto")
         for key in ("actor_lr", "critic_lr", "alpha_lr"):
             need(0.0 < getattr(self, key) < 1.0, key, "must be in (0, 1)")
         need(self.alpha > 0.0 if self.autotune_alpha else self.alpha >= 0.0, "alpha",
@@ -214,9 +214,10 @@ class SACConfig:
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
-GENERIC_PRESETS = ("default", "sb3", "cleanrl")
+GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "sac-100k")
 # keys written to config.yaml for the record; ignored when the file is read back
-RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "buffer_bytes_per_transition", "cpus")
+RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
+                    "buffer_bytes_per_transition", "cpus")
 
 
 def override_key(text: str) -> str:

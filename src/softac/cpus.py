@@ -78,6 +78,16 @@ def pin_this_process(n: int) -> tuple[list[int], bool]:
     return cpus, bool(cpus) and not locks
 
 
+def cpu_has_bf16() -> bool:
+    """AVX-512 BF16 or AMX: the CPU runs bf16 matmuls fast (bench shows softac-bf16 by default, and
+    `matmul_dtype=auto` picks bf16 here)."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
 def machine_description() -> str:
     """CPU model, core count and Python version: the line every benchmark and report is labelled with."""
     import platform

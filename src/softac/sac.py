@@ -26,6 +26,7 @@ import numpy as np
 import optax
 
 from softac.config import SACConfig
+from softac.cpus import cpu_has_bf16
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, critics_apply, init_actor, init_critics,
                               init_norm_stats, mlp, normalized_critics_apply, normalized_mlp, stack)
 
@@ -241,6 +242,14 @@ def polyak(target: Any, online: Any, tau: float) -> Any:
     return jax.tree_util.tree_map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
 
 
+def resolve_matmul_dtype(setting: str) -> str:
+    """`auto` is bfloat16 where bf16 matmuls are fast (a GPU; a CPU with AVX-512 BF16 or AMX), else float32:
+    on an AMD EPYC without AVX-512, bf16 made the update slower (Hopper, batch 256: 21 vs 30-39 steps/s)."""
+    if setting != "auto":
+        return setting
+    return "bfloat16" if jax.default_backend() != "cpu" or cpu_has_bf16() else "float32"
+
+
 class SACFunctions(NamedTuple):
     init: Callable[[int], SACState]
     reset: Callable[[SACState, int, int], SACState]
@@ -250,14 +259,16 @@ class SACFunctions(NamedTuple):
     policy: Policy
     target_entropy: float
     scaler: ActionScaler
+    matmul_dtype: str  # as resolved (`auto` becomes float32 or bfloat16 here)
 
 
 def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None = None,
           high: np.ndarray | None = None) -> SACFunctions:
     """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1])."""
     c = config
+    matmul_dtype = resolve_matmul_dtype(c.matmul_dtype)
     norm = BatchRenorm(c.batch_norm_momentum) if c.crossq else None
-    policy = Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, c.matmul_dtype, norm)
+    policy = Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm)
     target_entropy = -float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy)
     actor_tx = optax.adam(c.actor_lr, b1=c.adam_b1)
     critic_tx = optax.adam(c.critic_lr, b1=c.adam_b1)
@@ -265,7 +276,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
 
     # critics with batch renormalisation stay vmapped: on CPU their unrolled form was no faster (CrossQ update
     # at HalfCheetah's sizes, batch 128: bf16 1.58 vs 1.54 ms, f32 1.87 vs 1.80)
-    critics = Critics(c.activation, c.matmul_dtype, c.critic_layer_norm,
+    critics = Critics(c.activation, matmul_dtype, c.critic_layer_norm,
                       unroll=jax.default_backend() == "cpu" and c.n_critics <= 8 and not c.crossq, norm=norm)
 
     def assemble(actor: Any, critic: Any, key: jax.Array, actor_stats: Any, critic_stats: Any) -> SACState:
@@ -405,4 +416,5 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         policy=policy,
         target_entropy=target_entropy,
         scaler=scaler,
+        matmul_dtype=matmul_dtype,
     )

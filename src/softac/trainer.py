@@ -114,7 +114,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     if run_dir is not None:
         run = Path(run_dir)
         check_run_dir_for(run_state, run)
-        extra = {"resolved_target_entropy": fns.target_entropy,
+        extra = {"resolved_target_entropy": fns.target_entropy, "resolved_matmul_dtype": fns.matmul_dtype,
                  "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1),
                  "cpus": len(usable_cpus()) or os.cpu_count()}
         writer = RunWriter(run, cfg.to_dict(), extra, resume_step=start_step)
