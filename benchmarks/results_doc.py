@@ -113,8 +113,19 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
     figure = figures / f"{env}.png"
     plot_comparison(runs, figure)
     budget = ", ".join(f"{s:,}" for s in sorted(steps))
-    return [f"## {env}", "", f"{budget} env steps per trial, on {machine_description()}. ![{env}](results/{figure.name})", "",
+    return [f"## {env}", "", f"{budget} env steps per trial, on {machines_of(runs)}. ![{env}](results/{figure.name})", "",
             markdown_table(rows, threshold), ""]
+
+
+def machines_of(runs: list[Path]) -> str:
+    """The machines the trials' config.yaml name (runs made before it was recorded: this machine)."""
+    import yaml
+
+    names = set()
+    for run in runs:
+        config = yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").exists() else None
+        names.add((config or {}).get("machine") or machine_description())
+    return " and ".join(sorted(names))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -194,7 +194,8 @@ def test_comparison_labels_name_what_varies_shortly():
                                                     "actor_lr=0.0003688, hidden_sizes=128x128"]
     assert _describe_differences([base]) == ["Pusher-v5"]
     # what config.yaml records about the machine (CPU count, versions) does not split seeds into configurations
-    assert _describe_differences([{**base, "cpus": 1}, {**other, "cpus": 2}]) == _describe_differences([base, other])
+    assert _describe_differences([{**base, "cpus": 1, "machine": "A"}, {**other, "cpus": 2, "machine": "B"}]) \
+        == _describe_differences([base, other])
 
 
 def test_a_run_made_before_a_config_key_existed_groups_with_new_runs_at_its_default(tmp_path):

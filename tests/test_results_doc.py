@@ -37,6 +37,11 @@ def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_ot
     spec = json.loads((other / "sweep.json").read_text())
     spec["preset"] = "default"
     (other / "sweep.json").write_text(json.dumps(spec))
+    # the machine each trial recorded names its section (two machines: both named)
+    import yaml
+    for trial in (sweeps / "Hopper-v5-sbx").glob("seed=*"):
+        config = yaml.safe_load((trial / "config.yaml").read_text())
+        (trial / "config.yaml").write_text(yaml.safe_dump({**config, "machine": "Example CPU (AVX2), 2 cores"}))
     docs.mkdir()
     (docs / "results.md").write_text("# old\n\n## Pusher-v5\n\nkept Pusher table\n\n## Hopper-v5\n\nold Hopper table\n")
 
@@ -46,6 +51,7 @@ def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_ot
     assert "kept Pusher table" in text and "old Hopper table" not in text
     assert "## Walker2d-v5\n\nNot run yet." in text
     hopper = text.split("## Hopper-v5")[1].split("\n## ")[0]
+    assert "Example CPU (AVX2), 2 cores and " in hopper or " and Example CPU (AVX2), 2 cores" in hopper
     rows = {line.split("|")[1].strip(): line for line in hopper.splitlines() if line.startswith("| ")}
     assert {"softac", "softac obs_norm=true critic_layer_norm=true", "softac preset=default", "sbx"} <= set(rows)
     assert rows["softac"].split("|")[2].strip() == "3" and rows["sbx"].split("|")[2].strip() == "2"

@@ -88,8 +88,25 @@ def cpu_has_bf16() -> bool:
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
+def vector_extensions() -> str:
+    """The widest vector instructions the CPU has (what XLA's matmuls run on): two machines sold under one
+    model name ("AMD EPYC") ran the same update 7x apart, one with AVX-512 BF16 and one without AVX-512."""
+    try:
+        flags = set(Path("/proc/cpuinfo").read_text().split())
+    except OSError:
+        return ""
+    if "amx_bf16" in flags:
+        return "AMX"
+    if "avx512_bf16" in flags:
+        return "AVX-512 BF16"
+    if "avx512f" in flags:
+        return "AVX-512"
+    return "AVX2" if "avx2" in flags else ""
+
+
 def machine_description() -> str:
-    """CPU model, core count and Python version: the line every benchmark and report is labelled with."""
+    """CPU model (with its vector extensions), core count and Python version: the line every benchmark,
+    report and run directory is labelled with."""
     import platform
 
     cpu = platform.processor() or platform.machine()
@@ -100,4 +117,7 @@ def machine_description() -> str:
                 break
     except OSError:
         pass
+    extensions = vector_extensions()
+    if extensions:
+        cpu = f"{cpu} ({extensions})"
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"

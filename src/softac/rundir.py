@@ -70,8 +70,12 @@ def versions() -> dict[str, str]:
 
 
 def write_config(run_dir: Path, config: dict[str, Any], extra: dict[str, Any]) -> None:
+    """RUN/config.yaml: the config, then `extra` (versions, resolved values) and the machine it ran on."""
+    from softac.cpus import machine_description
+
     data = dict(config)
     data.update(extra)
+    data["machine"] = machine_description()
     write_atomic(run_dir / "config.yaml", yaml.safe_dump(data, sort_keys=False).encode())
 
 
