@@ -2,20 +2,19 @@
 # Regenerates the sweeps behind docs/results.md, one trial per CPU (each trial pinned), same evaluation for
 # every framework (10 deterministic episodes every eval_interval steps).
 #   classic: InvertedPendulum-v5/v4 and Pusher-v5, softac's presets on 5 seeds, Stable-Baselines3 on 3
-#   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets on 3 seeds,
-#            SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
-#   options: goal 4 of issue #18, options from the literature on top of each MuJoCo preset, same 3 seeds and
-#            budget; ENV-softac-NAME beside ENV-softac, tabled as "softac KEY=VALUE ..." (options:ENV for one env)
+#   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets (CrossQ) on 3
+#            seeds, SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
+#   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
+#            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
+#            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
-#            the `default` preset beside the MuJoCo presets' settings (Hopper-v5's) and SBX, 100k steps
-#   delay:   goal 3 of issue #18, each MuJoCo preset with TD3's policy delay 2 (the actor's half of the update
-#            runs every other step: ~20% less compute per update), same seeds and budget (delay:ENV for one env)
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|delay|fallback|ENV|options:ENV|delay:ENV ...]   (default: classic mujoco)
+#            the `default` preset beside `crossq` and SBX, 100k steps
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
 # progress.csv, episodes.csv, summary.json; .gitignore leaves out weights, TensorBoard files and Ray's state),
-# so later sessions add seeds and envs to the same tables.
+# so later sessions add seeds and envs to the same tables. Each trial's config.yaml names its machine.
 set -euo pipefail
 SOFTAC=${SOFTAC:-.venv/bin/softac}
 SWEEPS=${SWEEPS:-benchmarks/sweeps}
@@ -40,18 +39,14 @@ mujoco() {
 }
 
 options() {
-  # SimBa-style inputs and critics at ~1x cost (Lee et al. 2024): running observation normalisation, LayerNorm
-  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set obs_norm=true critic_layer_norm=true --out $SWEEPS/$1-softac-norm
+  # plain SAC, the env presets' settings before CrossQ
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset sac-100k --out $SWEEPS/$1-softac-sac-100k
 }
 
 fallback() {
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset default --out $SWEEPS/$1-softac-default
-  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset Hopper-v5 --out $SWEEPS/$1-softac-family
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset crossq --out $SWEEPS/$1-softac-crossq
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
-}
-
-delay() {
-  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --set policy_delay=2 --out $SWEEPS/$1-softac-delay2
 }
 
 targets=${*:-classic mujoco}
@@ -61,9 +56,7 @@ for target in $targets; do
     mujoco) for env in $MUJOCO; do mujoco $env; done ;;
     options) for env in $MUJOCO; do options $env; done ;;
     options:*) options ${target#options:} ;;
-    delay) for env in $MUJOCO; do delay $env; done ;;
     fallback) for env in $FALLBACK; do fallback $env; done ;;
-    delay:*) delay ${target#delay:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
        elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
        else classic $target; fi ;;

@@ -180,10 +180,17 @@ def critic_loss(critic: Any, target_critic: Any, actor: Any, alpha: jax.Array, b
     """
     next_actions, next_log_prob = policy.sample(actor, batch.next_obs, key)
     next_q = jnp.min(critics.q_values(target_critic, batch.next_obs, next_actions), axis=0)
+    q = critics.q_values(critic, batch.obs, batch.actions)
+    return soft_bellman_error(q, next_q, next_log_prob, alpha, batch, gamma, n_step)
+
+
+def soft_bellman_error(q: jax.Array, next_q: jax.Array, next_log_prob: jax.Array, alpha: jax.Array, batch: Batch,
+                       gamma: float, n_step: int) -> tuple[jax.Array, dict]:
+    """0.5 * sum over critics of the mean squared error of q [n_critics, batch] to the soft target
+    r + gamma^steps (1 - terminated) (next_q - alpha log pi(a'|s')), held fixed."""
     next_v = next_q - alpha * next_log_prob
     discount = gamma ** batch.steps if n_step > 1 else gamma
     target = jax.lax.stop_gradient(batch.rewards + discount * (1.0 - batch.terminated) * next_v)
-    q = critics.q_values(critic, batch.obs, batch.actions)
     loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
     return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
 
@@ -215,12 +222,8 @@ def crossq_critic_loss(critic: Any, critic_stats: Any, actor: Any, actor_stats: 
     next_actions, next_log_prob = policy.sample(actor, batch.next_obs, key, actor_stats)
     both, critic_stats = critics.q_values_training(critic, critic_stats, jnp.concatenate([batch.obs, batch.next_obs]),
                                                    jnp.concatenate([batch.actions, next_actions]), renorm)
-    q, next_q_all = jnp.split(both, 2, axis=1)
-    next_v = jnp.min(next_q_all, axis=0) - alpha * next_log_prob
-    discount = gamma ** batch.steps if n_step > 1 else gamma
-    target = jax.lax.stop_gradient(batch.rewards + discount * (1.0 - batch.terminated) * next_v)
-    loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
-    metrics = {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
+    q, next_q = jnp.split(both, 2, axis=1)
+    loss, metrics = soft_bellman_error(q, jnp.min(next_q, axis=0), next_log_prob, alpha, batch, gamma, n_step)
     return loss, (metrics, critic_stats)
 
 
