@@ -113,3 +113,20 @@ def test_readme_config_table_is_current():
     assert SACConfig.markdown_table() in readme, "README config table is stale: run `make docs`"
     for key in SACConfig.field_docs():
         assert f"| `{key}` |" in readme, key
+
+
+def test_mujoco_env_presets_extend_crossq():
+    """`extends: crossq` in a preset file: the env's preset is crossq's settings with its env id."""
+    for env in ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"):
+        assert SACConfig.preset(env) == SACConfig.preset("crossq", env_id=env)
+        assert SACConfig.for_env(env).crossq and SACConfig.for_env(env).env_id == env
+
+
+def test_a_preset_that_extends_itself_is_refused(monkeypatch, tmp_path):
+    import softac.config as config
+
+    (tmp_path / "a.yaml").write_text("extends: b\n")
+    (tmp_path / "b.yaml").write_text("extends: a\n")
+    monkeypatch.setattr(config, "_preset_dir", lambda: tmp_path)
+    with pytest.raises(ConfigError, match="extends itself"):
+        config.load_preset("a")

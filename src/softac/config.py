@@ -321,15 +321,20 @@ def preset_names() -> list[str]:
     return sorted(p.name[: -len(".yaml")] for p in _preset_dir().iterdir() if p.name.endswith(".yaml"))
 
 
-def load_preset(name: str) -> dict[str, Any]:
+def load_preset(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A preset's values; `extends: OTHER` in a preset file starts from OTHER's values (the MuJoCo env
+    presets extend `crossq`, so its settings are written once)."""
     names = preset_names()
     if name not in names:
         close = difflib.get_close_matches(name, names, n=1)
         hint = f" (did you mean {close[0]}?)" if close else ""
         raise ConfigError(f"unknown preset '{name}'{hint}; `softac presets` lists them")
+    if name in _seen:
+        raise ConfigError(f"preset '{name}' extends itself ({' -> '.join((*_seen, name))})")
     text = (_preset_dir() / f"{name}.yaml").read_text()
-    data = yaml.safe_load(text) or {}
-    return dict(data)
+    data = dict(yaml.safe_load(text) or {})
+    base = data.pop("extends", None)
+    return {**load_preset(str(base), (*_seen, name)), **data} if base else data
 
 
 def preset_summary(name: str) -> str:
