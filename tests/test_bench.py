@@ -41,3 +41,20 @@ def test_bench_runs_the_bf16_variant_beside_softac():
     assert "softac-bf16" in r.stderr
     progress = [line.split() for line in r.stderr.splitlines() if line.strip().startswith("run ")]
     assert [words[:3] for words in progress] == [["run", "1/1", "softac"], ["run", "1/1", "softac-bf16"]]
+
+
+def test_update_time_script_times_a_preset_with_overrides():
+    """benchmarks/update_time.py (docs/performance.md): the milliseconds of an update call, as it prints them."""
+    import re
+    import subprocess
+    import sys
+
+    from conftest import TESTS
+
+    script = TESTS.parent / "benchmarks" / "update_time.py"
+    r = subprocess.run([sys.executable, str(script), "--preset", "crossq", "--set", "hidden_sizes=8,8", "batch_size=8",
+                        "matmul_dtype=float32", "--rounds", "2", "--updates", "3"], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert re.fullmatch(r"crossq hidden_sizes=8,8 batch_size=8 matmul_dtype=float32 \(float32\): [0-9.]+ ms per "
+                        r"update call \(rounds: [0-9.]+ [0-9.]+\)\n", r.stdout), r.stdout

@@ -22,7 +22,21 @@ def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
                 "learning_starts=100", "buffer_size=5000", f"eval_interval={steps}", "eval_episodes=1", timeout=600)
     assert r.returncode == 0, r.stderr
     config = yaml.safe_load((run / "config.yaml").read_text())
-    for key in ("hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm"):
+    for key in ("hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm", "crossq"):
         assert config[key] == getattr(preset, key), key
     summary = json.loads((run / "summary.json").read_text())
     assert summary["steps"] == steps and summary["last_eval"] is not None
+
+
+@pytest.mark.parametrize("name", GENERIC_PRESETS)
+def test_generic_preset_trains_any_env_a_few_hundred_steps(name, tmp_path):
+    """`--preset NAME` on an env it was not written for (a 4-value observation, 1 action)."""
+    run = tmp_path / "run"
+    r = run_cli("train", "--env", "InvertedPendulum-v5", "--preset", name, "--steps", "300", "--out", str(run),
+                "--no-progress", "--set", "learning_starts=100", "buffer_size=5000", "eval_interval=300",
+                "eval_episodes=1", timeout=600)
+    assert r.returncode == 0, r.stderr
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert config["env_id"] == "InvertedPendulum-v5"
+    assert config["crossq"] == SACConfig.preset(name).crossq
+    assert json.loads((run / "summary.json").read_text())["steps"] == 300

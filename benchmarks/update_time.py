@@ -1,0 +1,65 @@
+"""Milliseconds per SAC/CrossQ update for a preset and overrides, in-process, on random batches.
+
+    taskset -c 0 python benchmarks/update_time.py --preset HalfCheetah-v5 --obs 17 --act 6
+    taskset -c 0 python benchmarks/update_time.py --preset sac-100k --set matmul_dtype=bfloat16
+
+Isolates the jitted update from the env and the loop (docs/performance.md, "The MuJoCo presets' update"):
+warm-up updates first (compilation), then rounds of updates each timed to completion; prints the median
+and every round. Compare configurations by alternating runs of this script; the machine drifts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="HalfCheetah-v5")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    p.add_argument("--obs", type=int, default=17, help="observation size (HalfCheetah-v5: 17)")
+    p.add_argument("--act", type=int, default=6, help="action size (HalfCheetah-v5: 6)")
+    p.add_argument("--rounds", type=int, default=7)
+    p.add_argument("--updates", type=int, default=100, help="updates per round")
+    a = p.parse_args(argv)
+
+    import jax
+    import numpy as np
+
+    from softac import sac
+    from softac.config import SACConfig
+
+    config = SACConfig.preset(a.preset).with_overrides(a.set)
+    fns = sac.build(config, a.obs, a.act)
+    state = fns.init(0)
+    rng = np.random.default_rng(0)
+    size = (config.gradient_steps, config.batch_size)
+
+    def batch() -> sac.Batch:
+        return sac.Batch(obs=rng.standard_normal((*size, a.obs), dtype=np.float32),
+                         actions=rng.uniform(-1, 1, (*size, a.act)).astype(np.float32),
+                         rewards=rng.standard_normal(size, dtype=np.float32),
+                         next_obs=rng.standard_normal((*size, a.obs), dtype=np.float32),
+                         terminated=np.zeros(size, np.float32), steps=np.ones(size, np.float32))
+
+    batches = [batch() for _ in range(8)]
+    for i in range(20):
+        state, _ = fns.update(state, batches[i % 8])
+    jax.block_until_ready(state)
+    rounds = []
+    for _ in range(a.rounds):
+        start = time.perf_counter()
+        for i in range(a.updates):
+            state, _ = fns.update(state, batches[i % 8])
+        jax.block_until_ready(state)
+        rounds.append((time.perf_counter() - start) / a.updates * 1e3)
+    print(f"{a.preset} {' '.join(a.set)} ({fns.matmul_dtype}): {statistics.median(rounds):.2f} ms per update call "
+          f"(rounds: {' '.join(f'{r:.2f}' for r in rounds)})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
