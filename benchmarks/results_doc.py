@@ -25,7 +25,7 @@ ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulu
                                  "Humanoid-v5": None, "Swimmer-v5": None, "Reacher-v5": None,
                                  "InvertedDoublePendulum-v5": None}
 FRAMEWORKS = ("softac", "sbx", "sb3")
-# ENV-softac-NAME: softac's preset with the options of benchmarks/results.sh's `options` and `delay` targets (#18)
+# ENV-softac-NAME: another preset or options on the env (benchmarks/results.sh's `options` and `fallback`, #18)
 
 INTRO = """# Results: softac beside SBX and Stable-Baselines3 on the same machine
 
@@ -37,11 +37,11 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
 - Classic set (InvertedPendulum-v5/v4, Pusher-v5): softac's env presets on 5 seeds, Stable-Baselines3's
   SAC at its defaults on 3 seeds (`softac sweep --framework sb3`), the same step budget.
 - MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps; softac's env
-  presets on 3 seeds, SBX's SAC at its defaults on 2 seeds (`softac sweep --framework sbx`; Stable-
-  Baselines3 trains ~3x slower than SBX and is left out of this budget).
-- Options (issue #18, goals 3 and 4): rows named `softac KEY=VALUE ...` are softac's env preset with
-  those options, on the same seeds and budget (`results.sh options` for observation normalisation with
-  LayerNorm critics, `results.sh delay` for TD3's policy delay).
+  presets (CrossQ) on 3 seeds, SBX's SAC at its defaults on 2 seeds (`softac sweep --framework sbx`;
+  Stable-Baselines3 trains ~3x slower than SBX and is left out of this budget).
+- Other rows, on the same seeds and budget: `softac preset=NAME` is another preset on the env (`results.sh
+  options`: plain SAC, `sac-100k`, beside the CrossQ presets; `results.sh fallback`: `default` and
+  `crossq` on envs with no preset of their own), `softac KEY=VALUE ...` the env's preset with options.
 
 Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
