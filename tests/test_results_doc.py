@@ -29,7 +29,7 @@ def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_ot
     variant = sweeps / "Hopper-v5-softac-norm"
     shutil.copytree(KEPT / "Hopper-v5-softac", variant)
     spec = json.loads((variant / "sweep.json").read_text())
-    spec["overrides"] = ["obs_norm=true", "critic_layer_norm=true"]
+    spec["preset"], spec["overrides"] = None, ["obs_norm=true", "critic_layer_norm=true"]
     (variant / "sweep.json").write_text(json.dumps(spec))
     # a preset variant (results.sh fallback: another preset on the env), named by its preset
     other = sweeps / "Hopper-v5-softac-default"
