@@ -147,11 +147,15 @@ class SAC:
     # ---- training ---------------------------------------------------------------
 
     def learn(self, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
-              progress: bool | None = None) -> dict[str, Any]:
-        """Train for `steps` more environment steps; returns a summary dict."""
+              progress: bool | None = None, callbacks: list | None = None,
+              loggers: list | None = None) -> dict[str, Any]:
+        """Train for `steps` more environment steps; returns a summary dict (its stop_reason: steps,
+        target_return, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
+        softac.loggers.Logger objects that get every metrics record (softac does not close them)."""
         from softac.trainer import train
 
-        return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress)
+        return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress,
+                     callbacks=callbacks, loggers=loggers)
 
     # ---- save / load --------------------------------------------------------------
 

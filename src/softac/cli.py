@@ -82,6 +82,9 @@ def build_parser() -> _Parser:
     t.add_argument("--target-return", type=_finite_float, metavar="R",
                    help="stop once the deterministic eval mean reaches R")
     t.add_argument("--video", action="store_true", help="record the final policy to RUN/videos at the end")
+    t.add_argument("--logger", metavar="NAMES",
+                   help="where metrics go besides the CSV files: tensorboard (default), wandb, mlflow, comma-separated, "
+                        "or none (sets the loggers key; allowed with --resume)")
     bar = t.add_mutually_exclusive_group()
     bar.add_argument("--progress", dest="progress", action="store_true", default=None, help="force the progress bar")
     bar.add_argument("--no-progress", dest="progress", action="store_false", help="plain log lines instead")
@@ -167,7 +170,8 @@ def _resolve_train_config(args: argparse.Namespace):
         config = SACConfig.for_env(args.env)
     overrides = [pair for group in args.overrides for pair in group]
     config = config.with_overrides(overrides)
-    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "device": args.device}
+    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "device": args.device,
+              "loggers": args.logger}
     return config.replace(**{k: v for k, v in direct.items() if v is not None})
 
 
@@ -203,6 +207,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from softac.agent import SAC
     from softac.buffer import check_buffer_memory
     from softac.rundir import check_new_run_dir
+    from softac.loggers import check_backends_installed, parse_backends
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -216,6 +221,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
         pinned = _pin_cpus(args.cpus)
         agent = SAC.load(run, which="last", device=args.device)
+        if args.logger is not None:  # where metrics go is not part of the experiment: it may change on resume
+            agent.config = agent.config.replace(loggers=args.logger)
         if args.steps is not None:
             steps = args.steps
         else:
@@ -225,6 +232,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         config = _resolve_train_config(args)
         run = Path(args.out) if args.out else _default_run_dir(config)
         check_new_run_dir(run)  # before JAX starts: a clash should fail fast
+        check_backends_installed(parse_backends(config.loggers))
         pinned = _pin_cpus(args.cpus)
         agent = SAC(config)
         per = agent.buffer_bytes_per_transition
@@ -240,7 +248,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.video:
         _record_video(run, which=None, out=None, episodes=1, deterministic=True)
     last = summary["last_eval"]
-    solved = " (target reached)" if summary["stopped_early"] else ""
+    solved = " (target reached)" if summary["stop_reason"] == "target_return" else ""
     eval_text = f"; last eval mean return {last:.1f}" if last is not None else ""
     print(f"done: {summary['steps']} steps in {summary['wall_s']:.1f}s{eval_text}{solved}; run in {run}",
           file=sys.stderr)

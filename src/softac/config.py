@@ -81,6 +81,7 @@ class SACConfig:
     eval_episodes: int = _f(10, "episodes per evaluation")
     log_interval: int = _f(1_000, "environment steps between progress.csv rows")
     checkpoint_interval: int = _f(10_000, "environment steps between checkpoints/last writes (0: only at the end)")
+    loggers: str = _f("tensorboard", "where metrics go besides the CSV files: tensorboard, wandb, mlflow (comma-separated), or none")
 
     # ---- construction -------------------------------------------------
 
@@ -211,6 +212,12 @@ class SACConfig:
         need(self.eval_episodes >= 1, "eval_episodes", "must be >= 1")
         need(self.log_interval >= 1, "log_interval", "must be >= 1")
         need(self.checkpoint_interval >= 0, "checkpoint_interval", "must be >= 0")
+        try:
+            from softac.loggers import parse_backends
+
+            parse_backends(self.loggers)
+        except SoftacError as exc:
+            raise ConfigError(f"loggers={self.loggers!r}: {exc}") from None
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")

@@ -295,6 +295,10 @@ class EnvPool:
             self.reset(step)
         return exact
 
+    def apply(self, fn: Callable[[gym.Env], Any]) -> list[Any]:
+        """`fn(env)` for each env, in order (a callback's curriculum changes a physics parameter this way)."""
+        return [fn(env) for env in self.envs]
+
     def close(self) -> None:
         for env in self.envs:
             with contextlib.suppress(Exception):
