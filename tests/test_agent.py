@@ -10,7 +10,7 @@ from softac_test_envs import DriftEnv
 
 
 def _state_arrays(agent):
-    return [np.asarray(x) for x in jax.tree_util.tree_leaves(agent.state)]
+    return [np.array(x, copy=True) for x in jax.tree_util.tree_leaves(agent.state)]
 
 
 def test_save_load_gives_identical_predictions(tiny, tmp_path):

@@ -228,7 +228,9 @@ class SAC:
             value = arrays.get(name)
             if value is None or value.shape != np.shape(template) or value.dtype != np.asarray(template).dtype:
                 raise ckpt.CheckpointError(f"checkpoint {where} does not match this config/env at {name}")
-            leaves.append(jnp.asarray(value))
+            # a copy the device owns: jnp.asarray may alias the NumPy array on CPU, and the update donates
+            # the state's buffers (older jaxlibs then corrupt the heap; seen with jax 0.4.30 and 0.5.3)
+            leaves.append(jnp.array(value, copy=True))
         self.state = jax.tree_util.tree_unflatten(treedef, leaves)
         self.run.restore(meta, arrays, where)
         if self.obs_norm is not None:
