@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e .
 	@touch $@
 
-# the test extra adds pytest, hypothesis and the [ray] extra (the sweep tests run a local Ray)
+# the test extra adds pytest, hypothesis, the [ray] extra (the sweep tests run a local Ray) and [export] (onnx)
 $(TEST_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[test]"
 	@touch $@
