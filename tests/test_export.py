@@ -174,3 +174,25 @@ def test_the_numpy_forward_pass_imports_only_numpy():
     imported = {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
     imported |= {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
     assert imported == {"numpy", "__future__"}
+
+
+def test_the_readme_forward_pass_is_the_modules(tmp_path):
+    readme = (TESTS.parent / "README.md").read_text()
+    section = readme.split("## Exporting a policy")[1].split("\n## ")[0]
+    code = next(block for block in section.split("```python\n") if "def policy_forward" in block).split("```")[0]
+    readme_module = {}
+    exec(code, readme_module)
+    from softac.export_numpy import ACTIVATIONS
+
+    x = np.linspace(-6.0, 6.0, 1001, dtype=np.float32)
+    assert set(readme_module["ACTIVATIONS"]) == set(ACTIVATIONS)
+    for name, activation in ACTIVATIONS.items():
+        np.testing.assert_array_equal(readme_module["ACTIVATIONS"][name](x), activation(x), err_msg=name)
+
+    agent = SAC(tiny_config(DRIFT, activation="gelu", obs_norm=True))
+    rng = np.random.default_rng(0)
+    agent.obs_norm.update(rng.normal(loc=[0.1, 10.0], scale=[0.1, 5.0], size=(100, 2)))
+    obs = rng.normal(loc=[0.1, 10.0], scale=[0.3, 15.0], size=(300, 2)).astype(np.float32)
+    with np.load(export_policy(agent, tmp_path / "policy.npz", "numpy")) as npz:
+        actions = readme_module["policy_forward"](dict(npz), obs)
+    np.testing.assert_allclose(actions, agent.predict(obs), rtol=0, atol=1e-5)

@@ -5,12 +5,12 @@ This module imports nothing but NumPy, so it can be copied into any project:
     params = dict(np.load("policy.npz"))
     action = policy_forward(params, obs)   # obs [obs_dim] or [batch, obs_dim]; action in the env's bounds
 
-policy.npz holds float32 arrays:
-    obs_mean, obs_std, obs_clip   observation normalisation, only when the run had obs_norm
-    w0, b0, ..., wN, bN           the actor's layers; the last gives the mean action before tanh (CrossQ's
-                                  batch renormalisation is folded into the weights)
+policy.npz holds
+    obs_mean, obs_std, obs_clip   float32: observation normalisation, only when the run had obs_norm
+    w0, b0, ..., wN, bN           float32: the actor's layers; the last gives the mean action before tanh
+                                  (CrossQ's batch renormalisation is folded into the weights)
+    action_low, action_high       float32: the env's action bounds
     activation                    the hidden activation's name: relu, tanh, elu or gelu
-    action_low, action_high       the env's action bounds
 and, for the record, env_id, step (the checkpoint's env step) and softac_version.
 """
 
