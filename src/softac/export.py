@@ -18,6 +18,7 @@ import numpy as np
 from softac import __version__
 from softac.checkpoint import is_checkpoint
 from softac.errors import SoftacError
+from softac.export_numpy import layer_count
 from softac.normalization import EPSILON
 from softac.rundir import write_atomic
 
@@ -84,7 +85,8 @@ def _actor_layers(agent: SAC) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def policy_arrays(agent: SAC) -> dict[str, np.ndarray]:
-    """Everything the deterministic policy needs, as named float32 arrays (and a few record-only entries)."""
+    """Everything the deterministic policy needs, as named float32 arrays (the activation's name aside), and a
+    few entries for the record."""
     arrays: dict[str, np.ndarray] = {}
     if agent.obs_norm is not None:  # as RunningObsNorm.normalize computes them
         arrays["obs_mean"] = agent.obs_norm.mean.astype(np.float32)
@@ -154,7 +156,7 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         x = g.op("Div", g.op("Sub", x, g.const("obs_mean", arrays["obs_mean"])), g.const("obs_std", arrays["obs_std"]))
         clip = float(arrays["obs_clip"])
         x = g.op("Clip", x, g.const("obs_clip_low", -clip), g.const("obs_clip_high", clip))
-    n_layers = sum(1 for key in arrays if key.startswith("w") and key[1:].isdigit())
+    n_layers = layer_count(arrays)
     for i in range(n_layers):
         x = g.op("Add", g.op("MatMul", x, g.const(f"w{i}", arrays[f"w{i}"])), g.const(f"b{i}", arrays[f"b{i}"]))
         if i < n_layers - 1:

@@ -33,6 +33,10 @@ def elu(x: np.ndarray) -> np.ndarray:
 ACTIVATIONS = {"relu": lambda x: np.maximum(x, 0), "tanh": np.tanh, "elu": elu, "gelu": gelu}
 
 
+def layer_count(params: dict) -> int:
+    return sum(1 for key in params if key.startswith("w") and key[1:].isdigit())
+
+
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
     x = np.asarray(obs, np.float32)
@@ -40,7 +44,7 @@ def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
         clip = params["obs_clip"]
         x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)
     activation = ACTIVATIONS[str(params["activation"])]
-    n_layers = sum(1 for key in params if key.startswith("w") and key[1:].isdigit())
+    n_layers = layer_count(params)
     for i in range(n_layers):
         x = x @ params[f"w{i}"] + params[f"b{i}"]
         if i < n_layers - 1:
