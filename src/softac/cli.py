@@ -116,6 +116,13 @@ def build_parser() -> _Parser:
     rp.add_argument("run", metavar="RUN")
     rp.add_argument("--out", help="HTML file (default RUN/report.html)")
 
+    x = sub.add_parser("export", help="the deterministic policy as ONNX or NumPy, to act without JAX")
+    x.add_argument("path", metavar="RUN_OR_CKPT")
+    x.add_argument("--format", choices=["onnx", "numpy"], default="onnx",
+                   help="onnx: policy.onnx (needs the [export] extra); numpy: policy.npz (default onnx)")
+    x.add_argument("--out", help="file to write (default RUN/export/policy.onnx or RUN/export/policy.npz)")
+    x.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
+
     b = sub.add_parser("baselines", help="random, zero and heuristic policies' returns")
     b.add_argument("--env", default="InvertedPendulum-v5")
     b.add_argument("--episodes", type=_positive_int, default=10)
@@ -333,6 +340,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from softac.export import export_policy
+
+    print(export_policy(args.path, args.out, args.format, which=args.checkpoint))
+    return EXIT_OK
+
+
 def cmd_baselines(args: argparse.Namespace) -> int:
     from softac.baselines import run_baselines
 
@@ -418,7 +432,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench, "plot": cmd_plot,
-            "video": cmd_video, "report": cmd_report, "baselines": cmd_baselines, "sweep": cmd_sweep}
+            "video": cmd_video, "report": cmd_report, "export": cmd_export, "baselines": cmd_baselines,
+            "sweep": cmd_sweep}
 
 
 def main(argv: list[str] | None = None) -> int:
