@@ -189,6 +189,7 @@ def test_a_failing_env_in_a_worker_exits_3_and_keeps_the_checkpoint(tmp_path, en
     assert SAC.load(run, which="last").num_steps >= 20
 
 
+@pytest.mark.faults
 def test_ctrl_c_checkpoints_closes_the_workers_and_resumes_in_process(tmp_path):
     """Ctrl-C reaches the whole process group, workers too: they ignore it, the loop checkpoints and closes
     them, and the run resumes with its envs in-process."""
