@@ -177,6 +177,24 @@ def test_a_killed_worker_fails_the_run_naming_the_env_and_the_next_learn_starts_
     assert agent.num_steps == steps + 40
 
 
+def test_workers_exit_when_their_parent_is_killed_outright():
+    code = ("import time\n"
+            "from softac.env_workers import WorkerEnvPool\n"
+            "pool = WorkerEnvPool('softac_test_envs:Drift-v0', 2, seed=0, name='Drift-v0', workers=2)\n"
+            "print(*pool.pids, flush=True)\n"
+            "time.sleep(600)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env=dict(os.environ, PYTHONPATH=f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+    workers = [int(pid) for pid in parent.stdout.readline().split()]
+    assert len(workers) == 2 and all(map(_running, workers))
+    parent.kill()
+    parent.wait()
+    deadline = time.time() + 30
+    while any(map(_running, workers)):
+        assert time.time() < deadline, "orphaned env workers"
+        time.sleep(0.1)
+
+
 @pytest.mark.parametrize("env_id,fragments", [
     ("BrokenStep-v0", ["BrokenStep-v0 raised in step at step", "simulator exploded"]),
     ("Crashing-v0", ["Crashing-v0: the env worker process", "was killed by SIGKILL at step"]),
