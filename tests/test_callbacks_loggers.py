@@ -1,5 +1,6 @@
 """Callbacks (hooks, clean stops, curriculum) and loggers (one interface; TensorBoard, W&B, MLflow)."""
 
+import functools
 import json
 from pathlib import Path
 
@@ -101,6 +102,31 @@ def test_metrics_and_a_curriculum_through_the_training_envs(tiny):
     assert {"critic_loss", "actor_loss", "alpha"} <= set(seen["metrics"])
     assert len(seen["old"]) == 2
     assert [env.unwrapped.difficulty for env in agent.pool.envs] == [2, 2]
+
+
+def _difficulty(env):
+    return getattr(env.unwrapped, "difficulty", 0)
+
+
+def _set_difficulty(env, level):
+    env.unwrapped.difficulty = level
+
+
+def test_a_curriculum_reaches_envs_in_worker_processes_and_a_lambda_is_refused(tiny):
+    seen = {}
+
+    class Curriculum(Callback):
+        def on_step(self, info):
+            if info.step >= 200 and not seen:  # steps go up by n_envs=3
+                seen["before"] = info.apply_to_envs(_difficulty)
+                info.apply_to_envs(functools.partial(_set_difficulty, level=3))
+                seen["after"] = info.apply_to_envs(_difficulty)
+                with pytest.raises(SoftacError, match="not a lambda or a closure"):
+                    info.apply_to_envs(lambda env: 1)
+
+    agent = SAC(tiny(n_envs=3, env_workers=2))
+    agent.learn(300, progress=False, callbacks=[Curriculum()])
+    assert seen == {"before": [0, 0, 0], "after": [3, 3, 3]}
 
 
 def test_an_object_that_is_not_a_callback_is_refused(tiny):

@@ -73,6 +73,9 @@ def build_parser() -> _Parser:
     t.add_argument("--steps", type=_positive_int, help="env steps to train (with --resume: steps to add)")
     t.add_argument("--seed", type=int)
     t.add_argument("--n-envs", type=_positive_int)
+    t.add_argument("--env-workers", type=_positive_int, metavar="K",
+                   help="step the n_envs envs in K worker processes (for slow simulators; the same results; "
+                        "with --resume too)")
     t.add_argument("--out", help="run directory (default runs/ENV/DATE-seedS)")
     t.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
     t.add_argument("--resume", metavar="DIR", help="continue the run in DIR exactly where it stopped")
@@ -165,7 +168,7 @@ def build_parser() -> _Parser:
 # ---- commands -----------------------------------------------------------------
 
 def _resolve_train_config(args: argparse.Namespace):
-    from softac.config import SACConfig
+    from softac.config import SACConfig, parse_overrides
 
     if args.config:
         config = SACConfig.from_yaml(args.config)
@@ -175,11 +178,11 @@ def _resolve_train_config(args: argparse.Namespace):
         config = SACConfig.preset(args.preset, env_id=args.env)
     else:
         config = SACConfig.for_env(args.env)
-    overrides = [pair for group in args.overrides for pair in group]
-    config = config.with_overrides(overrides)
-    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "device": args.device,
-              "loggers": args.logger}
-    return config.replace(**{k: v for k, v in direct.items() if v is not None})
+    overrides = parse_overrides([pair for group in args.overrides for pair in group])
+    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "env_workers": args.env_workers,
+              "device": args.device, "loggers": args.logger}
+    # one replace, checked once: `--set env_workers=4 --n-envs 4` is valid though neither half is alone
+    return config.replace(**{**overrides, **{k: v for k, v in direct.items() if v is not None}})
 
 
 def _default_run_dir(config) -> Path:
@@ -227,7 +230,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if directory.parent.parent != run:
             raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
         pinned = _pin_cpus(args.cpus)
-        agent = SAC.load(run, which="last", device=args.device)
+        agent = SAC.load(run, which="last", device=args.device, env_workers=args.env_workers)
         if args.logger is not None:  # where metrics go is not part of the experiment: it may change on resume
             agent.config = agent.config.replace(loggers=args.logger)
         if args.steps is not None:
