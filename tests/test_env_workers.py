@@ -9,11 +9,10 @@ import threading
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 
-from conftest import TESTS, assert_clean_error, assert_training_error, run_cli
+from conftest import TESTS, assert_clean_error, assert_same_training, assert_training_error, run_cli, state_arrays
 from softac import SAC
 from softac.buffer import ReplayBuffer
 from softac.config import ConfigError
@@ -46,10 +45,6 @@ def _worker_pids(parent: int) -> list[int]:
         if ppid == parent and b"spawn_main" in cmdline:
             pids.append(int(stat.parent.name))
     return pids
-
-
-def _state_arrays(agent):
-    return [np.asarray(x) for x in jax.tree_util.tree_leaves(agent.state)]
 
 
 def test_split_evenly_gives_contiguous_slices():
@@ -130,7 +125,7 @@ def test_env_workers_give_the_same_run_and_leave_no_process(tiny):
     local, workers = runs
     for name in ReplayBuffer.FIELDS:
         np.testing.assert_array_equal(getattr(local.buffer, name), getattr(workers.buffer, name), err_msg=name)
-    for a, b in zip(_state_arrays(local), _state_arrays(workers)):
+    for a, b in zip(state_arrays(local), state_arrays(workers)):
         np.testing.assert_array_equal(a, b)
     assert local.num_episodes == workers.num_episodes > 0
 
@@ -158,12 +153,7 @@ def test_resume_with_env_workers_is_exact(tiny, tmp_path, straight_run, first_wo
     else:
         then = first
     then.learn(400, run_dir=tmp_path / "split", progress=False)
-    for a, b in zip(_state_arrays(straight_run), _state_arrays(then)):
-        np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(np.asarray(straight_run.act_key), np.asarray(then.act_key))
-    assert straight_run.rng.bit_generator.state == then.rng.bit_generator.state
-    np.testing.assert_array_equal(straight_run.buffer.obs, then.buffer.obs)
-    assert straight_run.num_episodes == then.num_episodes
+    assert_same_training(straight_run, then)
 
 
 def test_a_killed_worker_fails_the_run_naming_the_env_and_the_next_learn_starts_afresh(tiny):
