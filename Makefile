@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.softac-installed
 TEST_STAMP := $(VENV)/.softac-test-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-fast bench docs venv clean-venv render-deps system-deps
+.PHONY: demo test test-fast test-min bench docs venv clean-venv render-deps system-deps
 
 venv: $(STAMP)
 
@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e .
 	@touch $@
 
-# the test extra adds pytest, hypothesis and the [ray] extra (the sweep tests run a local Ray)
+# the test extra adds pytest, hypothesis, the [ray] extra (the sweep tests run a local Ray) and [export] (onnx)
 $(TEST_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[test]"
 	@touch $@
@@ -62,6 +62,19 @@ test: $(TEST_STAMP) system-deps
 # without the learning test, the kill/signal campaigns, the Ray sweeps and the bench runs (CI runs them all)
 test-fast: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -m "not slow and not faults and not ray and not bench"
+
+# the lowest supported versions of JAX, Gymnasium, MuJoCo, optax, NumPy and SciPy (.ci/min-versions.txt, the
+# floors in pyproject.toml), in their own .venv-min, with the [export] extra; the W&B and MLflow tests skip there
+MIN_VENV  := .venv-min
+MIN_STAMP := $(MIN_VENV)/.softac-min-installed
+$(MIN_STAMP): pyproject.toml .ci/min-versions.txt
+	@test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
+	$(MIN_VENV)/bin/python -m pip install -q --upgrade pip
+	$(MIN_VENV)/bin/python -m pip install -q -c .ci/min-versions.txt -e ".[export]" "pytest>=7" "hypothesis>=6.80"
+	@touch $@
+
+test-min: $(MIN_STAMP)
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider -m "not slow and not faults and not ray and not bench"
 
 # softac vs Stable-Baselines3 vs SBX on this machine; torch 2.13.0 (CPU build) goes in first so that
 # no CUDA packages are pulled. BENCH_ARGS adds options, e.g. BENCH_ARGS="--repeats 5".

@@ -65,3 +65,23 @@ def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) 
     assert last.startswith("softac: error: "), last
     for fragment in fragments:
         assert fragment in last, (fragment, last)
+
+
+def state_arrays(agent) -> list:
+    """The agent's parameter and optimiser leaves, copied (a view of a donated buffer would change under us)."""
+    import jax
+    import numpy as np
+
+    return [np.array(x, copy=True) for x in jax.tree_util.tree_leaves(agent.state)]
+
+
+def assert_same_training(a, b) -> None:
+    """Two agents that trained the same steps are bit-identical: parameters, keys, RNG, buffer, episodes."""
+    import numpy as np
+
+    for x, y in zip(state_arrays(a), state_arrays(b)):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(np.asarray(a.act_key), np.asarray(b.act_key))
+    assert a.rng.bit_generator.state == b.rng.bit_generator.state
+    np.testing.assert_array_equal(a.buffer.obs, b.buffer.obs)
+    assert a.num_episodes == b.num_episodes

@@ -99,6 +99,18 @@ class SlowEnv(DriftEnv):
         return super().step(action)
 
 
+class CrashingEnv(DriftEnv):
+    """A simulator that takes its process down (as a segfault would): only ever run it in an env worker."""
+
+    def step(self, action):
+        if self.t >= 30:
+            import os
+            import signal
+
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().step(action)
+
+
 gym.register("Drift-v0", entry_point=DriftEnv, max_episode_steps=25)
 gym.register("Unbounded-v0", entry_point=UnboundedEnv, max_episode_steps=25)
 gym.register("BrokenStep-v0", entry_point=BrokenStepEnv, max_episode_steps=100)
@@ -107,3 +119,4 @@ gym.register("NanReward-v0", entry_point=NanRewardEnv, max_episode_steps=100)
 gym.register("BrokenReset-v0", entry_point=BrokenResetEnv, max_episode_steps=10)
 gym.register("HugeReward-v0", entry_point=HugeRewardEnv, max_episode_steps=25)
 gym.register("Slow-v0", entry_point=SlowEnv, max_episode_steps=25)
+gym.register("Crashing-v0", entry_point=CrashingEnv, max_episode_steps=100)

@@ -4,13 +4,10 @@ import jax
 import numpy as np
 import pytest
 
+from conftest import assert_same_training, state_arrays
 from softac import SAC, evaluate
 from softac.checkpoint import load as load_checkpoint
 from softac_test_envs import DriftEnv
-
-
-def _state_arrays(agent):
-    return [np.asarray(x) for x in jax.tree_util.tree_leaves(agent.state)]
 
 
 def test_save_load_gives_identical_predictions(tiny, tmp_path):
@@ -44,12 +41,7 @@ def test_resume_is_exact(tiny, tmp_path, obs_once, n_step, obs_norm, crossq):
     assert resumed.num_steps == 500 and len(resumed.buffer) == 500
     resumed.learn(400, run_dir=tmp_path / "split", progress=False)
 
-    for a, b in zip(_state_arrays(straight), _state_arrays(resumed)):
-        np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(np.asarray(straight.act_key), np.asarray(resumed.act_key))
-    assert straight.rng.bit_generator.state == resumed.rng.bit_generator.state
-    np.testing.assert_array_equal(straight.buffer.obs, resumed.buffer.obs)
-    assert straight.num_episodes == resumed.num_episodes
+    assert_same_training(straight, resumed)
     if obs_norm:
         assert straight.obs_norm.count == resumed.obs_norm.count == 900
         np.testing.assert_array_equal(straight.obs_norm.mean, resumed.obs_norm.mean)
@@ -175,7 +167,7 @@ def test_resets_happen_at_each_multiple_before_total_steps_and_resume_exactly(ti
     calls = counting(resumed)
     resumed.learn(300, run_dir=tmp_path / "split", progress=False)
     assert calls == [2]  # the reset at 600 happens after the checkpoint, in the resumed run
-    for a, b in zip(_state_arrays(straight), _state_arrays(resumed)):
+    for a, b in zip(state_arrays(straight), state_arrays(resumed)):
         np.testing.assert_array_equal(a, b)
     evals = lambda run: (run / "eval.csv").read_text()  # noqa: E731
     assert evals(tmp_path / "straight") == evals(tmp_path / "split")

@@ -58,3 +58,23 @@ def test_update_time_script_times_a_preset_with_overrides():
     assert r.returncode == 0, r.stderr
     assert re.fullmatch(r"crossq hidden_sizes=8,8 batch_size=8 matmul_dtype=float32 \(float32\): [0-9.]+ ms per "
                         r"update call \(rounds: [0-9.]+ [0-9.]+\)\n", r.stdout), r.stdout
+
+
+def test_env_workers_script_reports_every_setting():
+    """benchmarks/env_workers.py (docs/performance.md, "Env worker processes"): one JSON row per env and
+    env_workers setting; the figures themselves are not checked."""
+    import subprocess
+    import sys
+
+    from conftest import TESTS
+
+    script = TESTS.parent / "benchmarks" / "env_workers.py"
+    r = subprocess.run([sys.executable, str(script), "--steps", "8", "--warmup", "8", "--n-envs", "2", "--workers",
+                        "0,2", "--sleep-ms", "1", "--envs", "SlowInvertedPendulum-v5", "--set", "hidden_sizes=8,8",
+                        "batch_size=8", "learning_starts=4", "--json"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout)
+    assert [(row["env"], row["env_workers"]) for row in rows] == [("SlowInvertedPendulum-v5", 0),
+                                                                  ("SlowInvertedPendulum-v5", 2)]
+    assert all(row["steps_per_s"] > 0 for row in rows)
+    assert "| SlowInvertedPendulum-v5 (1 ms a step) | 2 |" in r.stderr

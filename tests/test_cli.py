@@ -213,7 +213,8 @@ def test_help_for_the_root_and_every_command():
     r = run_cli("--help")
     assert r.returncode == 0 and "usage: softac" in r.stdout and not r.stderr, r.stderr
     commands = list(build_parser().commands)
-    assert {"train", "eval", "video", "plot", "report", "baselines", "sweep", "bench", "presets"} <= set(commands)
+    assert {"train", "eval", "video", "plot", "report", "export", "baselines", "sweep", "bench",
+            "presets"} <= set(commands)
     for command in commands:
         assert command in r.stdout, command
     bare = run_cli()

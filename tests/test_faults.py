@@ -146,21 +146,23 @@ def test_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     from softac.agent import SAC
     from softac.errors import SoftacError
 
-    real_savez, calls = np.savez, []
+    from softac import checkpoint
 
-    def savez_then_disk_full(file, **arrays):
+    real_write, calls = checkpoint._write_npz, []
+
+    def write_then_disk_full(file, arrays):
         calls.append(1)
         if len(calls) >= 3:
             file.write(b"partial")
             raise OSError(errno.ENOSPC, "No space left on device")
-        return real_savez(file, **arrays)
+        return real_write(file, arrays)
 
-    monkeypatch.setattr(np, "savez", savez_then_disk_full)
+    monkeypatch.setattr(checkpoint, "_write_npz", write_then_disk_full)
     run = tmp_path / "run"
     agent = SAC(tiny_config(checkpoint_interval=200))
     with pytest.raises(SoftacError, match="No space left on device; the previous checkpoint is kept"):
         agent.learn(1000, run_dir=run, progress=False)
-    monkeypatch.setattr(np, "savez", real_savez)
+    monkeypatch.setattr(checkpoint, "_write_npz", real_write)
     assert SAC.load(run, which="last").num_steps == 200
     leftovers = [p.name for p in (run / "checkpoints" / "last").iterdir() if p.name.startswith(".")]
     assert leftovers == []

@@ -18,7 +18,7 @@ from softac import checkpoint as ckpt
 from softac.buffer import ObsOnceReplayBuffer, ReplayBuffer, buffer_bytes_per_transition, make_buffer
 from softac.config import SACConfig
 from softac.device import select_device
-from softac.envs import EnvPool, EnvSource, check_spaces, copy_env, env_name, make_env
+from softac.envs import EnvFailed, EnvPool, EnvSource, check_spaces, copy_env, env_name, make_env
 from softac.errors import SoftacError
 from softac.normalization import RunningObsNorm
 from softac.rundir import versions
@@ -27,6 +27,7 @@ from softac.runstate import RunState
 if TYPE_CHECKING:  # sac imports JAX, which the agent loads only when it is made
     import gymnasium as gym
 
+    from softac.env_workers import WorkerEnvPool
     from softac.sac import SACState
 
 
@@ -83,8 +84,11 @@ class SAC:
         # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
         self.obs_norm = RunningObsNorm(self.spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
         self.buffer: ReplayBuffer | ObsOnceReplayBuffer | None = None
-        self.pool: EnvPool | None = None
+        self.pool: EnvPool | WorkerEnvPool | None = None
         self.pool_started = False
+        # the envs' state (EnvPool.get_state's) while no pool holds it: loaded from a checkpoint, or kept from
+        # env worker processes that a finished learn() closed; the next pool starts from it
+        self.parked_envs: tuple[dict, dict[str, np.ndarray]] | None = None
 
     # ---- the run state, as attributes (the API before RunState) ------------------
 
@@ -106,20 +110,59 @@ class SAC:
     def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
         return copy_env(self.env_source, render_mode, **kwargs)
 
-    def training_parts(self) -> tuple[ReplayBuffer | ObsOnceReplayBuffer, EnvPool]:
+    def training_parts(self) -> tuple[ReplayBuffer | ObsOnceReplayBuffer, EnvPool | WorkerEnvPool]:
         if self.buffer is None:
             self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
         if self.pool is None:
-            source = self.env_source
-
-            def make(i: int):
-                return source if (i == 0 and not isinstance(source, str)) else copy_env(source)
-
-            self.pool = EnvPool(make, self.config.n_envs, self.config.seed, env_name(source))
+            self.pool = self._make_pool()
+            if self.parked_envs is not None:
+                self._restore_envs(*self.parked_envs)
         if not self.pool_started:
             self.pool.reset(self.num_steps)
             self.pool_started = True
         return self.buffer, self.pool
+
+    def _make_pool(self) -> EnvPool | WorkerEnvPool:
+        source, cfg = self.env_source, self.config
+        if cfg.env_workers > 0:
+            from softac.env_workers import WorkerEnvPool
+
+            return WorkerEnvPool(source, cfg.n_envs, cfg.seed, env_name(source), cfg.env_workers)
+
+        def make(i: int):
+            return source if (i == 0 and not isinstance(source, str)) else copy_env(source)
+
+        return EnvPool(make, cfg.n_envs, cfg.seed, env_name(source))
+
+    def _restore_envs(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        self.parked_envs = None
+        if not self.pool.set_state(meta, arrays, self.num_steps):
+            import warnings
+
+            warnings.warn(f"env {self.pool.name} cannot save its state, so resumed training starts fresh episodes "
+                          "(give its class save_state()/load_state() for an exact resume)", stacklevel=3)
+
+    def close_env_workers(self) -> None:
+        """Stop the env worker processes, if any (learn() does as it ends, however it ends), keeping their
+        envs' state for the next learn(), which carries on exactly; envs lost with a failed worker start
+        fresh episodes there."""
+        if self.pool is None or isinstance(self.pool, EnvPool):
+            return
+        pool, self.pool = self.pool, None
+        try:
+            self.parked_envs = pool.get_state() if pool.usable else None
+        except EnvFailed:
+            self.parked_envs = None
+        finally:
+            pool.close()
+        if self.parked_envs is None:
+            self.pool_started = False
+
+    def env_state(self) -> tuple[dict, dict[str, np.ndarray]] | None:
+        """The training envs' state (for a checkpoint), or None before they started."""
+        if not self.pool_started:
+            return None
+        return self.pool.get_state() if self.pool is not None else self.parked_envs
 
     # ---- acting ---------------------------------------------------------------
 
@@ -147,11 +190,18 @@ class SAC:
     # ---- training ---------------------------------------------------------------
 
     def learn(self, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
-              progress: bool | None = None) -> dict[str, Any]:
-        """Train for `steps` more environment steps; returns a summary dict."""
+              progress: bool | None = None, callbacks: list | None = None,
+              loggers: list | None = None) -> dict[str, Any]:
+        """Train for `steps` more environment steps; returns a summary dict (its stop_reason: steps,
+        target_return, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
+        softac.loggers.Logger objects that get every metrics record (softac does not close them)."""
         from softac.trainer import train
 
-        return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress)
+        try:
+            return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress,
+                         callbacks=callbacks, loggers=loggers)
+        finally:
+            self.close_env_workers()  # no worker process outlives the call, whatever ended it
 
     # ---- save / load --------------------------------------------------------------
 
@@ -175,13 +225,14 @@ class SAC:
                        "low": self.spaces.low.tolist(), "high": self.spaces.high.tolist()},
             **run_meta,
             "has_buffer": bool(include_buffer and self.buffer is not None),
-            "has_envs": bool(include_buffer and self.pool is not None and self.pool_started),
         }
+        env_state = self.env_state() if include_buffer else None
+        meta["has_envs"] = env_state is not None
         if meta["has_buffer"]:
             for k, v in self.buffer.state_dict().items():
                 arrays[f"buffer/{k}"] = v
-        if meta["has_envs"]:
-            env_meta, env_arrays = self.pool.get_state()
+        if env_state is not None:
+            env_meta, env_arrays = env_state
             meta["envs"] = env_meta
             for k, v in env_arrays.items():
                 arrays[f"envs/{k}"] = v
@@ -194,16 +245,18 @@ class SAC:
 
     @classmethod
     def load(cls, path: str | Path, env: EnvSource | None = None, which: str | None = None,
-             device: str | None = None) -> "SAC":
-        """Load a checkpoint directory or a run (its best checkpoint, else last)."""
+             device: str | None = None, env_workers: int | None = None) -> "SAC":
+        """Load a checkpoint directory or a run (its best checkpoint, else last). `device` and `env_workers`
+        replace the saved config's: neither changes what the agent computes."""
         directory = ckpt.resolve(path, which)
         meta, arrays = ckpt.load(directory)
         try:
             config = SACConfig().replace(**meta["config"])
         except SoftacError as exc:
             raise ckpt.CheckpointError(f"checkpoint {directory} has an invalid config: {exc}") from None
-        if device is not None:
-            config = config.replace(device=device)
+        overrides = {key: value for key, value in (("device", device), ("env_workers", env_workers))
+                     if value is not None}
+        config = config.replace(**overrides)
         agent = cls(config, env)
         agent.restore(meta, arrays, directory)
         return agent
@@ -224,7 +277,9 @@ class SAC:
             value = arrays.get(name)
             if value is None or value.shape != np.shape(template) or value.dtype != np.asarray(template).dtype:
                 raise ckpt.CheckpointError(f"checkpoint {where} does not match this config/env at {name}")
-            leaves.append(jnp.asarray(value))
+            # a copy the device owns: jnp.asarray may alias the NumPy array on CPU, and the update donates
+            # the state's buffers (older jaxlibs then corrupt the heap; seen with jax 0.4.30 and 0.5.3)
+            leaves.append(jnp.array(value, copy=True))
         self.state = jax.tree_util.tree_unflatten(treedef, leaves)
         self.run.restore(meta, arrays, where)
         if self.obs_norm is not None:
@@ -239,12 +294,9 @@ class SAC:
             self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
             self.buffer.load_state_dict({k[len("buffer/"):]: v for k, v in arrays.items() if k.startswith("buffer/")})
         if meta.get("has_envs"):
+            self.close_env_workers()
             self.pool = None
-            self.pool_started = True  # restored below, not reset
-            _, pool = self.training_parts()
-            env_arrays = {k[len("envs/"):]: v for k, v in arrays.items() if k.startswith("envs/")}
-            if not pool.set_state(meta["envs"], env_arrays, self.num_steps):
-                import warnings
-
-                warnings.warn(f"env {pool.name} cannot save its state, so resumed training starts fresh episodes "
-                              "(give its class save_state()/load_state() for an exact resume)", stacklevel=2)
+            self.pool_started = True  # restored from the checkpoint, not reset
+            self.parked_envs = (meta["envs"], {k[len("envs/"):]: v for k, v in arrays.items() if k.startswith("envs/")})
+            if self.config.env_workers == 0:  # in-process envs are restored now; worker processes start with learn()
+                self.training_parts()

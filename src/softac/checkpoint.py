@@ -40,6 +40,21 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def _write_npz(f: Any, arrays: dict[str, np.ndarray]) -> None:
+    """What np.savez writes (an uncompressed zip of .npy members, read back by np.load), with the zip closed
+    on every path: NumPy 1.x's savez leaves it open when a write fails (a full disk), and its finaliser
+    then prints a traceback at exit."""
+    zf = zipfile.ZipFile(f, "w", zipfile.ZIP_STORED, allowZip64=True)
+    try:
+        for key, value in arrays.items():
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asarray(value), allow_pickle=False)
+    finally:
+        with contextlib.suppress(Exception):  # the error that matters is the one raised above
+            zf.close()
+        zf.fp = None  # never closed again by the finaliser
+
+
 def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Path:
     """Write a checkpoint into `directory` (created if needed) atomically."""
     directory = Path(directory)
@@ -49,7 +64,7 @@ def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarr
     tmp = directory / f".{name}.tmp"
     try:
         with open(tmp, "wb") as f:
-            np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
+            _write_npz(f, arrays)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, final)

@@ -73,6 +73,9 @@ def build_parser() -> _Parser:
     t.add_argument("--steps", type=_positive_int, help="env steps to train (with --resume: steps to add)")
     t.add_argument("--seed", type=int)
     t.add_argument("--n-envs", type=_positive_int)
+    t.add_argument("--env-workers", type=_positive_int, metavar="K",
+                   help="step the n_envs envs in K worker processes (for slow simulators; the same results; "
+                        "with --resume too)")
     t.add_argument("--out", help="run directory (default runs/ENV/DATE-seedS)")
     t.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
     t.add_argument("--resume", metavar="DIR", help="continue the run in DIR exactly where it stopped")
@@ -82,6 +85,9 @@ def build_parser() -> _Parser:
     t.add_argument("--target-return", type=_finite_float, metavar="R",
                    help="stop once the deterministic eval mean reaches R")
     t.add_argument("--video", action="store_true", help="record the final policy to RUN/videos at the end")
+    t.add_argument("--logger", metavar="NAMES",
+                   help="where metrics go besides the CSV files: tensorboard (default), wandb, mlflow, comma-separated, "
+                        "or none (sets the loggers key; allowed with --resume)")
     bar = t.add_mutually_exclusive_group()
     bar.add_argument("--progress", dest="progress", action="store_true", default=None, help="force the progress bar")
     bar.add_argument("--no-progress", dest="progress", action="store_false", help="plain log lines instead")
@@ -112,6 +118,13 @@ def build_parser() -> _Parser:
     rp = sub.add_parser("report", help="one self-contained HTML page for a run")
     rp.add_argument("run", metavar="RUN")
     rp.add_argument("--out", help="HTML file (default RUN/report.html)")
+
+    x = sub.add_parser("export", help="the deterministic policy as ONNX or NumPy, to act without JAX")
+    x.add_argument("path", metavar="RUN_OR_CKPT")
+    x.add_argument("--format", choices=["onnx", "numpy"], default="onnx",
+                   help="onnx: policy.onnx (needs the [export] extra); numpy: policy.npz (default onnx)")
+    x.add_argument("--out", help="file to write (default RUN/export/policy.onnx or RUN/export/policy.npz)")
+    x.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
 
     b = sub.add_parser("baselines", help="random, zero and heuristic policies' returns")
     b.add_argument("--env", default="InvertedPendulum-v5")
@@ -155,7 +168,7 @@ def build_parser() -> _Parser:
 # ---- commands -----------------------------------------------------------------
 
 def _resolve_train_config(args: argparse.Namespace):
-    from softac.config import SACConfig
+    from softac.config import SACConfig, parse_overrides
 
     if args.config:
         config = SACConfig.from_yaml(args.config)
@@ -165,10 +178,11 @@ def _resolve_train_config(args: argparse.Namespace):
         config = SACConfig.preset(args.preset, env_id=args.env)
     else:
         config = SACConfig.for_env(args.env)
-    overrides = [pair for group in args.overrides for pair in group]
-    config = config.with_overrides(overrides)
-    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "device": args.device}
-    return config.replace(**{k: v for k, v in direct.items() if v is not None})
+    overrides = parse_overrides([pair for group in args.overrides for pair in group])
+    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "env_workers": args.env_workers,
+              "device": args.device, "loggers": args.logger}
+    # one replace, checked once: `--set env_workers=4 --n-envs 4` is valid though neither half is alone
+    return config.replace(**{**overrides, **{k: v for k, v in direct.items() if v is not None}})
 
 
 def _default_run_dir(config) -> Path:
@@ -203,6 +217,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from softac.agent import SAC
     from softac.buffer import check_buffer_memory
     from softac.rundir import check_new_run_dir
+    from softac.loggers import check_backends_installed, parse_backends
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -215,7 +230,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         if directory.parent.parent != run:
             raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
         pinned = _pin_cpus(args.cpus)
-        agent = SAC.load(run, which="last", device=args.device)
+        agent = SAC.load(run, which="last", device=args.device, env_workers=args.env_workers)
+        if args.logger is not None:  # where metrics go is not part of the experiment: it may change on resume
+            agent.config = agent.config.replace(loggers=args.logger)
         if args.steps is not None:
             steps = args.steps
         else:
@@ -225,6 +242,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         config = _resolve_train_config(args)
         run = Path(args.out) if args.out else _default_run_dir(config)
         check_new_run_dir(run)  # before JAX starts: a clash should fail fast
+        check_backends_installed(parse_backends(config.loggers))
         pinned = _pin_cpus(args.cpus)
         agent = SAC(config)
         per = agent.buffer_bytes_per_transition
@@ -240,7 +258,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.video:
         _record_video(run, which=None, out=None, episodes=1, deterministic=True)
     last = summary["last_eval"]
-    solved = " (target reached)" if summary["stopped_early"] else ""
+    solved = " (target reached)" if summary["stop_reason"] == "target_return" else ""
     eval_text = f"; last eval mean return {last:.1f}" if last is not None else ""
     print(f"done: {summary['steps']} steps in {summary['wall_s']:.1f}s{eval_text}{solved}; run in {run}",
           file=sys.stderr)
@@ -322,6 +340,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     if not run.is_dir():
         raise SoftacError(f"no such run directory: {run}")
     print(build_report(run, Path(args.out) if args.out else None))
+    return EXIT_OK
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from softac.export import export_policy
+
+    print(export_policy(args.path, args.out, args.format, which=args.checkpoint))
     return EXIT_OK
 
 
@@ -410,7 +435,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench, "plot": cmd_plot,
-            "video": cmd_video, "report": cmd_report, "baselines": cmd_baselines, "sweep": cmd_sweep}
+            "video": cmd_video, "report": cmd_report, "export": cmd_export, "baselines": cmd_baselines,
+            "sweep": cmd_sweep}
 
 
 def main(argv: list[str] | None = None) -> int:

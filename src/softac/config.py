@@ -40,6 +40,7 @@ class SACConfig:
     total_steps: int = _f(20_000, "environment steps (transitions, summed over vector envs) to train for")
     seed: int = _f(0, "seed for networks, exploration, replay sampling and environments")
     n_envs: int = _f(1, "environments stepped together (a vector env)")
+    env_workers: int = _f(0, "worker processes stepping the n_envs envs (0 = in-process, the default: MuJoCo's fast envs gain nothing); for slow simulators")
     device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
     # replay
     buffer_size: int = _f(1_000_000, "replay buffer capacity in transitions")
@@ -81,6 +82,7 @@ class SACConfig:
     eval_episodes: int = _f(10, "episodes per evaluation")
     log_interval: int = _f(1_000, "environment steps between progress.csv rows")
     checkpoint_interval: int = _f(10_000, "environment steps between checkpoints/last writes (0: only at the end)")
+    loggers: str = _f("tensorboard", "where metrics go besides the CSV files: tensorboard, wandb, mlflow (comma-separated), or none")
 
     # ---- construction -------------------------------------------------
 
@@ -136,17 +138,7 @@ class SACConfig:
 
     def with_overrides(self, pairs: list[str]) -> "SACConfig":
         """Apply `KEY=VALUE` strings (values parsed as YAML scalars)."""
-        values = {}
-        for pair in pairs:
-            if "=" not in pair:
-                raise ConfigError(f"--set expects KEY=VALUE, got '{pair}'")
-            key, raw = pair.split("=", 1)
-            key = override_key(key)
-            try:
-                values[key] = yaml.safe_load(raw) if raw.strip() else raw
-            except yaml.YAMLError:
-                values[key] = raw
-        return self.replace(**values)
+        return self.replace(**parse_overrides(pairs))
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -173,6 +165,8 @@ class SACConfig:
         need(self.total_steps >= 0, "total_steps", "must be >= 0")
         need(self.n_envs >= 1, "n_envs", "must be >= 1")
         need(self.n_envs <= 1024, "n_envs", "must be <= 1024")
+        need(0 <= self.env_workers <= self.n_envs, "env_workers",
+             f"must be between 0 (the envs stepped in-process) and n_envs={self.n_envs}")
         need(self.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")
         need(self.buffer_size >= 1, "buffer_size", "must be >= 1")
         need(self.batch_size >= 1, "batch_size", "must be >= 1")
@@ -211,6 +205,12 @@ class SACConfig:
         need(self.eval_episodes >= 1, "eval_episodes", "must be >= 1")
         need(self.log_interval >= 1, "log_interval", "must be >= 1")
         need(self.checkpoint_interval >= 0, "checkpoint_interval", "must be >= 0")
+        try:
+            from softac.loggers import parse_backends
+
+            parse_backends(self.loggers)
+        except SoftacError as exc:
+            raise ConfigError(f"loggers={self.loggers!r}: {exc}") from None
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
@@ -218,6 +218,21 @@ GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "sac-100k")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
                     "buffer_bytes_per_transition", "cpus", "machine")
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """`KEY=VALUE` strings (--set) as a dict, values parsed as YAML scalars; checked when applied."""
+    values = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ConfigError(f"--set expects KEY=VALUE, got '{pair}'")
+        key, raw = pair.split("=", 1)
+        key = override_key(key)
+        try:
+            values[key] = yaml.safe_load(raw) if raw.strip() else raw
+        except yaml.YAMLError:
+            values[key] = raw
+    return values
 
 
 def override_key(text: str) -> str:

@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import EnvSpec
 
 from softac.errors import RunFailed, SoftacError
 
@@ -36,9 +37,11 @@ class EnvFailed(EnvError, RunFailed):
     """An env that raised or returned non-finite values once the run had started (exit 3)."""
 
 
-def env_name(source: EnvSource) -> str:
+def env_name(source: EnvSource | EnvSpec) -> str:
     if isinstance(source, str):
         return source
+    if isinstance(source, EnvSpec):
+        return source.id
     spec = getattr(source, "spec", None)
     return spec.id if spec is not None else type(getattr(source, "unwrapped", source)).__name__
 
@@ -60,20 +63,20 @@ def resolve_env_id(env_id: str) -> str:
     return env_id
 
 
-def make_env(source: EnvSource, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
-    """A fresh env from an id, or the given instance itself. kwargs go to gym.make (e.g. width)."""
+def make_env(source: EnvSource | EnvSpec, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
+    """A fresh env from an id or a spec, or the given instance itself. kwargs go to gym.make (e.g. width)."""
     if isinstance(source, gym.Env):
         return _flatten_obs_if_needed(source)
-    if not isinstance(source, str):
+    if not isinstance(source, (str, EnvSpec)):
         raise EnvError(f"expected a Gymnasium env id or gym.Env instance, got {type(source).__name__}")
-    env_id = resolve_env_id(source)
+    env_id = resolve_env_id(source) if isinstance(source, str) else source
     if render_mode:
         kwargs["render_mode"] = render_mode
     try:
         with contextlib.redirect_stderr(io.StringIO()):
             env = gym.make(env_id, **kwargs)
     except Exception as exc:
-        raise EnvError(f"cannot make env '{env_id}': {type(exc).__name__}: {exc}".splitlines()[0]) from None
+        raise EnvError(f"cannot make env '{env_name(env_id)}': {type(exc).__name__}: {exc}".splitlines()[0]) from None
     return _flatten_obs_if_needed(env)
 
 
@@ -213,11 +216,15 @@ class StepResult:
 
 
 class EnvPool:
-    def __init__(self, make: Callable[[int], gym.Env], n: int, seed: int, name: str):
+    """`n` envs stepped one after the other. `first_index` is the index of its first env among all the run's
+    envs (an env worker's pool holds a slice of them), so each env's reset seeds are the same wherever it runs."""
+
+    def __init__(self, make: Callable[[int], gym.Env], n: int, seed: int, name: str, first_index: int = 0):
         self.name = name
         self.envs = [make(i) for i in range(n)]
         self.seed = seed
         self.n = n
+        self.first_index = first_index
         self.obs = np.zeros((n, int(np.prod(self.envs[0].observation_space.shape))), np.float32)
         self.episode_return = np.zeros(n, np.float64)
         self.episode_length = np.zeros(n, np.int64)
@@ -225,7 +232,7 @@ class EnvPool:
 
     def _reset_one(self, i: int, step: int) -> None:
         # a distinct seed per (env, reset), so an episode's start does not depend on the others
-        seed = (self.seed * 1_000_003 + i * 7919 + int(self.resets[i])) % (2**31)
+        seed = (self.seed * 1_000_003 + (self.first_index + i) * 7919 + int(self.resets[i])) % (2**31)
         try:
             obs, _ = self.envs[i].reset(seed=seed)
         except Exception as exc:
@@ -294,6 +301,10 @@ class EnvPool:
         else:
             self.reset(step)
         return exact
+
+    def apply(self, fn: Callable[[gym.Env], Any]) -> list[Any]:
+        """`fn(env)` for each env, in order (a callback's curriculum changes a physics parameter this way)."""
+        return [fn(env) for env in self.envs]
 
     def close(self) -> None:
         for env in self.envs:

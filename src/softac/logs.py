@@ -1,4 +1,5 @@
-"""What a run writes as it goes: the run directory's CSV files, TensorBoard events, and progress."""
+"""The run directory's CSV files (written through softac.loggers.CsvLogger, read by plots and reports) and the
+progress bar."""
 
 from __future__ import annotations
 
@@ -72,36 +73,6 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
-
-
-class RunLogger:
-    """progress.csv, episodes.csv, eval.csv and tb/ of one run directory."""
-
-    def __init__(self, run_dir: Path, resume_step: int | None = None):
-        self.run_dir = run_dir
-        self.progress = CsvLog(run_dir / "progress.csv", PROGRESS_COLUMNS, resume_step)
-        self.episodes = CsvLog(run_dir / "episodes.csv", EPISODE_COLUMNS, resume_step)
-        self.evals = CsvLog(run_dir / "eval.csv", EVAL_COLUMNS, resume_step)
-        self.tb = None
-        try:
-            from tensorboardX import SummaryWriter
-
-            self.tb = SummaryWriter(str(run_dir / "tb"), flush_secs=10)
-        except Exception:  # TensorBoard events are a convenience; never fail a run over them
-            self.tb = None
-
-    def scalars(self, prefix: str, values: dict[str, Any], step: int) -> None:
-        if self.tb is None:
-            return
-        for k, v in values.items():
-            if isinstance(v, (int, float)) and not (isinstance(v, float) and math.isnan(v)) and k != "step":
-                self.tb.add_scalar(f"{prefix}/{k}", v, step)
-
-    def close(self) -> None:
-        for log in (self.progress, self.episodes, self.evals):
-            log.close()
-        if self.tb is not None:
-            self.tb.close()
 
 
 class Progress:

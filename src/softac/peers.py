@@ -93,7 +93,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     from stable_baselines3.common.callbacks import BaseCallback
 
     from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-    from softac.logs import EPISODE_COLUMNS, EVAL_COLUMNS, PROGRESS_COLUMNS, CsvLog
+    from softac.loggers import CsvLogger
     from softac.rundir import write_config, write_summary
 
     SAC, kwargs = peer_sac(framework)
@@ -109,9 +109,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
               **{k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in hyper.items()},
               "policy_kwargs": str(model.policy_kwargs)}
     write_config(out, config, {"versions": {framework: peer_version(framework)}})
-    progress = CsvLog(out / "progress.csv", PROGRESS_COLUMNS)
-    episodes_log = CsvLog(out / "episodes.csv", EPISODE_COLUMNS)
-    evals = CsvLog(out / "eval.csv", EVAL_COLUMNS)
+    logs = CsvLogger(out)  # the same files as a softac run: plots, reports and sweep tables read both
     eval_envs = [gym.make(env_id) for _ in range(min(eval_episodes, MAX_PARALLEL))]
     t0 = time.perf_counter()
     state: dict[str, Any] = {"best": None, "best_step": None, "last": None, "episodes": 0, "recent": []}
@@ -119,36 +117,35 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     def evaluate(step: int) -> None:
         stats = run_episodes(lambda obs: model.predict(obs, deterministic=True)[0], lambda: gym.make(env_id),
                              eval_episodes, seed + EVAL_SEED_OFFSET, envs=eval_envs)
-        evals.write({"step": step, "mean_return": stats["mean_return"], "std_return": stats["std_return"],
-                     "episodes": stats["episodes"]})
+        logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
+                          "episodes": stats["episodes"]}, step)
         state["last"] = stats["mean_return"]
         if state["best"] is None or stats["mean_return"] > state["best"]:
             state["best"], state["best_step"] = stats["mean_return"], step
 
-    class Logger(BaseCallback):
+    class LogAndEvaluate(BaseCallback):
         def _on_step(self) -> bool:
             step = self.num_timesteps
             for info in self.locals.get("infos", []):
                 if "episode" in info:
                     state["episodes"] += 1
                     state["recent"] = (state["recent"] + [float(info["episode"]["r"])])[-100:]
-                    episodes_log.write({"step": step, "return": float(info["episode"]["r"]),
-                                        "length": int(info["episode"]["l"])})
+                    logs.log("rollout", {"return": float(info["episode"]["r"]), "length": int(info["episode"]["l"])},
+                             step)
             if step % log_interval == 0:
                 elapsed = time.perf_counter() - t0
-                progress.write({"step": step, "time_s": round(elapsed, 3), "fps": round(step / elapsed, 1),
-                                "episodes": state["episodes"],
-                                "return_mean": sum(state["recent"]) / len(state["recent"]) if state["recent"]
-                                else float("nan")})
+                logs.log("train", {"time_s": round(elapsed, 3), "fps": round(step / elapsed, 1),
+                                   "episodes": state["episodes"],
+                                   "return_mean": sum(state["recent"]) / len(state["recent"]) if state["recent"]
+                                   else float("nan")}, step)
             if eval_interval > 0 and step % eval_interval == 0:
                 evaluate(step)
             return True
 
-    model.learn(steps, callback=Logger())
+    model.learn(steps, callback=LogAndEvaluate())
     if eval_interval > 0 and steps % eval_interval != 0:
         evaluate(steps)
-    for log in (progress, episodes_log, evals):
-        log.close()
+    logs.close()
     for env in eval_envs:
         env.close()
     summary = {"steps": int(model.num_timesteps), "episodes": state["episodes"],

@@ -141,7 +141,7 @@ def plot_metric_grid(run: Path, out: Path) -> Path:
 
 def _config_key(config: dict[str, Any]) -> str:
     """What tells configurations apart: everything but the seed and bookkeeping."""
-    ignore = {"seed", "total_steps", "device", *RECORD_ONLY_KEYS}
+    ignore = {"seed", "total_steps", "device", "loggers", *RECORD_ONLY_KEYS}
     return json.dumps({k: v for k, v in sorted(config.items()) if k not in ignore}, sort_keys=True, default=str)
 
 
@@ -152,7 +152,7 @@ def _describe_differences(configs: list[dict[str, Any]]) -> list[str]:
     labels = []
     for c, framework in zip(configs, frameworks):
         same = [o for o, f in zip(configs, frameworks) if f == framework]
-        keys = sorted({k for o in same for k in o if k != "seed" and k not in RECORD_ONLY_KEYS})
+        keys = sorted({k for o in same for k in o if k not in ("seed", "loggers") and k not in RECORD_ONLY_KEYS})
         varying = [k for k in keys if len({json.dumps(o.get(k), default=str) for o in same}) > 1]
         parts = ([framework] if len(set(frameworks)) > 1 else []) + [f"{k}={_short(c.get(k))}" for k in varying]
         labels.append(", ".join(parts) if parts else str(c.get("env_id", "runs")))

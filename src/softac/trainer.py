@@ -22,7 +22,9 @@ from softac import checkpoint as ckpt
 from softac.cpus import usable_cpus
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-from softac.logs import Progress, RunLogger
+from softac.callbacks import CallbackList, TrainingInfo
+from softac.loggers import Loggers, check_backends_installed, parse_backends, run_loggers
+from softac.logs import Progress
 from softac.rundir import check_run_dir_for, checkpoint_path, versions, write_config, write_summary
 from softac.sac import Batch
 
@@ -70,8 +72,8 @@ def _check_finite(metrics: dict[str, float], step: int) -> None:
 
 class RunWriter:
     """What one training call writes into its run directory: the directory (made after the checks), its
-    config, its logs; checkpoints written atomically (a failed write keeps the previous one and fails the
-    run, exit 3); the summary at a normal end."""
+    config, its logs (the CSV files and the chosen logger backends); checkpoints written atomically (a
+    failed write keeps the previous one and fails the run, exit 3); the summary at a normal end."""
 
     def __init__(self, run: Path, config: dict[str, Any], extra: dict[str, Any], resume_step: int):
         try:
@@ -80,7 +82,7 @@ class RunWriter:
             raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
         self.run = run
         write_config(run, config, {"versions": versions(), **extra})
-        self.logs = RunLogger(run, resume_step=resume_step)
+        self.loggers = run_loggers(run, parse_backends(config["loggers"]), config, resume_step)
 
     def has_checkpoint(self, name: str) -> bool:
         return checkpoint_path(self.run, name).exists()
@@ -97,14 +99,17 @@ class RunWriter:
         write_summary(self.run, summary)
 
     def close(self) -> None:
-        self.logs.close()
+        Loggers(self.loggers).close()
 
 
 def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
-          progress: bool | None = None) -> dict[str, Any]:
-    """Train `agent` for `steps` more env steps; with `run_dir`, write the run directory as it goes."""
+          progress: bool | None = None, callbacks: list | None = None, loggers: list | None = None) -> dict[str, Any]:
+    """Train `agent` for `steps` more env steps; with `run_dir`, write the run directory as it goes.
+    `callbacks` (softac.callbacks.Callback) run at the loop's hooks; `loggers` (softac.loggers.Logger) get
+    every metrics record besides the run directory's own logs."""
     if steps < 0:
         raise SoftacError(f"steps must be >= 0, got {steps}")
+    check_backends_installed(parse_backends(agent.config.loggers) if run_dir is not None else [])
     cfg, fns, run_state = agent.config, agent.fns, agent.run
     buffer, pool = agent.training_parts()
     start_step = run_state.num_steps
@@ -119,7 +124,8 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
                  "cpus": len(usable_cpus()) or os.cpu_count()}
         writer = RunWriter(run, cfg.to_dict(), extra, resume_step=start_step)
         run_state.run_dir = run.resolve()
-    logs = writer.logs if writer is not None else None
+    all_loggers = (writer.loggers if writer is not None else []) + list(loggers or [])
+    logs = Loggers(all_loggers) if all_loggers else None
 
     recent = collections.deque(run_state.recent_returns, maxlen=RECENT_EPISODES)
     last_metrics: dict[str, Any] | None = None
@@ -130,7 +136,17 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     steps_at_last_log, time_at_last_log = start_step, wall0
     logged_at: int | None = None
     next_show = start_step
-    stopped_early = False
+    stop_reason = "steps"  # or target_return, or a callback's reason
+
+    def read_metrics() -> dict[str, float]:
+        return {k: float(v) for k, v in last_metrics.items()} if last_metrics is not None else {}
+
+    info = TrainingInfo(agent, start_step, end_step, run_state.run_dir if writer is not None else None,
+                        read_metrics)
+    try:
+        hooks = CallbackList(list(callbacks or []), info)
+    except TypeError as exc:
+        raise SoftacError(str(exc)) from None
 
     def elapsed() -> float:
         return time0 + time.perf_counter() - wall0
@@ -142,7 +158,10 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
             _check_finite({k: float(v) for k, v in last_metrics.items()}, run_state.num_steps)
         run_state.train_time_s = elapsed()
         run_state.recent_returns = list(recent)
-        return writer.save_checkpoint(name, *agent.checkpoint_parts(include_buffer=with_buffer))
+        path = writer.save_checkpoint(name, *agent.checkpoint_parts(include_buffer=with_buffer))
+        if hooks:
+            hooks.call("on_checkpoint", name, path)
+        return path
 
     # ---- the steps of the loop -------------------------------------------------------------
 
@@ -171,8 +190,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
             run_state.num_episodes += 1
             recent.append(episode_return)
             if logs is not None:
-                logs.episodes.write({"step": after, "return": round(episode_return, 6), "length": length})
-                logs.scalars("rollout", {"episode_return": episode_return, "episode_length": length}, after)
+                logs.log("rollout", {"return": round(episode_return, 6), "length": length}, after)
         return before, after
 
     def learn(after: int) -> None:
@@ -194,12 +212,13 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
             return None
         run_state.last_eval, run_state.last_eval_step = stats["mean_return"], step
         if logs is not None:
-            logs.evals.write({"step": step, "mean_return": stats["mean_return"],
-                              "std_return": stats["std_return"], "episodes": stats["episodes"]})
-            logs.scalars("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"]}, step)
+            logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
+                              "episodes": stats["episodes"]}, step)
         if run_state.best_eval is None or stats["mean_return"] > run_state.best_eval:
             run_state.best_eval, run_state.best_step = stats["mean_return"], step
             save_checkpoint("best", with_buffer=False)
+        if hooks:
+            hooks.call("on_eval", stats)
         return stats
 
     def log_row(step: int) -> None:
@@ -216,26 +235,33 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
             _check_finite(values, step)
             row.update(values)
         if logs is not None:
-            logs.progress.write(row)
-            logs.scalars("train", row, step)
+            logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
 
-    def on_intervals(before: int, after: int, stop: StopSignal) -> bool:
-        """The work due every log, eval and checkpoint interval; True when the target return was reached."""
+    def on_intervals(before: int, after: int, stop: StopSignal) -> str | None:
+        """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training
+        should stop now (target_return or a callback's reason), else None."""
         reached = False
         if crossed(before, after, cfg.log_interval):
             log_row(after)
         if crossed(before, after, cfg.eval_interval):
             stats = evaluate_now(after, stop)
             reached = stats is not None and target_return is not None and stats["mean_return"] >= target_return
-        if crossed(before, after, cfg.checkpoint_interval) and not reached:  # (saved below when stopping)
+        if hooks:
+            hooks.call("on_step")
+        stopping = reached or info.stop_reason is not None
+        if crossed(before, after, cfg.checkpoint_interval) and not stopping:  # (saved below when stopping)
             save_checkpoint("last", with_buffer=True)
-        return reached
+        if reached:
+            return "target_return"
+        return f"callback: {info.stop_reason}" if info.stop_reason is not None else None
 
     try:
         with StopSignal() as stop:
+            if hooks and hooks.call("on_training_start"):
+                stop_reason = f"callback: {info.stop_reason}"
             if writer is not None and not writer.has_checkpoint("last"):
                 save_checkpoint("last", with_buffer=True)  # from its first moment a run holds a loadable checkpoint
-            while run_state.num_steps < end_step:
+            while run_state.num_steps < end_step and stop_reason == "steps":
                 if stop.requested:
                     where = save_checkpoint("last", with_buffer=True)
                     raise TrainingInterrupted(run_state.num_steps, where)
@@ -248,12 +274,10 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
                     agent.state = fns.reset(agent.state, cfg.seed, before // cfg.reset_interval)
                 before, after = collect()
                 learn(after)
-                stopped_early = on_intervals(before, after, stop)
-                if after >= next_show or stopped_early:  # the bar redraws at most every SHOW_EVERY steps
+                stop_reason = on_intervals(before, after, stop) or stop_reason
+                if after >= next_show or stop_reason != "steps":  # the bar redraws at most every SHOW_EVERY steps
                     next_show = after + SHOW_EVERY
                     show.update(after, ret=float(np.mean(recent)) if recent else None, eval=run_state.last_eval)
-                if stopped_early:
-                    break
 
             final_step = run_state.num_steps
             if final_step > start_step and logged_at != final_step:
@@ -281,11 +305,14 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
         "wall_s": time.perf_counter() - wall0,
         "last_eval": run_state.last_eval,
         "best_eval": run_state.best_eval,
-        "stopped_early": stopped_early,
+        "stopped_early": stop_reason != "steps",
+        "stop_reason": stop_reason,
         "recent_return_mean": float(np.mean(recent)) if recent else None,
         "best_step": run_state.best_step,
         "total_steps": cfg.total_steps,
     }
     if writer is not None:
         writer.write_summary(summary)
+    if hooks:
+        hooks.call("on_training_end", summary)
     return summary

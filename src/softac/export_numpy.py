@@ -1,0 +1,53 @@
+"""The forward pass of a policy exported with `softac export RUN --format numpy`, in NumPy alone.
+
+This module imports nothing but NumPy, so it can be copied into any project:
+
+    params = dict(np.load("policy.npz"))
+    action = policy_forward(params, obs)   # obs [obs_dim] or [batch, obs_dim]; action in the env's bounds
+
+policy.npz holds
+    obs_mean, obs_std, obs_clip   float32: observation normalisation, only when the run had obs_norm
+    w0, b0, ..., wN, bN           float32: the actor's layers; the last gives the mean action before tanh
+                                  (CrossQ's batch renormalisation is folded into the weights)
+    action_low, action_high       float32: the env's action bounds
+    activation                    the hidden activation's name: relu, tanh, elu or gelu
+and, for the record, env_id, step (the checkpoint's env step) and softac_version.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SQRT_2_OVER_PI = np.float32(np.sqrt(2.0 / np.pi))
+
+
+def gelu(x: np.ndarray) -> np.ndarray:
+    """GELU's tanh approximation, the form jax.nn.gelu computes by default (approximate=True)."""
+    return x * (0.5 * (1.0 + np.tanh(SQRT_2_OVER_PI * (x + 0.044715 * (x * x * x)))))
+
+
+def elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+ACTIVATIONS = {"relu": lambda x: np.maximum(x, 0), "tanh": np.tanh, "elu": elu, "gelu": gelu}
+
+
+def layer_count(params: dict) -> int:
+    return sum(1 for key in params if key.startswith("w") and key[1:].isdigit())
+
+
+def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
+    """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
+    x = np.asarray(obs, np.float32)
+    if "obs_mean" in params:
+        clip = params["obs_clip"]
+        x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)
+    activation = ACTIVATIONS[str(params["activation"])]
+    n_layers = layer_count(params)
+    for i in range(n_layers):
+        x = x @ params[f"w{i}"] + params[f"b{i}"]
+        if i < n_layers - 1:
+            x = activation(x)
+    low, high = params["action_low"], params["action_high"]
+    return np.clip((high + low) / 2.0 + (high - low) / 2.0 * np.tanh(x), low, high)
