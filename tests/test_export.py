@@ -24,6 +24,10 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     "obs_norm": lambda: tiny_config(DRIFT, learning_starts=100, obs_norm=True),
     # 7 action dimensions: the mean's columns are cut from the actor's [mean, log_std] output correctly
     "crossq": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, obs_norm=True),
+    # bf16 matmuls in the 32x32 hidden layer (and in Pusher's 23x32 input layer, its batch renormalisation
+    # then kept apart from the weights): the export rounds as JAX does
+    "sac-bf16": lambda: tiny_config(DRIFT, learning_starts=100, obs_norm=True, matmul_dtype="bfloat16"),
+    "crossq-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, matmul_dtype="bfloat16"),
 }
 
 
@@ -72,6 +76,20 @@ def assert_exports_act_as_predict(agent: SAC, directory: Path, obs: np.ndarray, 
     np.testing.assert_allclose(numpy_actions(numpy_path, obs[0]), expected[0], rtol=0, atol=atol)  # one obs
 
 
+def jitted_bf16_layers_round_as_the_export() -> bool:
+    """Whether a jitted bf16 layer of this JAX computes what the export's forward pass does (inputs rounded to
+    bf16, a float32 sum): so on current JAX; JAX 0.4.30 rounds the jitted layer's result to bf16 as well."""
+    from softac.export_numpy import round_bf16
+    from softac.networks import dense
+
+    rng = np.random.default_rng(0)
+    x, layer = rng.normal(size=(64, 32)).astype(np.float32), {"w": rng.normal(size=(32, 32)).astype(np.float32),
+                                                             "b": np.zeros(32, np.float32)}
+    jitted = np.asarray(jax.jit(lambda x, layer: jax.nn.relu(dense(x, layer, "bfloat16")))(x, layer))
+    emulated = np.maximum(round_bf16(x) @ round_bf16(layer["w"]), 0)
+    return bool(np.abs(jitted - emulated).max() < 1e-4)
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """trained(kind) -> (agent, its run directory), trained once per kind for this module."""
@@ -101,7 +119,38 @@ def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     # JAX before 0.5 (make test-min) rounds the batch-norm layers' float32 arithmetic differently from the
     # export's float64 fold: one action in ~2000 is off by up to 1.2e-5 there
     old_jax = tuple(int(p) for p in jax.__version__.split(".")[:2]) < (0, 5)
-    assert_exports_act_as_predict(agent, tmp_path, obs, atol=2e-5 if kind == "crossq" and old_jax else 1e-5)
+    if kind.endswith("bf16") and not jitted_bf16_layers_round_as_the_export():
+        # this JAX (0.4.30 does) rounds a jitted bf16 layer's result too: the export, which follows current
+        # JAX, is only as close as bf16 rounding, which CrossQ's normalisation can magnify (0.09 seen)
+        if kind == "crossq-bf16":
+            pytest.skip("this JAX's jitted bf16 layers round their results; the export follows current JAX")
+        assert_exports_act_as_predict(agent, tmp_path, obs, atol=2e-2)
+        return
+    if kind != "crossq-bf16":
+        assert_exports_act_as_predict(agent, tmp_path, obs, atol=2e-5 if kind == "crossq" and old_jax else 1e-5)
+        return
+    # a float32 sum's last bit can differ from XLA's and fall on a bf16 rounding boundary: rare
+    # observations are off by ~1e-4-1e-3, the rest match (a float32 export is off by ~1e-2 on most)
+    expected = agent.predict(obs)
+    for actions in (onnx_actions(export_policy(agent, tmp_path / "policy.onnx", "onnx"), obs),
+                    numpy_actions(export_policy(agent, tmp_path / "policy.npz", "numpy"), obs)):
+        error = np.abs(actions - expected).max(axis=1)
+        assert np.mean(error <= 1e-5) >= 0.98 and error.max() < 5e-3, (np.mean(error <= 1e-5), error.max())
+
+
+def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
+    def arrays(**extra):
+        path = export_policy(SAC(tiny_config("Pusher-v5", **extra)), tmp_path / "policy.npz", "numpy")
+        with np.load(path) as npz:
+            return dict(npz)
+
+    assert "bf16" not in arrays()
+    # layers 23x32, 32x32, 32x14: the thin output layer stays in float32, as networks.dense keeps it
+    assert arrays(matmul_dtype="bfloat16")["bf16"].tolist() == [1, 1, 0]
+    crossq = arrays(matmul_dtype="bfloat16", crossq=True)
+    assert {"n0_mean", "n1_inv_std", "n1_scale", "n1_bias"} <= set(crossq) and "n2_mean" not in crossq
+    w = crossq["w1"].view(np.uint32)
+    assert not np.any(w & 0xFFFF)  # bf16 weights: the low 16 bits of each float32 are zero
 
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "gelu"])
@@ -110,15 +159,6 @@ def test_every_activation_matches_jax(activation, tmp_path):
     agent = SAC(tiny_config(DRIFT, activation=activation))
     obs = np.random.default_rng(0).normal(scale=3.0, size=(300, 2)).astype(np.float32)
     assert_exports_act_as_predict(agent, tmp_path, obs)
-
-
-def test_bfloat16_runs_export_in_float32_within_bf16_rounding(tmp_path):
-    agent = SAC(tiny_config(DRIFT, matmul_dtype="bfloat16"))
-    obs = np.random.default_rng(0).normal(scale=3.0, size=(300, 2)).astype(np.float32)
-    expected = agent.predict(obs)
-    actions = numpy_actions(export_policy(agent, tmp_path / "policy.npz", "numpy"), obs)
-    # bf16 keeps 8 significant bits (relative error 2^-9 per input); 1% of the action range is ample
-    np.testing.assert_allclose(actions, expected, rtol=0, atol=0.01 * 4.0)
 
 
 def _checkpoint_digests(run: Path) -> dict[str, str]:
@@ -200,3 +240,13 @@ def test_the_readme_forward_pass_is_the_modules(tmp_path):
     with np.load(export_policy(agent, tmp_path / "policy.npz", "numpy")) as npz:
         actions = readme_module["policy_forward"](dict(npz), obs)
     np.testing.assert_allclose(actions, agent.predict(obs), rtol=0, atol=1e-5)
+
+    # bf16 layers and CrossQ's kept-apart normalisation: the README's pass is the module's to the bit
+    from softac.export_numpy import policy_forward
+
+    agent = SAC(tiny_config("Pusher-v5", crossq=True, obs_norm=True, matmul_dtype="bfloat16"))
+    obs = rng.normal(scale=2.0, size=(100, agent.spaces.obs_dim)).astype(np.float32)
+    with np.load(export_policy(agent, tmp_path / "bf16.npz", "numpy")) as npz:
+        params = dict(npz)
+    assert "bf16" in params and "n0_mean" in params
+    np.testing.assert_array_equal(readme_module["policy_forward"](params, obs), policy_forward(params, obs))

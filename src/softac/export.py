@@ -3,8 +3,10 @@
 Both formats hold the same float32 arrays (`policy_arrays`, laid out as softac.export_numpy describes):
 observation normalisation (obs_norm), the actor's layers up to the mean action, and the action bounds;
 the graph computes what `softac.export_numpy.policy_forward` does, which is what
-`agent.predict(obs, deterministic=True)` does. Runs trained with bfloat16 matmuls are exported in float32:
-their actions differ from predict()'s by bf16 rounding of the hidden layers' inputs.
+`agent.predict(obs, deterministic=True)` does, bf16 matmuls included: an agent whose hidden layers multiply
+in bfloat16 (matmul_dtype bfloat16, or auto where it picks bf16) is exported with those layers' weights
+rounded to bf16 and their inputs rounded to bf16 in the forward pass, so its actions match predict()'s
+rather than a float32 network's, which differ by up to a few hundredths.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ import numpy as np
 from softac import __version__
 from softac.checkpoint import is_checkpoint
 from softac.errors import SoftacError
-from softac.export_numpy import layer_count
+from softac.export_numpy import layer_count, round_bf16
+from softac.networks import multiplies_in_bf16
 from softac.normalization import EPSILON
 from softac.rundir import write_atomic
 
@@ -61,26 +64,51 @@ def check_target(path: Path, format: str) -> None:
 
 # ---- the arrays -------------------------------------------------------------------
 
-def _fold_batch_renorm(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """(w, b) of one dense layer with its input's batch renormalisation (evaluation mode: running statistics)
-    folded in: ((x - mean) / sqrt(var + eps) * scale + bias) @ w + b == x @ (s[:, None] * w) + (t @ w + b),
-    with s = scale / sqrt(var + eps) and t = bias - mean * s. Folded in float64, then rounded once."""
-    w, b = np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
+def _batch_renorm_affine(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(s, t) with a layer input's batch renormalisation (evaluation mode: running statistics) equal to
+    x * s + t: s = scale / sqrt(var + eps), t = bias - mean * s, in float64."""
     s = np.asarray(layer["norm_scale"], np.float64) / np.sqrt(np.asarray(stats["var"], np.float64) + eps)
-    t = np.asarray(layer["norm_bias"], np.float64) - np.asarray(stats["mean"], np.float64) * s
+    return s, np.asarray(layer["norm_bias"], np.float64) - np.asarray(stats["mean"], np.float64) * s
+
+
+def _batch_renorm_steps(layer: dict, stats: dict, eps: float) -> dict[str, np.ndarray]:
+    """A layer input's batch renormalisation as networks.BatchRenorm computes it in evaluation mode, step by
+    step in float32 ((x - mean) * inv_std * scale + bias, inv_std from JAX's own rsqrt): the values a bf16
+    layer then rounds are JAX's to the last bit, so the rounding is too."""
+    import jax
+
+    inv_std = jax.lax.rsqrt(jax.numpy.asarray(stats["var"], np.float32) + np.float32(eps))
+    return {"mean": np.asarray(stats["mean"], np.float32), "inv_std": np.asarray(inv_std, np.float32),
+            "scale": np.asarray(layer["norm_scale"], np.float32), "bias": np.asarray(layer["norm_bias"], np.float32)}
+
+
+def _fold_batch_renorm(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(w, b) of one dense layer with its input's batch renormalisation folded in:
+    (x * s + t) @ w + b == x @ (s[:, None] * w) + (t @ w + b). Folded in float64, then rounded once."""
+    w, b = np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
+    s, t = _batch_renorm_affine(layer, stats, eps)
     return (s[:, None] * w).astype(np.float32), (t @ w + b).astype(np.float32)
 
 
-def _actor_layers(agent: SAC) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The actor's (w, b) per layer, the last cut to the mean action's columns (the log-std is not needed)."""
+def _actor_layers(agent: SAC) -> list[dict[str, np.ndarray]]:
+    """The actor's layers as export_numpy lays them out (w, b; norm, the input's batch renormalisation of a
+    CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns (the log-std is not needed)."""
     actor, norm = agent.state.actor, agent.fns.policy.norm
-    if norm is None:
-        layers = [(np.asarray(layer["w"], np.float32), np.asarray(layer["b"], np.float32)) for layer in actor]
-    else:
-        layers = [_fold_batch_renorm(layer, stats, norm.eps) for layer, stats in zip(actor, agent.state.actor_stats)]
-    w, b = layers[-1]
+    stats = agent.state.actor_stats if norm is not None else [None] * len(actor)
+    layers = []
+    for layer, layer_stats in zip(actor, stats):
+        bf16 = multiplies_in_bf16(np.shape(layer["w"]), agent.fns.matmul_dtype)
+        entry = {"w": np.asarray(layer["w"], np.float32), "b": np.asarray(layer["b"], np.float32), "bf16": bf16}
+        if norm is not None and bf16:  # folded, the weights would be rounded after scaling: not what JAX does
+            entry["norm"] = _batch_renorm_steps(layer, layer_stats, norm.eps)
+        elif norm is not None:
+            entry["w"], entry["b"] = _fold_batch_renorm(layer, layer_stats, norm.eps)
+        if bf16:
+            entry["w"] = round_bf16(entry["w"])
+        layers.append(entry)
     act_dim = agent.spaces.act_dim
-    layers[-1] = (np.ascontiguousarray(w[:, :act_dim]), np.ascontiguousarray(b[:act_dim]))
+    layers[-1]["w"] = np.ascontiguousarray(layers[-1]["w"][:, :act_dim])
+    layers[-1]["b"] = np.ascontiguousarray(layers[-1]["b"][:act_dim])
     return layers
 
 
@@ -92,8 +120,13 @@ def policy_arrays(agent: SAC) -> dict[str, np.ndarray]:
         arrays["obs_mean"] = agent.obs_norm.mean.astype(np.float32)
         arrays["obs_std"] = np.sqrt(agent.obs_norm.var + EPSILON).astype(np.float32)
         arrays["obs_clip"] = np.asarray(agent.obs_norm.clip, np.float32)
-    for i, (w, b) in enumerate(_actor_layers(agent)):
-        arrays[f"w{i}"], arrays[f"b{i}"] = w, b
+    layers = _actor_layers(agent)
+    for i, layer in enumerate(layers):
+        arrays[f"w{i}"], arrays[f"b{i}"] = layer["w"], layer["b"]
+        for key, value in layer.get("norm", {}).items():
+            arrays[f"n{i}_{key}"] = value
+    if any(layer["bf16"] for layer in layers):
+        arrays["bf16"] = np.array([layer["bf16"] for layer in layers], np.int8)
     arrays["activation"] = np.asarray(agent.config.activation)
     arrays["action_low"] = agent.scaler.low.astype(np.float32)
     arrays["action_high"] = agent.scaler.high.astype(np.float32)
@@ -157,7 +190,15 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         clip = float(arrays["obs_clip"])
         x = g.op("Clip", x, g.const("obs_clip_low", -clip), g.const("obs_clip_high", clip))
     n_layers = layer_count(arrays)
+    bf16 = arrays.get("bf16", np.zeros(n_layers, np.int8))
     for i in range(n_layers):
+        if f"n{i}_mean" in arrays:
+            x = g.op("Mul", g.op("Sub", x, g.const(f"n{i}_mean", arrays[f"n{i}_mean"])),
+                     g.const(f"n{i}_inv_std", arrays[f"n{i}_inv_std"]))
+            x = g.op("Add", g.op("Mul", x, g.const(f"n{i}_scale", arrays[f"n{i}_scale"])),
+                     g.const(f"n{i}_bias", arrays[f"n{i}_bias"]))
+        if bf16[i]:  # rounded to bf16 and back, as the run's bf16 matmul sees its input
+            x = g.op("Cast", g.op("Cast", x, to=onnx.TensorProto.BFLOAT16), to=onnx.TensorProto.FLOAT)
         x = g.op("Add", g.op("MatMul", x, g.const(f"w{i}", arrays[f"w{i}"])), g.const(f"b{i}", arrays[f"b{i}"]))
         if i < n_layers - 1:
             x = _onnx_activation(g, str(arrays["activation"]), x)

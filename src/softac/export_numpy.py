@@ -9,6 +9,10 @@ policy.npz holds
     obs_mean, obs_std, obs_clip   float32: observation normalisation, only when the run had obs_norm
     w0, b0, ..., wN, bN           float32: the actor's layers; the last gives the mean action before tanh
                                   (CrossQ's batch renormalisation is folded into the weights)
+    bf16                          int8, one per layer, only for runs with bf16 matmuls: 1 where the layer
+                                  multiplies in bfloat16 (its input is rounded to bf16; its w already is)
+    nI_mean, nI_inv_std,          float32, only for a CrossQ layer I that multiplies in bf16: its input's batch
+    nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values)
     action_low, action_high       float32: the env's action bounds
     activation                    the hidden activation's name: relu, tanh, elu or gelu
 and, for the record, env_id, step (the checkpoint's env step) and softac_version.
@@ -37,6 +41,13 @@ def layer_count(params: dict) -> int:
     return sum(1 for key in params if key.startswith("w") and key[1:].isdigit())
 
 
+def round_bf16(x: np.ndarray) -> np.ndarray:
+    """`x` rounded to bfloat16's 8 significant bits (to nearest, ties to even), kept in float32: what a
+    cast to bf16 and back does, as the hidden layers of a run trained with bf16 matmuls see their inputs."""
+    bits = np.ascontiguousarray(x, np.float32).view(np.uint32)
+    return ((bits + np.uint32(0x7FFF) + ((bits >> 16) & np.uint32(1))) & np.uint32(0xFFFF0000)).view(np.float32)
+
+
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
     x = np.asarray(obs, np.float32)
@@ -45,7 +56,12 @@ def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
         x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)
     activation = ACTIVATIONS[str(params["activation"])]
     n_layers = layer_count(params)
+    bf16 = params.get("bf16", np.zeros(n_layers, np.int8))
     for i in range(n_layers):
+        if f"n{i}_mean" in params:
+            x = (x - params[f"n{i}_mean"]) * params[f"n{i}_inv_std"] * params[f"n{i}_scale"] + params[f"n{i}_bias"]
+        if bf16[i]:
+            x = round_bf16(x)
         x = x @ params[f"w{i}"] + params[f"b{i}"]
         if i < n_layers - 1:
             x = activation(x)

@@ -103,11 +103,15 @@ def _bf16_matmul_bwd(residuals, g: jax.Array):
 bf16_matmul.defvjp(_bf16_matmul_fwd, _bf16_matmul_bwd)
 
 
-def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
+def multiplies_in_bf16(weight_shape: tuple[int, ...], matmul_dtype: str) -> bool:
     # mixed precision only where the FLOPs are: hidden-to-hidden layers. The input and output
     # layers are thin (a few columns), cost little, and keep full precision for obs and Q-values.
+    return matmul_dtype != "float32" and min(weight_shape[-2:]) >= 16
+
+
+def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
     w = layer["w"]
-    if matmul_dtype == "float32" or min(w.shape[-2:]) < 16:
+    if not multiplies_in_bf16(w.shape, matmul_dtype):
         return x @ w + layer["b"]
     return bf16_matmul(x, w) + layer["b"]
 
