@@ -21,7 +21,6 @@ from softac import __version__
 from softac.checkpoint import is_checkpoint
 from softac.errors import SoftacError
 from softac.export_numpy import layer_count, round_bf16
-from softac.networks import multiplies_in_bf16
 from softac.normalization import EPSILON
 from softac.rundir import write_atomic
 
@@ -64,18 +63,11 @@ def check_target(path: Path, format: str) -> None:
 
 # ---- the arrays -------------------------------------------------------------------
 
-def _batch_renorm_affine(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """(s, t) with a layer input's batch renormalisation (evaluation mode: running statistics) equal to
-    x * s + t: s = scale / sqrt(var + eps), t = bias - mean * s, in float64."""
-    s = np.asarray(layer["norm_scale"], np.float64) / np.sqrt(np.asarray(stats["var"], np.float64) + eps)
-    return s, np.asarray(layer["norm_bias"], np.float64) - np.asarray(stats["mean"], np.float64) * s
-
-
 def _batch_renorm_steps(layer: dict, stats: dict, eps: float) -> dict[str, np.ndarray]:
     """A layer input's batch renormalisation as networks.BatchRenorm computes it in evaluation mode, step by
     step in float32 ((x - mean) * inv_std * scale + bias, inv_std from JAX's own rsqrt): the values a bf16
     layer then rounds are JAX's to the last bit, so the rounding is too."""
-    import jax
+    import jax  # here, not at the top: `softac export` checks its inputs before JAX loads
 
     inv_std = jax.lax.rsqrt(jax.numpy.asarray(stats["var"], np.float32) + np.float32(eps))
     return {"mean": np.asarray(stats["mean"], np.float32), "inv_std": np.asarray(inv_std, np.float32),
@@ -83,16 +75,21 @@ def _batch_renorm_steps(layer: dict, stats: dict, eps: float) -> dict[str, np.nd
 
 
 def _fold_batch_renorm(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """(w, b) of one dense layer with its input's batch renormalisation folded in:
-    (x * s + t) @ w + b == x @ (s[:, None] * w) + (t @ w + b). Folded in float64, then rounded once."""
+    """(w, b) of one dense layer with its input's batch renormalisation (evaluation mode: running statistics)
+    folded in: ((x - mean) / sqrt(var + eps) * scale + bias) @ w + b == x @ (s[:, None] * w) + (t @ w + b),
+    with s = scale / sqrt(var + eps) and t = bias - mean * s. Folded in float64, then rounded once."""
     w, b = np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
-    s, t = _batch_renorm_affine(layer, stats, eps)
+    s = np.asarray(layer["norm_scale"], np.float64) / np.sqrt(np.asarray(stats["var"], np.float64) + eps)
+    t = np.asarray(layer["norm_bias"], np.float64) - np.asarray(stats["mean"], np.float64) * s
     return (s[:, None] * w).astype(np.float32), (t @ w + b).astype(np.float32)
 
 
 def _actor_layers(agent: SAC) -> list[dict[str, np.ndarray]]:
     """The actor's layers as export_numpy lays them out (w, b; norm, the input's batch renormalisation of a
-    CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns (the log-std is not needed)."""
+    CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns
+    (the log-std is not needed)."""
+    from softac.networks import multiplies_in_bf16  # imports JAX, which the agent has loaded by now
+
     actor, norm = agent.state.actor, agent.fns.policy.norm
     stats = agent.state.actor_stats if norm is not None else [None] * len(actor)
     layers = []
