@@ -1,0 +1,230 @@
+"""How far a float32 evaluation of an agent's deterministic policy can be from the exact one.
+
+`action_bound(agent, obs)` gives the float64 reference of what agent.predict(obs, deterministic=True)
+computes and a bound on how far ANY float32 evaluation of that network can be from it, per observation
+and action dimension: XLA on any CPU (any summation order, FMA or not, any vector width), the exported
+NumPy forward pass and onnxruntime's graph alike. Two float32 programs then differ by at most twice the
+bound, whatever order their sums run in, so the export tests compare each program with the reference
+instead of one CPU's result with another's through a fixed tolerance.
+
+The model is the standard forward error analysis (Higham, Accuracy and Stability of Numerical
+Algorithms, ch. 3), carried layer by layer as a vector `e` of bounds on |computed - reference|:
+
+* a dot product of length n plus a bias, computed in float32 in any order, with or without FMA:
+  |fl(x.w + b) - (x.w + b)| <= gamma_{n+1} (|x|.|w| + |b|), gamma_k = k u / (1 - k u), u = 2^-24;
+  the magnitudes |x| are those of the computed inputs, |x_ref| + e;
+* an input error e becomes e @ |W| after the layer; an activation f carries it on as the spread of f over
+  [x_ref - e, x_ref + e] (relu, tanh, elu and clips are monotone, gelu is on either side of its minimum:
+  a dead relu or a saturated tanh passes no error on) and adds its own evaluation error (bounds below);
+* elementwise normalisations cost a few u of the magnitudes involved: obs_norm's (x - mean) / std, CrossQ's
+  batch renormalisation (x - mean) * rsqrt(var + eps) * scale + bias; clips are 1-Lipschitz;
+* bf16 layers (networks.multiplies_in_bf16) round their inputs to bfloat16 (8 significant bits) before an
+  exact bf16 x bf16 product and a float32 sum. The reference rounds its own input the same way. Rounding
+  is monotone, so a computed input within e of x_ref rounds to a value between round(x_ref - e) and
+  round(x_ref + e): where that interval holds no rounding boundary, to the reference's own bf16 value (no
+  error left), else at most one bf16 step away. Rare observations near a boundary get a bound as large as
+  their true error can be, the others keep a float32-sized one;
+* CrossQ's batch renormalisation: JAX evaluates it as written, before the dot; the export folds it into
+  the float32 layers' weights in float64 (export._fold_batch_renorm) and rounds them once, which rounds
+  differently. Each layer's rounding term is the larger of the two programs' terms, so the bound covers
+  both (a bound built from the exported, folded arrays would understate JAX's error where x ~ mean).
+
+Second-order terms (products of two rounding errors, ~1e-14 relative) are left out: first order.
+Underflow: XLA may flush subnormals to zero; each layer carries an absolute 2^-126-sized term for it.
+Out of scope: GPU float32 matmuls, which JAX runs in TF32 on recent NVIDIA GPUs by default (inputs
+rounded to 11 bits); the tests act on the CPU.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+U = 2.0**-24  # float32's unit roundoff (round to nearest)
+TINY = 2.0**-126  # float32's smallest normal number: what a flush of a subnormal can cost
+
+# The transcendentals' evaluation error, |computed - exact| <= ABS + REL * |f(x)| for a float32 input x.
+# Measured once against float64 on a dense float32 grid (29 million points in [-30, 30], every 61st float32 by
+# bits) with XLA's CPU kernels (default ISA, AVX2 and SSE4_2), NumPy and onnxruntime 1.32: worst relative
+# errors tanh 5.9u (XLA under SSE4_2; 4.8u otherwise; onnxruntime 5.2u, NumPy 1.8u), elu 5.8u (XLA;
+# onnxruntime's exp(x) - 1 is off by 1u absolute, not relative, near 0), rsqrt 2.7u; gelu (below) 3.9u |x|.
+# These functions are rational or polynomial approximations evaluated in float32 (XLA's CPU tanh is one,
+# clamped to +-1 beyond |x| ~ 9): a couple of u of approximation error plus about one u per arithmetic
+# step of the evaluation, a property of the algorithm, not of one CPU; the bounds below take 16u, about
+# three times the worst seen, for an evaluation order or FMA use that differs on another CPU.
+ACT_ABS = 4 * U  # near 0 (exp(x) - 1, or a polynomial's absolute error around a zero of f)
+ACT_REL = 16 * U
+# gelu is x * 0.5 * (1 + tanh(z)): where tanh(z) ~ -1 the sum cancels, so its error is relative to |x|, not to
+# |gelu(x)| (measured: 3.9u |x| at most, XLA and onnxruntime; 1.9u NumPy). 16u |x| covers tanh's 16u
+# plus the rounding of z (5 operations, times |z| sech^2(z) <= 0.45) and of the products.
+GELU_REL_X = 16 * U
+# rsqrt(var + eps) in batch renormalisation: the computed value's relative error (2.7u measured, a Newton step
+# on a 12-14-bit hardware estimate or sqrt and a division), plus the rounding of var + eps and of eps
+# itself (u each, halved by the square root)
+RSQRT_REL = 8 * U + U
+GELU_C1, GELU_C2 = float(np.float32(np.sqrt(2.0 / np.pi))), float(np.float32(0.044715))  # float32, as computed
+
+
+def gamma(n: int) -> float:
+    """gamma_n = n u / (1 - n u): the relative bound of an n-term float32 sum of products."""
+    return n * U / (1.0 - n * U)
+
+
+def round_bf16(x: np.ndarray) -> np.ndarray:
+    """float64 values rounded to bfloat16's 8 significant bits, to nearest, ties to even (exact in float64)."""
+    mantissa, exponent = np.frexp(np.asarray(x, np.float64))  # |mantissa| in [0.5, 1)
+    return np.ldexp(np.round(mantissa * 256.0), exponent - 8)  # np.round: ties to even
+
+
+def _activation(name: str, x: np.ndarray) -> np.ndarray:
+    if name == "relu":
+        return np.maximum(x, 0.0)
+    if name == "tanh":
+        return np.tanh(x)
+    if name == "elu":
+        return np.where(x > 0, x, np.expm1(np.minimum(x, 0.0)))
+    if name == "gelu":  # jax.nn.gelu's default tanh form, with the float32 constants the programs multiply by
+        return x * 0.5 * (1.0 + np.tanh(GELU_C1 * (x + GELU_C2 * x**3)))
+    raise ValueError(name)
+
+
+def _gelu_minimum() -> float:
+    """Where gelu's tanh form turns (its minimum, x ~ -0.75): bisection on the sign of its slope, in float64."""
+    lo, hi = -1.5, -0.25
+    slope = lambda x: (_activation("gelu", x + 1e-7) - _activation("gelu", x - 1e-7))
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if slope(mid) < 0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _propagated(name: str, x_ref: np.ndarray, e: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A bound on |f(x) - f(x_ref)| for every |x - x_ref| <= e: relu, tanh, elu and clips are monotone, so f(x) lies
+    between f(x_ref - e) and f(x_ref + e) (exact: an inactive relu or a saturated tanh passes no error on);
+    gelu is monotone on either side of its minimum, which joins the candidates where the interval holds it.
+    (float64's own rounding of these values, 2^-52 relative, is covered by the 2^-50 term.)"""
+    lo, hi = _activation(name, x_ref - e), _activation(name, x_ref + e)
+    spread = np.maximum(np.abs(hi - y), np.abs(y - lo))
+    if name == "gelu":
+        inside = (x_ref - e <= GELU_MIN_AT) & (GELU_MIN_AT <= x_ref + e)
+        spread = np.where(inside, np.maximum(spread, np.abs(y - _activation("gelu", GELU_MIN_AT))), spread)
+    return spread + 2.0**-50 * (np.abs(y) + np.abs(lo) + np.abs(hi))
+
+
+def _activation_error(name: str, x_ref: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the activation of the reference, a bound on the error of the computed activation): the input's error
+    carried through, plus the activation's own evaluation error at the computed input."""
+    y = _activation(name, x_ref)
+    propagated = _propagated(name, x_ref, e, y)
+    if name == "relu":  # exact
+        return y, propagated
+    if name == "gelu":
+        return y, propagated + ACT_ABS + GELU_REL_X * (np.abs(x_ref) + e) + ACT_REL * (np.abs(y) + propagated)
+    return y, propagated + ACT_ABS + ACT_REL * (np.abs(y) + propagated)
+
+
+GELU_MIN_AT = _gelu_minimum()
+
+
+def _bf16_inputs(x_ref: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the reference's bf16-rounded input, a bound on |round(x) - round(x_ref)| for any |x - x_ref| <= e)."""
+    r = round_bf16(x_ref)
+    error = np.maximum(round_bf16(x_ref + e) - r, r - round_bf16(x_ref - e))
+    return r, error + TINY * (e > 0)  # (a subnormal input flushed to zero)
+
+
+def _dense(x_ref, e, w, b, bf16: bool):
+    """One dense layer x @ w + b: (its reference, the propagated error, the magnitudes its rounding scales).
+    A bf16 layer rounds x and w to bf16 first, the reference too."""
+    if bf16:
+        x_ref, e = _bf16_inputs(x_ref, e)
+        w = round_bf16(w)
+    z = x_ref @ w + b
+    return z, e @ np.abs(w), (np.abs(x_ref) + e) @ np.abs(w) + np.abs(b)
+
+
+def _weights(layer: dict) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
+
+
+def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound), both float64 [batch, act_dim]: the exact deterministic actions of `agent` for the
+    float32 observations `obs` [batch, obs_dim], and a bound on |a - reference| for the actions `a` of any
+    float32 evaluation of the same network (agent.predict on any CPU, the ONNX and NumPy exports).
+
+    `matmul_dtype`: how the program multiplies, if not as the agent's config says (agent.fns.matmul_dtype):
+    "float32" for a program that skips the bf16 roundings, as JAX 0.4.30's jitted bf16 layers do."""
+    from softac.networks import multiplies_in_bf16
+    from softac.normalization import EPSILON
+
+    x = np.asarray(obs, np.float32).reshape(-1, agent.spaces.obs_dim).astype(np.float64)
+    e = np.zeros_like(x)
+    if agent.obs_norm is not None:
+        # clip((obs - mean) / std) with the float32 mean and std that predict() and the export use: a
+        # subtraction and a division, u each (4u: also a division done as a multiplication by 1/std)
+        mean = agent.obs_norm.mean.astype(np.float32).astype(np.float64)
+        std = np.sqrt(agent.obs_norm.var + EPSILON).astype(np.float32).astype(np.float64)
+        clip = agent.obs_norm.clip
+        q = (x - mean) / std
+        e = 4 * U * np.abs(q)
+        x = np.clip(q, -clip, clip)  # monotone: a value beyond the clip by more than its error has none left
+        e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
+
+    layers = agent.state.actor
+    norm = agent.fns.policy.norm
+    stats = agent.state.actor_stats if norm is not None else [None] * len(layers)
+    activation = agent.config.activation
+    act_dim = agent.spaces.act_dim
+    for i, (layer, layer_stats) in enumerate(zip(layers, stats)):
+        w, b = _weights(layer)
+        bf16 = multiplies_in_bf16(w.shape, matmul_dtype or agent.fns.matmul_dtype)
+        if i == len(layers) - 1:  # only the mean action's columns matter (the rest is the log-std)
+            w, b = w[:, :act_dim], b[:act_dim]
+        n = w.shape[0]
+        folded_rounding = 0.0
+        if norm is not None:
+            var = np.asarray(layer_stats["var"], np.float32).astype(np.float64)
+            mean = np.asarray(layer_stats["mean"], np.float64)
+            scale, bias = np.asarray(layer["norm_scale"], np.float64), np.asarray(layer["norm_bias"], np.float64)
+            s = scale / np.sqrt(var + norm.eps)  # exact: the reference's inv_std * scale
+            if not bf16:
+                # the export's program: x @ fl(s w) + fl(t @ w + b), t = bias - mean s, folded in float64: the
+                # weights' and the bias's roundings join the sum's (gamma_{n+2}), plus float64's own (2^-50 n)
+                folded_w, t = s[:, None] * w, bias - mean * s
+                folded_rounding = (gamma(n + 2) * ((np.abs(x) + e) @ np.abs(folded_w) + np.abs(t @ w + b))
+                                   + 2.0**-50 * (n + 1) * (np.abs(t) @ np.abs(w) + np.abs(b)))
+            # as JAX (and the export's bf16 layers) compute it: ((x - mean) * inv_std) * scale + bias: the
+            # subtraction, two products (u each) and inv_std's own error scale |x - mean| |s|, the sum |x_hat|
+            centred = np.abs(x - mean) + e
+            x = (x - mean) * s + bias
+            e = e * np.abs(s) + (3 * U + RSQRT_REL) * centred * np.abs(s) + U * (np.abs(x) + e * np.abs(s))
+        z, e, magnitude = _dense(x, e, w, b, bf16)
+        rounding = np.maximum(gamma(n + 1) * magnitude, folded_rounding)
+        e = e + rounding + TINY * (n + 1) * (1.0 + np.abs(w).max())
+        x = z
+        if i < len(layers) - 1:
+            x, e = _activation_error(activation, x, e)
+
+    # action = clip(mid + half * tanh(x), low, high): tanh carries the error through as above and adds its own,
+    # the product and the sum round (u each), the clip is 1-Lipschitz
+    low, high = agent.scaler.low.astype(np.float64), agent.scaler.high.astype(np.float64)
+    mid, half = agent.scaler.bias.astype(np.float64), agent.scaler.scale.astype(np.float64)
+    t, e = _activation_error("tanh", x, e)
+    reference = np.clip(mid + half * t, low, high)
+    bound = half * e + U * half * (np.abs(t) + e) + U * (np.abs(mid + half * t) + half * e)
+    return reference, bound
+
+
+def worst_ratio(actions: np.ndarray, reference: np.ndarray, bound: np.ndarray) -> float:
+    """max |actions - reference| / bound: at most 1 where the actions are within the bound."""
+    actions = np.asarray(actions, np.float64).reshape(reference.shape)
+    return float(np.max(np.abs(actions - reference) / bound))
+
+
+def assert_within_bound(actions: np.ndarray, reference: np.ndarray, bound: np.ndarray, what: str = "") -> None:
+    actions = np.asarray(actions, np.float64).reshape(reference.shape)
+    excess = np.abs(actions - reference) / bound
+    if not np.all(excess <= 1.0):
+        i = np.unravel_index(np.argmax(excess), excess.shape)
+        raise AssertionError(f"{what}: {np.sum(excess > 1.0)} of {excess.size} actions outside the float32 bound; "
+                             f"worst at {tuple(map(int, i))}: {actions[i]!r} vs reference {reference[i]!r}, "
+                             f"off by {abs(actions[i] - reference[i]):.3g} = {excess[i]:.3g} x its bound {bound[i]:.3g}")
