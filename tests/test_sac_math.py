@@ -7,8 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softac import sac
+from softac import cpus, sac
 from softac.config import SACConfig
+
+pytestmark = pytest.mark.numerics
 
 
 def squashed_cdf(a, mean, std):
@@ -249,3 +251,32 @@ def test_matmul_dtype_auto_picks_bfloat16_only_where_it_is_fast(monkeypatch):
     monkeypatch.setattr(sac, "cpu_has_bf16", lambda: True)
     assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "bfloat16"
     assert sac.build(SACConfig().replace(matmul_dtype="float32"), 3, 2).matmul_dtype == "float32"
+
+
+SAPPHIRE_RAPIDS = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "amx_tile"}
+ZEN5 = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16"}
+
+
+@pytest.mark.parametrize("cpu,xla_flags,bf16", [
+    ({"avx2", "fma"}, "", False),
+    (ZEN5, "", True),
+    (SAPPHIRE_RAPIDS, "", True),
+    ({"avx2", "amx_bf16"}, "", True),
+    (SAPPHIRE_RAPIDS, "--xla_cpu_max_isa=AVX2", False),  # XLA kept off the bf16 units: auto is float32
+    (SAPPHIRE_RAPIDS, "--xla_dump_to=/tmp/x --xla_cpu_max_isa=avx512_vnni", False),  # matched in any case
+    (ZEN5, "--xla_cpu_max_isa=SSE4_2", False),
+    (ZEN5, "--xla_cpu_max_isa=AVX512_BF16", True),
+    (SAPPHIRE_RAPIDS, "--xla_cpu_max_isa=AVX512_BF16", True),
+    ({"avx2", "amx_bf16"}, "--xla_cpu_max_isa=AVX512_BF16", False),  # AMX is above that limit
+    ({"avx2", "amx_bf16"}, "--xla_cpu_max_isa=AMX", True),
+    (ZEN5, "--xla_cpu_max_isa=AMX_FP16", True),
+    (ZEN5, "--xla_cpu_max_isa=AVX2 --xla_cpu_max_isa=AMX", True),  # the last one counts, as in XLA
+    (ZEN5, "--xla_cpu_max_isa=PENTIUM", True),  # XLA ignores a value it does not know
+    ({"avx2"}, "--xla_cpu_max_isa=AMX", False),  # a limit adds no units
+])
+def test_cpu_has_bf16_honours_xla_max_isa(monkeypatch, cpu, xla_flags, bf16):
+    monkeypatch.setattr(cpus, "cpu_flags", lambda: cpu)
+    monkeypatch.setenv("XLA_FLAGS", xla_flags)
+    assert cpus.cpu_has_bf16() is bf16
+    if jax.default_backend() == "cpu":
+        assert sac.resolve_matmul_dtype("auto") == ("bfloat16" if bf16 else "float32")

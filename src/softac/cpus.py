@@ -78,23 +78,44 @@ def pin_this_process(n: int) -> tuple[list[int], bool]:
     return cpus, bool(cpus) and not locks
 
 
-def cpu_has_bf16() -> bool:
-    """AVX-512 BF16 or AMX: the CPU runs bf16 matmuls fast (bench shows softac-bf16 by default, and
-    `matmul_dtype=auto` picks bf16 here)."""
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags as /proc/cpuinfo lists them (empty where there is none, e.g. macOS)."""
     try:
-        flags = Path("/proc/cpuinfo").read_text()
+        return set(Path("/proc/cpuinfo").read_text().split())
     except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+        return set()
+
+
+# the values XLA's --xla_cpu_max_isa takes on x86, lowest first (XLA matches them case-insensitively and ignores,
+# with a warning, one it does not know); its bf16 matmul instructions are AVX512_BF16's and AMX's
+XLA_MAX_ISAS = ("SSE4_2", "AVX", "AVX2", "AVX512", "AVX512_VNNI", "AVX512_BF16", "AMX", "AMX_FP16")
+
+
+def xla_max_isa() -> str | None:
+    """The newest ISA that XLA_FLAGS lets XLA's CPU code use (--xla_cpu_max_isa=...), or None where it sets no
+    limit XLA knows. The last occurrence wins, as XLA parses the flags in order."""
+    value = None
+    for flag in os.environ.get("XLA_FLAGS", "").split():
+        name, _, setting = flag.lstrip("-").partition("=")
+        if name == "xla_cpu_max_isa":
+            value = setting.upper()
+    return value if value in XLA_MAX_ISAS else None
+
+
+def cpu_has_bf16() -> bool:
+    """AVX-512 BF16 or AMX, and XLA allowed to use them: the CPU runs bf16 matmuls fast (bench shows softac-bf16
+    by default, and `matmul_dtype=auto` picks bf16 here). XLA_FLAGS=--xla_cpu_max_isa=AVX2 (or any ISA below
+    AVX512_BF16) keeps XLA off those units, so bf16 matmuls would run converted, slower than float32."""
+    flags, limit = cpu_flags(), xla_max_isa()
+    allowed = len(XLA_MAX_ISAS) if limit is None else XLA_MAX_ISAS.index(limit) + 1  # how many of them XLA may use
+    return (("avx512_bf16" in flags and "AVX512_BF16" in XLA_MAX_ISAS[:allowed])
+            or ("amx_bf16" in flags and "AMX" in XLA_MAX_ISAS[:allowed]))
 
 
 def vector_extensions() -> str:
     """The widest vector instructions the CPU has (what XLA's matmuls run on): two machines sold under one
     model name ("AMD EPYC") ran the same update 7x apart, one with AVX-512 BF16 and one without AVX-512."""
-    try:
-        flags = set(Path("/proc/cpuinfo").read_text().split())
-    except OSError:
-        return ""
+    flags = cpu_flags()
     if "amx_bf16" in flags:
         return "AMX"
     if "avx512_bf16" in flags:
