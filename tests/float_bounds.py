@@ -54,8 +54,8 @@ TINY = 2.0**-126  # float32's smallest normal number: what a flush of a subnorma
 ACT_ABS = 4 * U  # near 0 (exp(x) - 1, or a polynomial's absolute error around a zero of f)
 ACT_REL = 16 * U
 # gelu is x * 0.5 * (1 + tanh(z)): where tanh(z) ~ -1 the sum cancels, so its error is relative to |x|, not to
-# |gelu(x)| (measured: 3.9u |x| at most, XLA and onnxruntime; 1.9u NumPy). 16u |x| covers tanh's 16u
-# plus the rounding of z (5 operations, times |z| sech^2(z) <= 0.45) and of the products.
+# |gelu(x)| (measured: 3.9u |x| at most, XLA and onnxruntime; 1.9u NumPy). 16u |x| covers tanh's bound (4u + 16u,
+# halved by the 0.5), the rounding of z (5 operations, times |z| sech^2(z) <= 0.45) and of the products.
 GELU_REL_X = 16 * U
 # rsqrt(var + eps) in batch renormalisation: the computed value's relative error (2.7u measured, a Newton step
 # on a 12-14-bit hardware estimate or sqrt and a division), plus the rounding of var + eps and of eps
@@ -146,39 +146,19 @@ def _weights(layer: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
 
 
-def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(reference, bound), both float64 [batch, act_dim]: the exact deterministic actions of `agent` for the
-    float32 observations `obs` [batch, obs_dim], and a bound on |a - reference| for the actions `a` of any
-    float32 evaluation of the same network (agent.predict on any CPU, the ONNX and NumPy exports).
-
-    `matmul_dtype`: how the program multiplies, if not as the agent's config says (agent.fns.matmul_dtype):
-    "float32" for a program that skips the bf16 roundings, as JAX 0.4.30's jitted bf16 layers do."""
+def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
+                  norm=None, stats: list | None = None,
+                  out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of an MLP's outputs (networks.mlp, or networks.normalized_mlp in evaluation mode with
+    `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only."""
     from softac.networks import multiplies_in_bf16
-    from softac.normalization import EPSILON
 
-    x = np.asarray(obs, np.float32).reshape(-1, agent.spaces.obs_dim).astype(np.float64)
-    e = np.zeros_like(x)
-    if agent.obs_norm is not None:
-        # clip((obs - mean) / std) with the float32 mean and std that predict() and the export use: a
-        # subtraction and a division, u each (4u: also a division done as a multiplication by 1/std)
-        mean = agent.obs_norm.mean.astype(np.float32).astype(np.float64)
-        std = np.sqrt(agent.obs_norm.var + EPSILON).astype(np.float32).astype(np.float64)
-        clip = agent.obs_norm.clip
-        q = (x - mean) / std
-        e = 4 * U * np.abs(q)
-        x = np.clip(q, -clip, clip)  # monotone: a value beyond the clip by more than its error has none left
-        e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
-
-    layers = agent.state.actor
-    norm = agent.fns.policy.norm
-    stats = agent.state.actor_stats if norm is not None else [None] * len(layers)
-    activation = agent.config.activation
-    act_dim = agent.spaces.act_dim
+    stats = stats if stats is not None else [None] * len(layers)
     for i, (layer, layer_stats) in enumerate(zip(layers, stats)):
         w, b = _weights(layer)
-        bf16 = multiplies_in_bf16(w.shape, matmul_dtype or agent.fns.matmul_dtype)
-        if i == len(layers) - 1:  # only the mean action's columns matter (the rest is the log-std)
-            w, b = w[:, :act_dim], b[:act_dim]
+        bf16 = multiplies_in_bf16(w.shape, matmul_dtype)
+        if i == len(layers) - 1 and out_columns is not None:
+            w, b = w[:, :out_columns], b[:out_columns]
         n = w.shape[0]
         folded_rounding = 0.0
         if norm is not None:
@@ -203,6 +183,42 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
         x = z
         if i < len(layers) - 1:
             x, e = _activation_error(activation, x, e)
+    return x, e
+
+
+def mlp_bound(layers: list, x: np.ndarray, activation: str) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of a float32 MLP's outputs (networks.mlp with float32 matmuls and no layer norm) for
+    float32 inputs x."""
+    x = np.asarray(x, np.float32).astype(np.float64)
+    return network_bound(layers, x, np.zeros_like(x), activation)
+
+
+def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound), both float64 [batch, act_dim]: the exact deterministic actions of `agent` for the
+    float32 observations `obs` [batch, obs_dim], and a bound on |a - reference| for the actions `a` of any
+    float32 evaluation of the same network (agent.predict on any CPU, the ONNX and NumPy exports).
+
+    `matmul_dtype`: how the program multiplies, if not as the agent's config says (agent.fns.matmul_dtype):
+    "float32" for a program that skips the bf16 roundings, as JAX 0.4.30's jitted bf16 layers do."""
+    from softac.normalization import EPSILON
+
+    x = np.asarray(obs, np.float32).reshape(-1, agent.spaces.obs_dim).astype(np.float64)
+    e = np.zeros_like(x)
+    if agent.obs_norm is not None:
+        # clip((obs - mean) / std) with the float32 mean and std that predict() and the export use: a
+        # subtraction and a division, u each (4u: also a division done as a multiplication by 1/std)
+        mean = agent.obs_norm.mean.astype(np.float32).astype(np.float64)
+        std = np.sqrt(agent.obs_norm.var + EPSILON).astype(np.float32).astype(np.float64)
+        clip = agent.obs_norm.clip
+        q = (x - mean) / std
+        e = 4 * U * np.abs(q)
+        x = np.clip(q, -clip, clip)  # monotone: a value beyond the clip by more than its error has none left
+        e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
+
+    norm = agent.fns.policy.norm
+    x, e = network_bound(agent.state.actor, x, e, agent.config.activation, matmul_dtype or agent.fns.matmul_dtype,
+                         norm, agent.state.actor_stats if norm is not None else None,
+                         out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
 
     # action = clip(mid + half * tanh(x), low, high): tanh carries the error through as above and adds its own,
     # the product and the sum round (u each), the clip is 1-Lipschitz
@@ -214,12 +230,6 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     return reference, bound
 
 
-def worst_ratio(actions: np.ndarray, reference: np.ndarray, bound: np.ndarray) -> float:
-    """max |actions - reference| / bound: at most 1 where the actions are within the bound."""
-    actions = np.asarray(actions, np.float64).reshape(reference.shape)
-    return float(np.max(np.abs(actions - reference) / bound))
-
-
 def assert_within_bound(actions: np.ndarray, reference: np.ndarray, bound: np.ndarray, what: str = "") -> None:
     actions = np.asarray(actions, np.float64).reshape(reference.shape)
     excess = np.abs(actions - reference) / bound
@@ -227,4 +237,5 @@ def assert_within_bound(actions: np.ndarray, reference: np.ndarray, bound: np.nd
         i = np.unravel_index(np.argmax(excess), excess.shape)
         raise AssertionError(f"{what}: {np.sum(excess > 1.0)} of {excess.size} actions outside the float32 bound; "
                              f"worst at {tuple(map(int, i))}: {actions[i]!r} vs reference {reference[i]!r}, "
-                             f"off by {abs(actions[i] - reference[i]):.3g} = {excess[i]:.3g} x its bound {bound[i]:.3g}")
+                             f"off by {abs(actions[i] - reference[i]):.3g} = {excess[i]:.3g} x its bound "
+                             f"{bound[i]:.3g}")

@@ -152,6 +152,7 @@ def test_a_user_logger_gets_the_same_records_as_the_csv_files(tiny, tmp_path):
     by_kind = {kind: [(s, v) for k, s, v in logger.records if k == kind] for kind in ("train", "rollout", "eval")}
     progress = read_csv(run / "progress.csv")
     assert [s for s, _ in by_kind["train"]] == [int(r["step"]) for r in progress]
+    # the CSV files keep 6 significant digits (logs._fmt's .6g): within 5e-6 relative
     assert by_kind["train"][-1][1]["critic_loss"] == pytest.approx(float(progress[-1]["critic_loss"]), rel=1e-5)
     assert [s for s, _ in by_kind["eval"]] == [int(r["step"]) for r in read_csv(run / "eval.csv")]
     episodes = read_csv(run / "episodes.csv")

@@ -61,7 +61,7 @@ def test_confidence_band_maths():
     values = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
     mean, half, n = mean_and_ci(values)
     np.testing.assert_allclose(mean, [3.0, 4.0])
-    np.testing.assert_allclose(half, [4.302653 * 2.0 / np.sqrt(3)] * 2, rtol=1e-6)
+    np.testing.assert_allclose(half, [4.302653 * 2.0 / np.sqrt(3)] * 2, rtol=1e-6)  # the t table's 7 digits
     # Student t's two-sided 95% quantiles (printed tables): 1 dof 12.706, 2 dof 4.303, 30 dof 2.042,
     # 40 dof 2.021 (a table that jumps to 1.96 past 30 dof gets this wrong), and 1.96 in the limit
     assert [round(t_critical_95(n), 3) for n in (2, 3, 31, 41)] == [12.706, 4.303, 2.042, 2.021]
