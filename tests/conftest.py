@@ -3,7 +3,16 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+# JAX on the CPU for the whole session, this process and the CLI subprocesses the tests start (they inherit
+# os.environ): the tests assume a CPU (bit-exact comparisons between runs, CPU pinning of sweep trials), so a
+# machine with a GPU and jax[cuda] must not move them onto it. Set here, at the top of the first conftest, so
+# that it is in place before any test module imports JAX (the JAX_PLATFORMS variable is read when JAX is
+# imported; were it imported already, its config is set too, which works until a backend has started).
+os.environ["JAX_PLATFORMS"] = "cpu"
+if "jax" in sys.modules:
+    sys.modules["jax"].config.update("jax_platforms", "cpu")
+
+import pytest  # noqa: E402
 
 TESTS = Path(__file__).parent
 sys.path.insert(0, str(TESTS))
@@ -40,6 +49,22 @@ def assert_clean_error(result: subprocess.CompletedProcess, *fragments: str) -> 
 @pytest.fixture
 def tiny():
     return tiny_config
+
+
+@pytest.fixture(scope="session", autouse=True)
+def own_compile_cache(tmp_path_factory):
+    """The JAX compile cache (softac.device.compile_cache_dir) of this test session alone, under pytest's
+    basetemp: the suite neither reads the user's ~/.cache/softac/jax (it runs as on a fresh machine,
+    whatever earlier runs left there) nor fills it with the tests' tiny networks. A session-scoped autouse
+    fixture runs before every other fixture and test; the CLI subprocesses inherit os.environ."""
+    previous = os.environ.get("SOFTAC_COMPILE_CACHE")
+    cache = tmp_path_factory.mktemp("jax-compile-cache")
+    os.environ["SOFTAC_COMPILE_CACHE"] = str(cache)
+    yield cache
+    if previous is None:
+        os.environ.pop("SOFTAC_COMPILE_CACHE", None)
+    else:
+        os.environ["SOFTAC_COMPILE_CACHE"] = previous
 
 
 @pytest.fixture(scope="session")
