@@ -92,21 +92,70 @@ def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) 
         assert fragment in last, (fragment, last)
 
 
-def state_arrays(agent) -> list:
-    """The agent's parameter and optimiser leaves, copied (a view of a donated buffer would change under us)."""
+def assert_same_learner(a, b) -> None:
+    """Every leaf of the two agents' learner states (networks, targets, optimisers, alpha, key, counters) is
+    bit-identical, and the two trees have the same structure. Leaves are copied first: a view of a donated
+    buffer would change under us."""
     import jax
     import numpy as np
 
-    return [np.array(x, copy=True) for x in jax.tree_util.tree_leaves(agent.state)]
+    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.state)
+    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.state)
+    assert tree_a == tree_b
+    for (path, x), (_, y) in zip(paths_a, paths_b, strict=True):
+        np.testing.assert_array_equal(np.array(x, copy=True), np.array(y, copy=True),
+                                      err_msg="state" + jax.tree_util.keystr(path))
+
+
+# RunState fields that differ between a straight run and a resumed one by design, so not compared:
+# run_dir (the directory each agent trained into), restored_from (the checkpoint a resumed agent was loaded
+# from; None for one never loaded) and train_time_s (wall-clock seconds).
+RUN_STATE_NOT_COMPARED = {"run_dir", "restored_from", "train_time_s"}
 
 
 def assert_same_training(a, b) -> None:
-    """Two agents that trained the same steps are bit-identical: parameters, keys, RNG, buffer, episodes."""
+    """Two agents that trained the same steps share their whole training state, bit for bit: the learner's
+    leaves, the run state (counters, keys, NumPy RNG, best and last evaluation and their steps, recent
+    returns), every array of the replay buffer, the observation statistics (obs_norm) and the training envs'
+    saved state. Any difference would make their next steps differ."""
+    import dataclasses
+
     import numpy as np
 
-    for x, y in zip(state_arrays(a), state_arrays(b)):
-        np.testing.assert_array_equal(x, y)
-    np.testing.assert_array_equal(np.asarray(a.act_key), np.asarray(b.act_key))
-    assert a.rng.bit_generator.state == b.rng.bit_generator.state
-    np.testing.assert_array_equal(a.buffer.obs, b.buffer.obs)
-    assert a.num_episodes == b.num_episodes
+    from softac.runstate import RunState
+
+    assert_same_learner(a, b)
+
+    for f in dataclasses.fields(RunState):
+        if f.name in RUN_STATE_NOT_COMPARED:
+            continue
+        x, y = getattr(a.run, f.name), getattr(b.run, f.name)
+        if f.name == "rng":
+            assert x.bit_generator.state == y.bit_generator.state, f.name
+        elif f.name.endswith("_key"):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=f.name)
+        else:
+            assert x == y, (f.name, x, y)
+
+    assert type(a.buffer) is type(b.buffer)
+    if a.buffer is not None:
+        buffer_a, buffer_b = a.buffer.state_dict(), b.buffer.state_dict()
+        assert buffer_a.keys() == buffer_b.keys()
+        for name in buffer_a:
+            np.testing.assert_array_equal(buffer_a[name], buffer_b[name], err_msg=f"buffer {name}")
+
+    assert (a.obs_norm is None) == (b.obs_norm is None)
+    if a.obs_norm is not None:
+        norm_a, norm_b = a.obs_norm.state_dict(), b.obs_norm.state_dict()
+        assert norm_a.keys() == norm_b.keys()
+        for name in norm_a:
+            np.testing.assert_array_equal(norm_a[name], norm_b[name], err_msg=f"obs_norm {name}")
+
+    envs_a, envs_b = a.env_state(), b.env_state()
+    assert (envs_a is None) == (envs_b is None)
+    if envs_a is not None:
+        (meta_a, arrays_a), (meta_b, arrays_b) = envs_a, envs_b
+        assert meta_a == meta_b
+        assert arrays_a.keys() == arrays_b.keys()
+        for name in arrays_a:
+            np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=f"envs {name}")

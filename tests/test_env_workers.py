@@ -12,9 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TESTS, assert_clean_error, assert_same_training, assert_training_error, run_cli, state_arrays
+from conftest import TESTS, assert_clean_error, assert_same_training, assert_training_error, run_cli
 from softac import SAC
-from softac.buffer import ReplayBuffer
 from softac.config import ConfigError
 from softac.env_workers import WorkerEnvPool, split_evenly
 from softac.envs import EnvError, EnvFailed, EnvPool, copy_env
@@ -123,10 +122,7 @@ def test_env_workers_give_the_same_run_and_leave_no_process(tiny):
         assert pids == [] or not any(map(_running, pids))
         runs.append(agent)
     local, workers = runs
-    for name in ReplayBuffer.FIELDS:
-        np.testing.assert_array_equal(getattr(local.buffer, name), getattr(workers.buffer, name), err_msg=name)
-    for a, b in zip(state_arrays(local), state_arrays(workers)):
-        np.testing.assert_array_equal(a, b)
+    assert_same_training(local, workers)
     assert local.num_episodes == workers.num_episodes > 0
 
 
