@@ -133,7 +133,8 @@ def test_reset_renews_networks_and_optimisers_and_keeps_alpha(tiny):
     assert float(after.log_alpha) == float(before.log_alpha) != float(fresh.log_alpha)
     assert int(after.n_updates) == int(before.n_updates) > 0
     np.testing.assert_array_equal(np.asarray(after.key), np.asarray(before.key))
-    for online, target in zip(jax.tree_util.tree_leaves(after.critic), jax.tree_util.tree_leaves(after.target_critic)):
+    for online, target in zip(jax.tree_util.tree_leaves(after.critic), jax.tree_util.tree_leaves(after.target_critic),
+                              strict=True):
         np.testing.assert_array_equal(online, target)
     for moment in jax.tree_util.tree_leaves(after.actor_opt) + jax.tree_util.tree_leaves(after.critic_opt):
         assert not np.any(np.asarray(moment))  # Adam starts again (counts and moments)
