@@ -70,10 +70,43 @@ def test_asymmetric_bounds_agent_learns_the_best_action(tiny, obs_norm):
 
 
 def test_evaluate_reports_per_episode_results(tiny):
+    """returns[i] and lengths[i] are those of episode i, started from seed + i, as the policy played it; the
+    summary statistics are theirs."""
+    import gymnasium as gym
+
+    from softac.evaluation import EVAL_SEED_OFFSET
+
     agent = SAC(tiny())
+    calls = []  # (observations, actions) of each policy call the evaluation made
+    predict = agent.predict
+
+    def recording_predict(obs, deterministic=True):
+        actions = predict(obs, deterministic=deterministic)
+        calls.append((np.array(obs, copy=True), np.array(actions, copy=True)))
+        return actions
+
+    agent.predict = recording_predict
     stats = evaluate(agent, episodes=3)
+    del agent.predict
     assert stats["episodes"] == 3 and len(stats["returns"]) == 3 and len(stats["lengths"]) == 3
-    assert stats["mean_return"] == np.mean(stats["returns"])
+    # replay each episode on an env of its own, taking the action the policy chose for each of its observations
+    # (found among the rows of the batched call; the evaluation steps its 3 episodes side by side)
+    for i in range(3):
+        env = gym.make("softac_test_envs:Drift-v0")
+        obs, _ = env.reset(seed=agent.config.seed + EVAL_SEED_OFFSET + i)
+        total, length, done = 0.0, 0, False
+        while not done:
+            batch, actions = calls[length]
+            rows = np.flatnonzero((batch == obs).all(axis=1))
+            assert len(rows) == 1, (i, length)
+            obs, reward, terminated, truncated, _ = env.step(actions[rows[0]])
+            total, length, done = total + float(reward), length + 1, terminated or truncated
+        assert (stats["returns"][i], stats["lengths"][i]) == (total, length), i
+    assert len(calls) == max(stats["lengths"])  # one batched call per step while any episode runs
+    returns = np.array(stats["returns"])
+    assert (stats["mean_return"], stats["std_return"]) == (np.mean(returns), np.std(returns))
+    assert (stats["min_return"], stats["max_return"]) == (returns.min(), returns.max())
+    assert stats["mean_length"] == np.mean(stats["lengths"])
     again = evaluate(agent, episodes=3)
     assert again["returns"] == stats["returns"]  # deterministic policy, fixed eval seeds
 
