@@ -70,7 +70,8 @@ def own_compile_cache(tmp_path_factory):
 @pytest.fixture(scope="session")
 def trained_run(tmp_path_factory):
     """One short InvertedPendulum-v5 run (800 steps, evaluations, checkpoints, baselines.json), trained once
-    for the tests that only read a run or add outputs to it (plots, videos, reports)."""
+    for the tests that read a run or add outputs to it (plots, videos, reports). Shared by the whole session:
+    a test that writes into it works on a copy (test_outputs' pendulum_run), so no test sees another's files."""
     run = tmp_path_factory.mktemp("runs") / "pendulum"
     r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", "--set", "hidden_sizes=32,32",
                 "batch_size=32", "learning_starts=200", "buffer_size=5000", "log_interval=100", "eval_interval=200",

@@ -16,8 +16,12 @@ SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "
 
 
 @pytest.fixture
-def pendulum_run(trained_run):
-    return trained_run
+def pendulum_run(trained_run, tmp_path):
+    """A copy of the session's trained run, this test's own: what one test adds to it (plots, videos, a report)
+    is never there for another, so each test passes alone and in any order."""
+    run = tmp_path / trained_run.name
+    shutil.copytree(trained_run, run)
+    return run
 
 
 def _png_size(path):
@@ -121,6 +125,8 @@ def _chromium():
 
 
 def test_report_is_self_contained_and_renders_in_chromium(pendulum_run, tmp_path):
+    r = run_cli("video", str(pendulum_run), "--max-steps", "30")  # the report inlines the run's latest video
+    assert r.returncode == 0, r.stderr
     r = run_cli("report", str(pendulum_run))
     assert r.returncode == 0, r.stderr
     page = (pendulum_run / "report.html").read_text()
