@@ -29,9 +29,17 @@ def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig
     return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
 
 
+def child_env(*paths: str | Path, **variables: str) -> dict[str, str]:
+    """The environment of a process a test starts: os.environ, with `paths` and tests/ (the test envs) put
+    ahead on PYTHONPATH (never in place of it: the suite's own PYTHONPATH may point at a checkout's src),
+    and `variables` set."""
+    pythonpath = os.pathsep.join([*map(str, paths), str(TESTS), os.environ.get("PYTHONPATH", "")])
+    return {**os.environ, "PYTHONPATH": pythonpath, **variables}
+
+
 def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra: dict | None = None,
             **popen) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env_extra or {})}
+    env = {**child_env(), **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "softac", *args], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=cwd, **popen)
 

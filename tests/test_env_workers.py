@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TESTS, assert_clean_error, assert_same_training, assert_training_error, run_cli
+from conftest import assert_clean_error, assert_same_training, assert_training_error, child_env, run_cli
 from softac import SAC
 from softac.config import ConfigError
 from softac.env_workers import WorkerEnvPool, split_evenly
@@ -179,7 +179,7 @@ def test_workers_exit_when_their_parent_is_killed_outright():
             "print(*pool.pids, flush=True)\n"
             "time.sleep(600)\n")
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
-                              env=dict(os.environ, PYTHONPATH=f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+                              env=child_env())
     workers = [int(pid) for pid in parent.stdout.readline().split()]
     assert len(workers) == 2 and all(map(_running, workers))
     parent.kill()
@@ -211,7 +211,7 @@ def test_ctrl_c_checkpoints_closes_the_workers_and_resumes_in_process(tmp_path):
                              "--steps", "1000000", "--n-envs", "2", "--env-workers", "2", "--out", str(run),
                              "--no-progress", *TINY_SETS, "checkpoint_interval=0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            env=dict(os.environ, PYTHONPATH=f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+                            env=child_env())
     deadline = time.time() + 120
     while not (run / "progress.csv").exists() or len((run / "progress.csv").read_text().splitlines()) < 3:
         assert time.time() < deadline and proc.poll() is None, proc.communicate()[1]

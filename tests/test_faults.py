@@ -15,14 +15,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import TESTS, assert_clean_error, assert_training_error, run_cli, tiny_config
+from conftest import assert_clean_error, assert_training_error, child_env, run_cli, tiny_config
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "buffer_size=20000",
              "log_interval=100", "eval_interval=0"]
 
 
 def _popen_train(*args):
-    env = dict(os.environ, PYTHONPATH=str(TESTS))
+    env = child_env()
     return subprocess.Popen([sys.executable, "-m", "softac", "train", "--no-progress", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import TESTS, assert_clean_error, run_cli
+from conftest import TESTS, assert_clean_error, child_env, run_cli
 from softac import sweep
 from softac.errors import SoftacError
 
@@ -164,7 +164,7 @@ def test_without_ray_the_sweep_says_how_to_install_it(tmp_path):
     (fake / "ray").mkdir(parents=True)
     (fake / "ray" / "__init__.py").write_text("raise ImportError('No module named ray')\n")
     result = run_cli("sweep", "--env", DRIFT, "--steps", "300", "--out", str(tmp_path / "s"), *TINY_SET,
-                     env_extra={"PYTHONPATH": f"{fake}{os.pathsep}{TESTS}"}, timeout=60)
+                     env_extra={"PYTHONPATH": child_env(fake)["PYTHONPATH"]}, timeout=60)
     assert_clean_error(result, "pip install 'softac[ray]'")
 
 
@@ -261,7 +261,7 @@ def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
 @pytest.mark.ray
 def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
     out = tmp_path / "sweep"
-    env = dict(os.environ, PYTHONPATH=str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = child_env()
     args = ["sweep", "--env", "softac_test_envs:Slow-v0", "--seeds", "3", "--steps", "2500", "--max-concurrent", "1",
             "--out", str(out), *TINY_SET]
     driver = subprocess.Popen([sys.executable, "-m", "softac", *args], env=env, stdout=subprocess.PIPE,
