@@ -29,6 +29,14 @@ def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig
     return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
 
 
+def pytest_terminal_summary(terminalreporter, config):
+    # pytest-randomly (the test extra) runs the tests in a random order; its seed is in the header, which -q
+    # hides: say it at the end too, so that a failure that depends on the order can be repeated
+    if config.pluginmanager.hasplugin("randomly"):
+        seed = config.getoption("randomly_seed")
+        terminalreporter.write_line(f"random test order: repeat it with -p randomly --randomly-seed={seed}")
+
+
 def child_env(*paths: str | Path, **variables: str) -> dict[str, str]:
     """The environment of a process a test starts: os.environ, with `paths` and tests/ (the test envs) put
     ahead on PYTHONPATH (never in place of it: the suite's own PYTHONPATH may point at a checkout's src),
