@@ -166,8 +166,11 @@ def test_report_and_plot_errors(tmp_path):
 def test_gl_backend_choice(monkeypatch):
     import softac.video as video
 
-    monkeypatch.delenv("MUJOCO_GL", raising=False)
-    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)  # restored after: the choice below sets both
+    # the choice below sets both variables: restored after the test, also where they were unset (delenv alone
+    # records nothing then, and the osmesa chosen here leaked into every later test's MuJoCo processes)
+    for name in ("MUJOCO_GL", "PYOPENGL_PLATFORM"):
+        monkeypatch.setenv(name, "unset by this test")
+        monkeypatch.delenv(name)
     monkeypatch.setattr(video, "gl_backend_works", lambda backend: False)
     monkeypatch.setattr(video.sys, "modules", {k: v for k, v in video.sys.modules.items() if k != "mujoco"})
     with pytest.raises(video.SoftacError, match="libosmesa6"):
