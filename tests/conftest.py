@@ -3,7 +3,16 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
+# JAX on the CPU for the whole session, this process and the CLI subprocesses the tests start (they inherit
+# os.environ): the tests assume a CPU (bit-exact comparisons between runs, CPU pinning of sweep trials), so a
+# machine with a GPU and jax[cuda] must not move them onto it. Set here, at the top of the first conftest, so
+# that it is in place before any test module imports JAX (the JAX_PLATFORMS variable is read when JAX is
+# imported; were it imported already, its config is set too, which works until a backend has started).
+os.environ["JAX_PLATFORMS"] = "cpu"
+if "jax" in sys.modules:
+    sys.modules["jax"].config.update("jax_platforms", "cpu")
+
+import pytest  # noqa: E402
 
 TESTS = Path(__file__).parent
 sys.path.insert(0, str(TESTS))
@@ -20,9 +29,25 @@ def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig
     return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
 
 
+def pytest_terminal_summary(terminalreporter, config):
+    # pytest-randomly (the test extra) runs the tests in a random order; its seed is in the header, which -q
+    # hides: say it at the end too, so that a failure that depends on the order can be repeated
+    if config.pluginmanager.hasplugin("randomly"):
+        seed = config.getoption("randomly_seed")
+        terminalreporter.write_line(f"random test order: repeat it with -p randomly --randomly-seed={seed}")
+
+
+def child_env(*paths: str | Path, **variables: str) -> dict[str, str]:
+    """The environment of a process a test starts: os.environ, with `paths` and tests/ (the test envs) put
+    ahead on PYTHONPATH (never in place of it: the suite's own PYTHONPATH may point at a checkout's src),
+    and `variables` set."""
+    pythonpath = os.pathsep.join([*map(str, paths), str(TESTS), os.environ.get("PYTHONPATH", "")])
+    return {**os.environ, "PYTHONPATH": pythonpath, **variables}
+
+
 def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra: dict | None = None,
             **popen) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""), **(env_extra or {})}
+    env = {**child_env(), **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "softac", *args], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=cwd, **popen)
 
@@ -42,10 +67,27 @@ def tiny():
     return tiny_config
 
 
+@pytest.fixture(scope="session", autouse=True)
+def own_compile_cache(tmp_path_factory):
+    """The JAX compile cache (softac.device.compile_cache_dir) of this test session alone, under pytest's
+    basetemp: the suite neither reads the user's ~/.cache/softac/jax (it runs as on a fresh machine,
+    whatever earlier runs left there) nor fills it with the tests' tiny networks. A session-scoped autouse
+    fixture runs before every other fixture and test; the CLI subprocesses inherit os.environ."""
+    previous = os.environ.get("SOFTAC_COMPILE_CACHE")
+    cache = tmp_path_factory.mktemp("jax-compile-cache")
+    os.environ["SOFTAC_COMPILE_CACHE"] = str(cache)
+    yield cache
+    if previous is None:
+        os.environ.pop("SOFTAC_COMPILE_CACHE", None)
+    else:
+        os.environ["SOFTAC_COMPILE_CACHE"] = previous
+
+
 @pytest.fixture(scope="session")
 def trained_run(tmp_path_factory):
     """One short InvertedPendulum-v5 run (800 steps, evaluations, checkpoints, baselines.json), trained once
-    for the tests that only read a run or add outputs to it (plots, videos, reports)."""
+    for the tests that read a run or add outputs to it (plots, videos, reports). Shared by the whole session:
+    a test that writes into it works on a copy (test_outputs' pendulum_run), so no test sees another's files."""
     run = tmp_path_factory.mktemp("runs") / "pendulum"
     r = run_cli("train", "--steps", "800", "--out", str(run), "--no-progress", "--set", "hidden_sizes=32,32",
                 "batch_size=32", "learning_starts=200", "buffer_size=5000", "log_interval=100", "eval_interval=200",
@@ -67,21 +109,70 @@ def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) 
         assert fragment in last, (fragment, last)
 
 
-def state_arrays(agent) -> list:
-    """The agent's parameter and optimiser leaves, copied (a view of a donated buffer would change under us)."""
+def assert_same_learner(a, b) -> None:
+    """Every leaf of the two agents' learner states (networks, targets, optimisers, alpha, key, counters) is
+    bit-identical, and the two trees have the same structure. Leaves are copied first: a view of a donated
+    buffer would change under us."""
     import jax
     import numpy as np
 
-    return [np.array(x, copy=True) for x in jax.tree_util.tree_leaves(agent.state)]
+    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.state)
+    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.state)
+    assert tree_a == tree_b
+    for (path, x), (_, y) in zip(paths_a, paths_b, strict=True):
+        np.testing.assert_array_equal(np.array(x, copy=True), np.array(y, copy=True),
+                                      err_msg="state" + jax.tree_util.keystr(path))
+
+
+# RunState fields that differ between a straight run and a resumed one by design, so not compared:
+# run_dir (the directory each agent trained into), restored_from (the checkpoint a resumed agent was loaded
+# from; None for one never loaded) and train_time_s (wall-clock seconds).
+RUN_STATE_NOT_COMPARED = {"run_dir", "restored_from", "train_time_s"}
 
 
 def assert_same_training(a, b) -> None:
-    """Two agents that trained the same steps are bit-identical: parameters, keys, RNG, buffer, episodes."""
+    """Two agents that trained the same steps share their whole training state, bit for bit: the learner's
+    leaves, the run state (counters, keys, NumPy RNG, best and last evaluation and their steps, recent
+    returns), every array of the replay buffer, the observation statistics (obs_norm) and the training envs'
+    saved state. Any difference would make their next steps differ."""
+    import dataclasses
+
     import numpy as np
 
-    for x, y in zip(state_arrays(a), state_arrays(b)):
-        np.testing.assert_array_equal(x, y)
-    np.testing.assert_array_equal(np.asarray(a.act_key), np.asarray(b.act_key))
-    assert a.rng.bit_generator.state == b.rng.bit_generator.state
-    np.testing.assert_array_equal(a.buffer.obs, b.buffer.obs)
-    assert a.num_episodes == b.num_episodes
+    from softac.runstate import RunState
+
+    assert_same_learner(a, b)
+
+    for f in dataclasses.fields(RunState):
+        if f.name in RUN_STATE_NOT_COMPARED:
+            continue
+        x, y = getattr(a.run, f.name), getattr(b.run, f.name)
+        if f.name == "rng":
+            assert x.bit_generator.state == y.bit_generator.state, f.name
+        elif f.name.endswith("_key"):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=f.name)
+        else:
+            assert x == y, (f.name, x, y)
+
+    assert type(a.buffer) is type(b.buffer)
+    if a.buffer is not None:
+        buffer_a, buffer_b = a.buffer.state_dict(), b.buffer.state_dict()
+        assert buffer_a.keys() == buffer_b.keys()
+        for name in buffer_a:
+            np.testing.assert_array_equal(buffer_a[name], buffer_b[name], err_msg=f"buffer {name}")
+
+    assert (a.obs_norm is None) == (b.obs_norm is None)
+    if a.obs_norm is not None:
+        norm_a, norm_b = a.obs_norm.state_dict(), b.obs_norm.state_dict()
+        assert norm_a.keys() == norm_b.keys()
+        for name in norm_a:
+            np.testing.assert_array_equal(norm_a[name], norm_b[name], err_msg=f"obs_norm {name}")
+
+    envs_a, envs_b = a.env_state(), b.env_state()
+    assert (envs_a is None) == (envs_b is None)
+    if envs_a is not None:
+        (meta_a, arrays_a), (meta_b, arrays_b) = envs_a, envs_b
+        assert meta_a == meta_b
+        assert arrays_a.keys() == arrays_b.keys()
+        for name in arrays_a:
+            np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=f"envs {name}")

@@ -92,11 +92,52 @@ class HugeRewardEnv(DriftEnv):
 
 
 class SlowEnv(DriftEnv):
+    """Drift taking 2 ms a step. It can tell a test how far a process got, from the process itself:
+
+    SOFTAC_TEST_ENV_LOG=FILE: each reset and step appends a line to FILE, "reset SEED" or "step SEED", SEED
+    being the seed the episode started from (-1 without one). In a run with seed 0, evaluation episodes
+    start from seeds >= softac.evaluation.EVAL_SEED_OFFSET and training episodes below it (env i, reset k
+    from i * 7919 + k, for a few envs); with another seed the training reset seeds reach that range too.
+    SOFTAC_TEST_STOP_IN_EVAL=1: the first step of an episode seeded >= EVAL_SEED_OFFSET (in a seed-0 run,
+    the first evaluation step), once logged, stops the process (SIGSTOP), so a test can act on it at that
+    exact point and then let it go on (SIGCONT).
+    """
+
+    stopped_in_eval = False  # once per process
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.episode_seed = -1
+
+    def _log(self, event: str) -> None:
+        import os
+
+        path = os.environ.get("SOFTAC_TEST_ENV_LOG")
+        if path:
+            with open(path, "a") as f:  # one small append per line: whole lines, whichever process writes
+                f.write(f"{event} {self.episode_seed}\n")
+
+    def reset(self, *, seed=None, options=None):
+        self.episode_seed = -1 if seed is None else int(seed)
+        self._log("reset")
+        return super().reset(seed=seed, options=options)
+
     def step(self, action):
+        import os
         import time
 
+        from softac.evaluation import EVAL_SEED_OFFSET
+
         time.sleep(0.002)
-        return super().step(action)
+        result = super().step(action)
+        self._log("step")
+        if (self.episode_seed >= EVAL_SEED_OFFSET and os.environ.get("SOFTAC_TEST_STOP_IN_EVAL")
+                and not SlowEnv.stopped_in_eval):
+            import signal
+
+            SlowEnv.stopped_in_eval = True
+            os.kill(os.getpid(), signal.SIGSTOP)
+        return result
 
 
 class CrashingEnv(DriftEnv):

@@ -4,7 +4,7 @@ import jax
 import numpy as np
 import pytest
 
-from conftest import assert_same_training, state_arrays
+from conftest import assert_same_training
 from softac import SAC, evaluate
 from softac.checkpoint import load as load_checkpoint
 from softac_test_envs import DriftEnv
@@ -71,10 +71,43 @@ def test_asymmetric_bounds_agent_learns_the_best_action(tiny, obs_norm):
 
 
 def test_evaluate_reports_per_episode_results(tiny):
+    """returns[i] and lengths[i] are those of episode i, started from seed + i, as the policy played it; the
+    summary statistics are theirs."""
+    import gymnasium as gym
+
+    from softac.evaluation import EVAL_SEED_OFFSET
+
     agent = SAC(tiny())
+    calls = []  # (observations, actions) of each policy call the evaluation made
+    predict = agent.predict
+
+    def recording_predict(obs, deterministic=True):
+        actions = predict(obs, deterministic=deterministic)
+        calls.append((np.array(obs, copy=True), np.array(actions, copy=True)))
+        return actions
+
+    agent.predict = recording_predict
     stats = evaluate(agent, episodes=3)
+    del agent.predict
     assert stats["episodes"] == 3 and len(stats["returns"]) == 3 and len(stats["lengths"]) == 3
-    assert stats["mean_return"] == np.mean(stats["returns"])
+    # replay each episode on an env of its own, taking the action the policy chose for each of its observations
+    # (found among the rows of the batched call; the evaluation steps its 3 episodes side by side)
+    for i in range(3):
+        env = gym.make("softac_test_envs:Drift-v0")
+        obs, _ = env.reset(seed=agent.config.seed + EVAL_SEED_OFFSET + i)
+        total, length, done = 0.0, 0, False
+        while not done:
+            batch, actions = calls[length]
+            rows = np.flatnonzero((batch == obs).all(axis=1))
+            assert len(rows) == 1, (i, length)
+            obs, reward, terminated, truncated, _ = env.step(actions[rows[0]])
+            total, length, done = total + float(reward), length + 1, terminated or truncated
+        assert (stats["returns"][i], stats["lengths"][i]) == (total, length), i
+    assert len(calls) == max(stats["lengths"])  # one batched call per step while any episode runs
+    returns = np.array(stats["returns"])
+    assert (stats["mean_return"], stats["std_return"]) == (np.mean(returns), np.std(returns))
+    assert (stats["min_return"], stats["max_return"]) == (returns.min(), returns.max())
+    assert stats["mean_length"] == np.mean(stats["lengths"])
     again = evaluate(agent, episodes=3)
     assert again["returns"] == stats["returns"]  # deterministic policy, fixed eval seeds
 
@@ -137,7 +170,8 @@ def test_reset_renews_networks_and_optimisers_and_keeps_alpha(tiny):
     assert float(after.log_alpha) == float(before.log_alpha) != float(fresh.log_alpha)
     assert int(after.n_updates) == int(before.n_updates) > 0
     np.testing.assert_array_equal(np.asarray(after.key), np.asarray(before.key))
-    for online, target in zip(jax.tree_util.tree_leaves(after.critic), jax.tree_util.tree_leaves(after.target_critic)):
+    for online, target in zip(jax.tree_util.tree_leaves(after.critic), jax.tree_util.tree_leaves(after.target_critic),
+                              strict=True):
         np.testing.assert_array_equal(online, target)
     for moment in jax.tree_util.tree_leaves(after.actor_opt) + jax.tree_util.tree_leaves(after.critic_opt):
         assert not np.any(np.asarray(moment))  # Adam starts again (counts and moments)
@@ -171,7 +205,102 @@ def test_resets_happen_at_each_multiple_before_total_steps_and_resume_exactly(ti
     calls = counting(resumed)
     resumed.learn(300, run_dir=tmp_path / "split", progress=False)
     assert calls == [2]  # the reset at 600 happens after the checkpoint, in the resumed run
-    for a, b in zip(state_arrays(straight), state_arrays(resumed)):
-        np.testing.assert_array_equal(a, b)
+    assert_same_training(straight, resumed)
     evals = lambda run: (run / "eval.csv").read_text()  # noqa: E731
     assert evals(tmp_path / "straight") == evals(tmp_path / "split")
+
+
+@pytest.mark.parametrize("obs_once", [False, True])
+def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
+    """The resume tests' helper: two agents trained alike pass it; changing any one part of one agent's
+    training state (a learner leaf, a run state field, a buffer array, the observation statistics, an env's
+    state) fails it; only the fields a resumed run has of its own (run_dir, restored_from, train_time_s) may
+    differ."""
+    import dataclasses
+    from pathlib import Path
+
+    import jax.numpy as jnp
+
+    from conftest import RUN_STATE_NOT_COMPARED
+    from softac.runstate import RunState
+
+    cfg = tiny(n_envs=2, obs_norm=True, eval_interval=100, buffer_obs_once=obs_once)
+    a, b = SAC(cfg), SAC(cfg)
+    for agent in (a, b):
+        agent.learn(300, progress=False)
+        agent.run.recent_returns = [1.0, 2.0]  # (learn() without a run directory leaves them empty)
+    assert_same_training(a, b)
+
+    def differs(what, change, undo):
+        change()
+        try:
+            with pytest.raises(AssertionError):
+                assert_same_training(a, b)
+        except pytest.fail.Exception:
+            raise AssertionError(f"assert_same_training missed a change of {what}") from None
+        finally:
+            undo()
+        assert_same_training(a, b)  # undone
+
+    state = b.state
+    leaves, treedef = jax.tree_util.tree_flatten(state)
+    for i, leaf in enumerate(leaves):
+        changed = [*leaves[:i], jnp.asarray(leaf) + jnp.ones((), leaf.dtype), *leaves[i + 1:]]
+        differs(f"learner leaf {i}", lambda c=changed: setattr(b, "state", treedef.unflatten(c)),
+                lambda: setattr(b, "state", state))
+
+    for f in dataclasses.fields(RunState):
+        value = getattr(b.run, f.name)
+        if f.name == "rng":
+            saved = value.bit_generator.state
+            differs("rng", lambda: b.run.rng.random(), lambda s=saved: setattr(b.run.rng.bit_generator, "state", s))
+            continue
+        if f.name.endswith("_key"):
+            other = jnp.asarray(np.asarray(value) ^ np.uint32(1))
+        elif isinstance(value, list):
+            other = [*value, 3.0]
+        elif isinstance(value, Path) or value is None:
+            other = Path("elsewhere")
+        else:
+            other = value + 1
+        if f.name in RUN_STATE_NOT_COMPARED:
+            setattr(b.run, f.name, other)
+            assert_same_training(a, b)  # a resumed run's own: not compared
+            setattr(b.run, f.name, value)
+        else:
+            differs(f.name, lambda n=f.name, o=other: setattr(b.run, n, o),
+                    lambda n=f.name, v=value: setattr(b.run, n, v))
+
+    for name, array in b.buffer.state_dict().items():
+        if name == "pos_size":
+            differs("buffer position", lambda: setattr(b.buffer, "pos", b.buffer.pos + 1),
+                    lambda p=b.buffer.pos: setattr(b.buffer, "pos", p))
+            continue
+        old = array.flat[-1].copy()  # a view of the buffer's array
+        new = ~old if array.dtype == bool else old + 1
+        differs(f"buffer {name}", lambda a_=array, n=new: a_.flat.__setitem__(-1, n),
+                lambda a_=array, o=old: a_.flat.__setitem__(-1, o))
+
+    norm = b.obs_norm
+    differs("obs_norm count", lambda: setattr(norm, "count", norm.count + 1),
+            lambda c=norm.count: setattr(norm, "count", c))
+    for name in ("mean", "m2"):
+        differs(f"obs_norm {name}", lambda n=name: setattr(norm, n, getattr(norm, n) + 1.0),
+                lambda n=name, v=getattr(norm, name): setattr(norm, n, v))
+
+    pool = b.pool
+    for name in ("obs", "episode_return", "episode_length", "resets"):
+        array = getattr(pool, name)
+        differs(f"envs {name}", lambda a_=array: a_.__setitem__(1, a_[1] + 1),
+                lambda a_=array: a_.__setitem__(1, a_[1] - 1))
+    env = pool.envs[1]
+    differs("an env's physics", lambda: setattr(env.unwrapped, "x", env.unwrapped.x + 0.5),
+            lambda x=env.unwrapped.x: setattr(env.unwrapped, "x", x))
+    saved = env.unwrapped.np_random.bit_generator.state
+    differs("an env's random stream", lambda: env.unwrapped.np_random.random(),
+            lambda: setattr(env.unwrapped.np_random.bit_generator, "state", saved))
+    limit = env
+    while not hasattr(limit, "_elapsed_steps"):
+        limit = limit.env
+    differs("an env's time limit", lambda: setattr(limit, "_elapsed_steps", limit._elapsed_steps + 1),
+            lambda s=limit._elapsed_steps: setattr(limit, "_elapsed_steps", s))

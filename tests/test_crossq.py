@@ -155,7 +155,7 @@ def test_crossq_reset_renews_the_statistics(tiny):
     after = agent.fns.reset(agent.state, agent.config.seed, 1)
     assert np.any(np.asarray(agent.state.critic_stats[0]["mean"]))
     for leaf, fresh in zip(jax.tree_util.tree_leaves(after.critic_stats),
-                           jax.tree_util.tree_leaves(agent.fns.init(0).critic_stats)):
+                           jax.tree_util.tree_leaves(agent.fns.init(0).critic_stats), strict=True):
         np.testing.assert_array_equal(leaf, fresh)
 
 

@@ -5,16 +5,15 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import TESTS, assert_clean_error, assert_same_training, assert_training_error, run_cli, state_arrays
+from conftest import assert_clean_error, assert_same_training, assert_training_error, child_env, run_cli
 from softac import SAC
-from softac.buffer import ReplayBuffer
+from softac.callbacks import Callback
 from softac.config import ConfigError
 from softac.env_workers import WorkerEnvPool, split_evenly
 from softac.envs import EnvError, EnvFailed, EnvPool, copy_env
@@ -123,10 +122,7 @@ def test_env_workers_give_the_same_run_and_leave_no_process(tiny):
         assert pids == [] or not any(map(_running, pids))
         runs.append(agent)
     local, workers = runs
-    for name in ReplayBuffer.FIELDS:
-        np.testing.assert_array_equal(getattr(local.buffer, name), getattr(workers.buffer, name), err_msg=name)
-    for a, b in zip(state_arrays(local), state_arrays(workers)):
-        np.testing.assert_array_equal(a, b)
+    assert_same_training(local, workers)
     assert local.num_episodes == workers.num_episodes > 0
 
 
@@ -162,15 +158,14 @@ def test_a_killed_worker_fails_the_run_naming_the_env_and_the_next_learn_starts_
     _, pool = agent.training_parts()
     victim = pool.pids[1]
 
-    def kill_mid_run():
-        while agent.num_steps < 100:
-            time.sleep(0.005)
-        os.kill(victim, signal.SIGKILL)
+    class KillAtStep100(Callback):  # in the loop itself: not a thread racing the loop (which may finish first)
+        def on_step(self, info):
+            if info.step == 100:
+                os.kill(victim, signal.SIGKILL)
 
-    threading.Thread(target=kill_mid_run, daemon=True).start()
     with pytest.raises(EnvFailed, match=rf"env softac_test_envs:Slow-v0: the env worker process {victim} \(env 1\) "
-                                        r"was killed by SIGKILL at step \d+"):
-        agent.learn(4000, progress=False)
+                                        r"was killed by SIGKILL at step 100"):
+        agent.learn(4000, progress=False, callbacks=[KillAtStep100()])
     assert not any(map(_running, pool.pids)) and agent.pool is None
     steps = agent.num_steps
     agent.learn(40, progress=False)  # new workers, fresh episodes
@@ -184,14 +179,14 @@ def test_workers_exit_when_their_parent_is_killed_outright():
             "print(*pool.pids, flush=True)\n"
             "time.sleep(600)\n")
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
-                              env=dict(os.environ, PYTHONPATH=f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+                              env=child_env())
     workers = [int(pid) for pid in parent.stdout.readline().split()]
     assert len(workers) == 2 and all(map(_running, workers))
     parent.kill()
     parent.wait()
-    deadline = time.time() + 30
+    deadline = time.monotonic() + 300  # a hang guard only: they see their pipe close at once
     while any(map(_running, workers)):
-        assert time.time() < deadline, "orphaned env workers"
+        assert time.monotonic() < deadline, "orphaned env workers"
         time.sleep(0.1)
 
 
@@ -216,10 +211,10 @@ def test_ctrl_c_checkpoints_closes_the_workers_and_resumes_in_process(tmp_path):
                              "--steps", "1000000", "--n-envs", "2", "--env-workers", "2", "--out", str(run),
                              "--no-progress", *TINY_SETS, "checkpoint_interval=0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            env=dict(os.environ, PYTHONPATH=f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
-    deadline = time.time() + 120
+                            env=child_env())
+    deadline = time.monotonic() + 600  # a hang guard only
     while not (run / "progress.csv").exists() or len((run / "progress.csv").read_text().splitlines()) < 3:
-        assert time.time() < deadline and proc.poll() is None, proc.communicate()[1]
+        assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[1]
         time.sleep(0.1)
     workers = _worker_pids(proc.pid)
     assert len(workers) == 2

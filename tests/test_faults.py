@@ -15,23 +15,24 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import TESTS, assert_clean_error, assert_training_error, run_cli, tiny_config
+from conftest import assert_clean_error, assert_training_error, child_env, run_cli, tiny_config
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "buffer_size=20000",
              "log_interval=100", "eval_interval=0"]
 
 
-def _popen_train(*args):
-    env = dict(os.environ, PYTHONPATH=str(TESTS))
+def _popen_train(*args, env=None):
     return subprocess.Popen([sys.executable, "-m", "softac", "train", "--no-progress", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env or child_env())
 
 
-def _wait_for(predicate, proc, timeout=120.0):
-    deadline = time.time() + timeout
+def _wait_for(predicate, proc, hang_guard=600.0):
+    """Until `predicate()` holds (what the process has written says it got there), while `proc` runs; the
+    guard only ends a hung test, it measures nothing."""
+    deadline = time.monotonic() + hang_guard
     while not predicate():
         assert proc.poll() is None, proc.communicate()[1]
-        assert time.time() < deadline, "timed out"
+        assert time.monotonic() < deadline, "hang guard: timed out"
         time.sleep(0.05)
 
 
@@ -101,24 +102,60 @@ def test_kill_9_before_the_first_periodic_checkpoint_resumes_from_step_0(tmp_pat
     assert steps == sorted(set(steps)) and steps[-1] == 300  # the killed run's rows were replaced, none twice
 
 
+def _wait_until_stopped(proc, hang_guard=600.0):
+    """Until `proc` is stopped (SIGSTOP); a process that exits instead fails the test with its stderr."""
+    deadline = time.monotonic() + hang_guard
+    while True:
+        pid, status = os.waitpid(proc.pid, os.WNOHANG | os.WUNTRACED)
+        if pid and os.WIFSTOPPED(status):
+            return
+        assert not pid, f"exited ({status}) before stopping: {proc.stderr.read()}"
+        assert time.monotonic() < deadline, "hang guard: never stopped"
+        time.sleep(0.05)
+
+
+def _env_log(path):
+    """Slow-v0's log (SOFTAC_TEST_ENV_LOG): (event, episode seed) per reset and step, in order."""
+    return [(event, int(seed)) for event, seed in (line.split() for line in path.read_text().splitlines())]
+
+
 @pytest.mark.faults
-def test_sigterm_during_evaluation_exits_130_within_seconds(tmp_path):
-    run = tmp_path / "run"
+def test_sigterm_during_evaluation_stops_it_within_the_step_under_way_and_exits_130(tmp_path):
+    """SIGTERM in the middle of a 2000-episode evaluation: it stops within the batched step under way, is not
+    recorded, and the run checkpoints the step it was at and exits 130. Where the process was and what it did
+    after the signal come from the process itself, not from the clock: Slow-v0 logs every reset and step and
+    stops the process at its first evaluation step, where the test sends the signal."""
+    from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL
+
+    run, log = tmp_path / "run", tmp_path / "env.log"
     proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
                         "--set", "hidden_sizes=16", "batch_size=16", "learning_starts=50", "eval_interval=100",
-                        "eval_episodes=2000", "checkpoint_interval=0", "buffer_size=1000", "log_interval=100")
-    # the step-100 progress row is written just before the evaluation starts (however long the first compile
-    # took on a cold cache); evaluating 2000 slow episodes takes minutes
-    _wait_for(lambda: (run / "progress.csv").exists() and len(_csv_rows(run / "progress.csv")) >= 2, proc)
-    time.sleep(1.0)
-    assert (run / "eval.csv").read_text().count("\n") == 1  # still inside the first evaluation
-    sent = time.time()
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=30)
+                        "eval_episodes=2000", "checkpoint_interval=0", "buffer_size=1000", "log_interval=100",
+                        env=child_env(SOFTAC_TEST_ENV_LOG=str(log), SOFTAC_TEST_STOP_IN_EVAL="1"))
+    try:
+        _wait_until_stopped(proc)
+        before = _env_log(log)
+        evaluating = [(event, seed) for event, seed in before if seed >= EVAL_SEED_OFFSET]
+        # inside the first evaluation, at its first step: its first MAX_PARALLEL episodes started side by side
+        assert evaluating == [("reset", EVAL_SEED_OFFSET + i) for i in range(MAX_PARALLEL)] + \
+            [("step", EVAL_SEED_OFFSET)]
+        assert sum(event == "step" for event, _ in before) == 100 + 1  # after the training steps to step 100
+        assert (run / "eval.csv").read_text().count("\n") == 1  # no evaluation recorded yet
+        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGCONT)
+        _, err = proc.communicate(timeout=600)  # a hang guard, not a measure
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
     assert proc.returncode == 130, err
-    assert time.time() - sent < 10
+    after = _env_log(log)[len(before):]
+    # it stepped at most the rest of the batched step under way (one step of each other parallel episode, of
+    # the 2000 * up to 25 steps of the whole evaluation), started no new episode, took no training step
+    assert all(event == "step" and seed >= EVAL_SEED_OFFSET for event, seed in after), after
+    assert len(after) <= MAX_PARALLEL - 1
     assert (run / "eval.csv").read_text().count("\n") == 1  # the cut evaluation was not recorded
-    assert _checkpoint_step(run) >= 100
+    assert _checkpoint_step(run) == 100
 
 
 @pytest.mark.faults

@@ -1,5 +1,6 @@
 """What a person looks at: plots, videos, the HTML report, baselines."""
 
+import itertools
 import json
 import os
 import shutil
@@ -15,8 +16,12 @@ SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "
 
 
 @pytest.fixture
-def pendulum_run(trained_run):
-    return trained_run
+def pendulum_run(trained_run, tmp_path):
+    """A copy of the session's trained run, this test's own: what one test adds to it (plots, videos, a report)
+    is never there for another, so each test passes alone and in any order."""
+    run = tmp_path / trained_run.name
+    shutil.copytree(trained_run, run)
+    return run
 
 
 def _png_size(path):
@@ -102,8 +107,9 @@ def test_video_is_an_mp4_with_the_return_in_its_name(pendulum_run):
     import imageio.v2 as imageio
 
     reader = imageio.get_reader(videos[0])
-    frames = [f for _, f in zip(range(5), reader)]
+    frames = list(itertools.islice(reader, 5))
     reader.close()
+    assert len(frames) == 5
     assert frames[0].shape == (480, 640, 3) and max(f.mean() for f in frames) > 1.0
     out = pendulum_run / "custom.mp4"
     r = run_cli("video", str(pendulum_run), "--out", str(out), "--episodes", "2", "--max-steps", "20")
@@ -119,6 +125,8 @@ def _chromium():
 
 
 def test_report_is_self_contained_and_renders_in_chromium(pendulum_run, tmp_path):
+    r = run_cli("video", str(pendulum_run), "--max-steps", "30")  # the report inlines the run's latest video
+    assert r.returncode == 0, r.stderr
     r = run_cli("report", str(pendulum_run))
     assert r.returncode == 0, r.stderr
     page = (pendulum_run / "report.html").read_text()
@@ -158,8 +166,11 @@ def test_report_and_plot_errors(tmp_path):
 def test_gl_backend_choice(monkeypatch):
     import softac.video as video
 
-    monkeypatch.delenv("MUJOCO_GL", raising=False)
-    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)  # restored after: the choice below sets both
+    # the choice below sets both variables: restored after the test, also where they were unset (delenv alone
+    # records nothing then, and the osmesa chosen here leaked into every later test's MuJoCo processes)
+    for name in ("MUJOCO_GL", "PYOPENGL_PLATFORM"):
+        monkeypatch.setenv(name, "unset by this test")
+        monkeypatch.delenv(name)
     monkeypatch.setattr(video, "gl_backend_works", lambda backend: False)
     monkeypatch.setattr(video.sys, "modules", {k: v for k, v in video.sys.modules.items() if k != "mujoco"})
     with pytest.raises(video.SoftacError, match="libosmesa6"):

@@ -119,15 +119,15 @@ def test_update_moves_targets_by_tau_every_interval():
     before = _leaves(state.target_critic)
     rng = np.random.default_rng(0)
     state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
-    for a, b in zip(before, _leaves(state.target_critic)):
+    for a, b in zip(before, _leaves(state.target_critic), strict=True):
         np.testing.assert_array_equal(a, b)  # 1 update: interval 2 not reached
     online_before = _leaves(state.critic)
     prev_target = _leaves(state.target_critic)
     state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
     # after the second update: target = 0.5 * online(after step 2) + 0.5 * old target
-    for t_old, online, t_new in zip(prev_target, _leaves(state.critic), _leaves(state.target_critic)):
+    for t_old, online, t_new in zip(prev_target, _leaves(state.critic), _leaves(state.target_critic), strict=True):
         np.testing.assert_allclose(t_new, 0.5 * online + 0.5 * t_old, rtol=1e-5, atol=1e-6)
-    assert any(not np.array_equal(a, b) for a, b in zip(online_before, _leaves(state.critic)))
+    assert any(not np.array_equal(a, b) for a, b in zip(online_before, _leaves(state.critic), strict=True))
     assert int(state.n_updates) == 2
 
 
@@ -174,11 +174,11 @@ def test_n_step_target_bootstraps_with_gamma_to_the_steps():
         one_step = sac.build(base.replace(gamma=0.9**steps), 3, 2)
         got, _ = n_step.update(n_step.init(0), batch._replace(steps=jnp.full((1, 8), steps, jnp.float32)))
         want, _ = one_step.update(one_step.init(0), batch)
-        for a, b in zip(_leaves(got.critic), _leaves(want.critic)):
+        for a, b in zip(_leaves(got.critic), _leaves(want.critic), strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     same, _ = n_step.update(n_step.init(0), batch._replace(steps=jnp.full((1, 8), 2.0, jnp.float32)))
     plain, _ = n_step.update(n_step.init(0), batch)
-    assert any(not np.allclose(a, b) for a, b in zip(_leaves(same.critic), _leaves(plain.critic)))
+    assert any(not np.allclose(a, b) for a, b in zip(_leaves(same.critic), _leaves(plain.critic), strict=True))
 
 
 def test_delayed_policy_updates_and_critic_ensemble():
@@ -188,9 +188,10 @@ def test_delayed_policy_updates_and_critic_ensemble():
     assert jax.tree_util.tree_leaves(state.critic)[0].shape[0] == 3
     actor_before = _leaves(state.actor)
     state, _ = fns.update(state, _batch(np.random.default_rng(0), 1, 8, 3, 2))
-    assert all(np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))  # step 1: no actor step
+    # step 1: no actor step
+    assert all(np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor), strict=True))
     state, _ = fns.update(state, _batch(np.random.default_rng(1), 1, 8, 3, 2))
-    assert any(not np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor)))
+    assert any(not np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor), strict=True))
 
 
 def _adam_steps(opt_state) -> int:
