@@ -171,3 +171,23 @@ def test_resets_happen_at_each_multiple_before_total_steps_and_resume_exactly(ti
         np.testing.assert_array_equal(a, b)
     evals = lambda run: (run / "eval.csv").read_text()  # noqa: E731
     assert evals(tmp_path / "straight") == evals(tmp_path / "split")
+
+
+def test_loading_into_an_env_with_other_action_bounds_is_refused_unless_asked(tiny, tmp_path):
+    """Sizes alone used to be checked: a policy trained on [-1, 3] silently acted on [-2, 0.5]."""
+    from softac.checkpoint import CheckpointError
+
+    agent = SAC(tiny())
+    agent.learn(300, progress=False)
+    agent.save(tmp_path / "agent")
+    with pytest.raises(CheckpointError, match=r"action bounds low \[-1.\], high \[3.\], but the env has low \[-2.\]"):
+        SAC.load(tmp_path / "agent", env=DriftEnv(low=-2.0, high=0.5))
+    SAC.load(tmp_path / "agent", env=DriftEnv())  # the same bounds: fine
+
+    moved = SAC.load(tmp_path / "agent", env=DriftEnv(low=-2.0, high=0.5), allow_new_bounds=True)
+    obs = np.random.default_rng(0).normal(scale=5.0, size=(64, 2)).astype(np.float32)
+    actions = moved.predict(obs)
+    assert actions.min() >= -2.0 and actions.max() <= 0.5
+    # the same policy, scaled to the new bounds: a few float32 roundings of values below 4 in magnitude apart
+    np.testing.assert_allclose(moved.scaler.to_normalised(actions), agent.scaler.to_normalised(agent.predict(obs)),
+                               rtol=0, atol=1e-6)
