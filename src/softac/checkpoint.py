@@ -7,7 +7,7 @@ Only then is the previous arrays file removed. A crash at any moment leaves
 either the old checkpoint or the new one, whole.
 
 Two processes saving into one directory (two `agent.save(path)` at once) take
-turns on the directory's lock file, so neither removes the other's arrays, and
+turns on the directory's lock, so neither removes the other's arrays, and
 the last to finish wins whole; a reader that meets a save replacing the files
 under it reads again (`load`).
 """
@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
-from softac.rundir import LOCK, checkpoint_path, fsync_dir, write_atomic
+from softac.rundir import checkpoint_path, fsync_dir, write_atomic
 
 FORMAT = "softac-checkpoint"
 FORMAT_VERSION = 1
@@ -62,16 +62,19 @@ def _write_npz(f: Any, arrays: dict[str, np.ndarray]) -> None:
 
 @contextlib.contextmanager
 def _writing(directory: Path):
-    """The checkpoint directory's lock, waited for: one save at a time, so that a save may remove every
-    arrays file its meta.json does not name (those of a save killed midway) without touching another's."""
+    """The checkpoint directory's own lock (flock on the directory, so a checkpoint holds no extra file),
+    waited for: one save at a time, so that a save may remove every arrays file its meta.json does not name
+    (those of a save killed midway) without touching another's. Where the filesystem cannot lock a directory
+    (NFS), saves go on unserialised, as before."""
     import fcntl
 
-    fd = os.open(directory / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(directory, os.O_RDONLY)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        with contextlib.suppress(OSError):
+            fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
-        os.close(fd)
+        os.close(fd)  # releases the lock
 
 
 def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Path:
