@@ -191,3 +191,15 @@ def test_loading_into_an_env_with_other_action_bounds_is_refused_unless_asked(ti
     # the same policy, scaled to the new bounds: a few float32 roundings of values below 4 in magnitude apart
     np.testing.assert_allclose(moved.scaler.to_normalised(actions), agent.scaler.to_normalised(agent.predict(obs)),
                                rtol=0, atol=1e-6)
+
+
+def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):
+    """Without a run directory the recent returns (progress's return_mean, summary, save()) were dropped
+    between learn() calls: a second call started its mean afresh and save() stored none."""
+    once, twice = SAC(tiny()), SAC(tiny())
+    whole = once.learn(600, progress=False)
+    twice.learn(300, progress=False)
+    assert twice.run.recent_returns  # kept after the first call
+    split = twice.learn(300, progress=False)
+    assert split["recent_return_mean"] == whole["recent_return_mean"]
+    assert twice.run.recent_returns == once.run.recent_returns and len(once.run.recent_returns) == 20

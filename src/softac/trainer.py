@@ -284,6 +284,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     finally:
         show.close(run_state.num_steps)
         run_state.train_time_s = elapsed()
+        run_state.recent_returns = list(rows.recent)  # the next learn() (and save()) go on from them
         if writer is not None:
             writer.close()
         if eval_envs is not None:
