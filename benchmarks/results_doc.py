@@ -118,13 +118,15 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
 
 
 def machines_of(runs: list[Path]) -> str:
-    """The machines the trials' config.yaml name (runs made before it was recorded: this machine)."""
+    """The machines the trials' config.yaml name, every segment of a resumed trial's (runs made before it was
+    recorded: this machine)."""
     import yaml
 
     names = set()
     for run in runs:
-        config = yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").exists() else None
-        names.add((config or {}).get("machine") or machine_description())
+        config = (yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").exists() else None) or {}
+        for segment in config.get("segments") or [config]:
+            names.add(segment.get("machine") or machine_description())
     return " and ".join(sorted(names))
 
 

@@ -304,3 +304,35 @@ def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
         limit = limit.env
     differs("an env's time limit", lambda: setattr(limit, "_elapsed_steps", limit._elapsed_steps + 1),
             lambda s=limit._elapsed_steps: setattr(limit, "_elapsed_steps", s))
+
+
+def test_loading_into_an_env_with_other_action_bounds_is_refused_unless_asked(tiny, tmp_path):
+    """Sizes alone used to be checked: a policy trained on [-1, 3] silently acted on [-2, 0.5]."""
+    from softac.checkpoint import CheckpointError
+
+    agent = SAC(tiny())
+    agent.learn(300, progress=False)
+    agent.save(tmp_path / "agent")
+    with pytest.raises(CheckpointError, match=r"action bounds low \[-1.\], high \[3.\], but the env has low \[-2.\]"):
+        SAC.load(tmp_path / "agent", env=DriftEnv(low=-2.0, high=0.5))
+    SAC.load(tmp_path / "agent", env=DriftEnv())  # the same bounds: fine
+
+    moved = SAC.load(tmp_path / "agent", env=DriftEnv(low=-2.0, high=0.5), allow_new_bounds=True)
+    obs = np.random.default_rng(0).normal(scale=5.0, size=(64, 2)).astype(np.float32)
+    actions = moved.predict(obs)
+    assert actions.min() >= -2.0 and actions.max() <= 0.5
+    # the same policy, scaled to the new bounds: a few float32 roundings of values below 4 in magnitude apart
+    np.testing.assert_allclose(moved.scaler.to_normalised(actions), agent.scaler.to_normalised(agent.predict(obs)),
+                               rtol=0, atol=1e-6)
+
+
+def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):
+    """Without a run directory the recent returns (progress's return_mean, summary, save()) were dropped
+    between learn() calls: a second call started its mean afresh and save() stored none."""
+    once, twice = SAC(tiny()), SAC(tiny())
+    whole = once.learn(600, progress=False)
+    twice.learn(300, progress=False)
+    assert twice.run.recent_returns  # kept after the first call
+    split = twice.learn(300, progress=False)
+    assert split["recent_return_mean"] == whole["recent_return_mean"]
+    assert twice.run.recent_returns == once.run.recent_returns and len(once.run.recent_returns) == 20

@@ -78,3 +78,9 @@ def test_env_workers_script_reports_every_setting():
                                                                   ("SlowInvertedPendulum-v5", 2)]
     assert all(row["steps_per_s"] > 0 for row in rows)
     assert "| SlowInvertedPendulum-v5 (1 ms a step) | 2 |" in r.stderr
+
+
+def test_bench_refuses_a_warmup_too_short_for_any_framework():
+    """`--frameworks sb3 --warmup 0` passed the checks, then the peer's clock never started and it crashed."""
+    for frameworks in ("sb3", "sbx", "softac", "softac,sbx"):
+        assert_clean_error(run_cli("bench", "--frameworks", frameworks, "--warmup", "0"), "--warmup must be >= 300")

@@ -225,3 +225,37 @@ def test_help_for_the_root_and_every_command():
         assert r.returncode == 0, (command, r.stderr)
         assert f"usage: softac {command}" in r.stdout, (command, r.stdout[:200])
         assert "internal error" not in r.stderr + r.stdout, command
+
+
+BOUNDED_ENV = '''
+import os
+
+import gymnasium as gym
+from softac_test_envs import DriftEnv
+
+
+class Bounded(DriftEnv):
+    def __init__(self):
+        super().__init__(high=float(os.environ.get("BOUNDED_HIGH", "3")))
+
+
+gym.register("Bounded-v0", entry_point=Bounded, max_episode_steps=25)
+'''
+
+
+def test_a_changed_env_with_other_action_bounds_is_refused_unless_asked(tmp_path):
+    (tmp_path / "boundedenv.py").write_text(BOUNDED_ENV)
+    path = os.pathsep.join([str(tmp_path), str(TESTS), os.environ.get("PYTHONPATH", "")])
+    run = tmp_path / "run"
+    r = run_cli("train", "--env", "boundedenv:Bounded-v0", "--steps", "250", "--out", str(run), "--no-progress",
+                *TINY_SETS, "eval_interval=0", env_extra={"PYTHONPATH": path})
+    assert r.returncode == 0, r.stderr
+    changed = {"PYTHONPATH": path, "BOUNDED_HIGH": "2"}  # the env's definition changed since
+    # (the resume last: it saves the run with the new bounds)
+    for args in (["eval", str(run)], ["export", str(run), "--format", "numpy"],
+                 ["train", "--resume", str(run), "--steps", "50", "--no-progress"]):
+        assert_clean_error(run_cli(*args, env_extra=changed), "action bounds", "--allow-new-bounds")
+        r = run_cli(*args, "--allow-new-bounds", env_extra=changed)
+        assert r.returncode == 0, (args, r.stderr)
+    assert_clean_error(run_cli("train", "--env", "boundedenv:Bounded-v0", "--out", str(tmp_path / "new"),
+                               "--allow-new-bounds", env_extra=changed), "goes with --resume")

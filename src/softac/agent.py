@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -49,6 +50,13 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
         raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "
                           f"batch_size={config.batch_size}) but only {_human(have)} is available; "
                           "lower hidden_sizes or batch_size")
+
+
+def _bounds_text(low: np.ndarray, high: np.ndarray) -> str:
+    def one_line(a: np.ndarray) -> str:
+        return np.array2string(np.asarray(a), precision=4, separator=", ", threshold=8, max_line_width=10**9)
+
+    return f"low {one_line(low)}, high {one_line(high)}"
 
 
 class SAC:
@@ -195,13 +203,16 @@ class SAC:
         """Train for `steps` more environment steps; returns a summary dict (its stop_reason: steps,
         target_return, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
         softac.loggers.Logger objects that get every metrics record (softac does not close them)."""
+        from softac.rundir import run_lock
         from softac.trainer import train
 
-        try:
-            return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress,
-                         callbacks=callbacks, loggers=loggers)
-        finally:
-            self.close_env_workers()  # no worker process outlives the call, whatever ended it
+        # one writer per run: a second process training into run_dir is refused (RunLocked, exit 2)
+        with run_lock(run_dir) if run_dir is not None else contextlib.nullcontext():
+            try:
+                return train(self, steps, run_dir=run_dir, target_return=target_return, progress=progress,
+                             callbacks=callbacks, loggers=loggers)
+            finally:
+                self.close_env_workers()  # no worker process outlives the call, whatever ended it
 
     # ---- save / load --------------------------------------------------------------
 
@@ -238,6 +249,21 @@ class SAC:
                 arrays[f"envs/{k}"] = v
         return meta, arrays
 
+    def _check_spaces(self, saved: dict[str, Any], where: Path | str, allow_new_bounds: bool) -> None:
+        """The checkpoint's spaces against this agent's env: sizes must match; bounds too, unless allowed."""
+        if saved.get("obs_dim") != self.spaces.obs_dim or saved.get("act_dim") != self.spaces.act_dim:
+            raise ckpt.CheckpointError(
+                f"checkpoint {where} is for observations of {saved.get('obs_dim')} and actions of "
+                f"{saved.get('act_dim')} values, but the env has {self.spaces.obs_dim} and {self.spaces.act_dim}")
+        if allow_new_bounds or "low" not in saved:
+            return
+        low, high = (np.asarray(saved[k], np.float32) for k in ("low", "high"))
+        if not (np.array_equal(low, self.spaces.low) and np.array_equal(high, self.spaces.high)):
+            raise ckpt.CheckpointError(
+                f"checkpoint {where} was trained with action bounds {_bounds_text(low, high)}, but the env has "
+                f"{_bounds_text(self.spaces.low, self.spaces.high)}; to scale its actions to the new bounds, "
+                "pass allow_new_bounds=True (--allow-new-bounds)")
+
     def save(self, path: str | Path, include_buffer: bool = False) -> Path:
         """Save the agent (networks, optimisers, alpha, RNGs; the buffer and envs too if asked)."""
         meta, arrays = self.checkpoint_parts(include_buffer)
@@ -245,9 +271,11 @@ class SAC:
 
     @classmethod
     def load(cls, path: str | Path, env: EnvSource | None = None, which: str | None = None,
-             device: str | None = None, env_workers: int | None = None) -> "SAC":
+             device: str | None = None, env_workers: int | None = None, allow_new_bounds: bool = False) -> "SAC":
         """Load a checkpoint directory or a run (its best checkpoint, else last). `device` and `env_workers`
-        replace the saved config's: neither changes what the agent computes."""
+        replace the saved config's: neither changes what the agent computes. An env whose action bounds
+        differ from the saved ones is refused unless `allow_new_bounds` (the policy's actions, in [-1, 1]
+        inside the networks, are then scaled to the new bounds)."""
         directory = ckpt.resolve(path, which)
         meta, arrays = ckpt.load(directory)
         try:
@@ -258,18 +286,15 @@ class SAC:
                      if value is not None}
         config = config.replace(**overrides)
         agent = cls(config, env)
-        agent.restore(meta, arrays, directory)
+        agent.restore(meta, arrays, directory, allow_new_bounds)
         return agent
 
-    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], where: Path | str = "") -> None:
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], where: Path | str = "",
+                allow_new_bounds: bool = False) -> None:
         import jax
         import jax.numpy as jnp
 
-        spaces = meta.get("spaces", {})
-        if spaces.get("obs_dim") != self.spaces.obs_dim or spaces.get("act_dim") != self.spaces.act_dim:
-            raise ckpt.CheckpointError(
-                f"checkpoint {where} is for observations of {spaces.get('obs_dim')} and actions of "
-                f"{spaces.get('act_dim')} values, but the env has {self.spaces.obs_dim} and {self.spaces.act_dim}")
+        self._check_spaces(meta.get("spaces", {}), where, allow_new_bounds)
         paths, treedef = jax.tree_util.tree_flatten_with_path(self.state)
         leaves = []
         for path, template in paths:

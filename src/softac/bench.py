@@ -35,6 +35,7 @@ from softac.peers import PEER_MODULES, peer_run, peer_solve, peer_throughput
 # softac variants: the same preset with these settings added (the driver passes them as --set)
 VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
 FRAMEWORKS = (*VARIANTS, *PEER_MODULES)
+MIN_WARMUP = 300
 
 
 def default_frameworks() -> list[str]:
@@ -226,11 +227,12 @@ def main_from_args(args: argparse.Namespace) -> int:
     unknown = [f for f in requested if f not in FRAMEWORKS]
     if unknown or not requested:
         raise SoftacError(f"--frameworks takes a comma list of {', '.join(FRAMEWORKS)}; got {args.frameworks!r}")
-    for name in ("steps", "warmup", "repeats"):
-        if getattr(args, name) < (0 if name == "warmup" else 1):
+    for name in ("steps", "repeats"):
+        if getattr(args, name) < 1:
             raise SoftacError(f"--{name} must be positive")
-    if any(fw in VARIANTS for fw in requested) and args.warmup < 300:
-        raise SoftacError("--warmup must be >= 300 (the sb3 preset starts learning at step 100)")
+    if args.warmup < MIN_WARMUP:  # the timed steps must all learn, and every peer's clock starts at `warmup`
+        raise SoftacError(f"--warmup must be >= {MIN_WARMUP} (every framework starts learning at step 100: softac's "
+                          f"sb3 preset, SB3's and SBX's learning_starts), got {args.warmup}")
     frameworks, missing = available_frameworks(requested)
     if missing:
         raise SoftacError(f"{', '.join(missing)} not installed: `make bench` installs the [bench] extra "

@@ -5,6 +5,11 @@ Writing is atomic in effect: the arrays go to a new, uniquely named file
 names that file and its SHA-256, replaces the old meta.json in one rename.
 Only then is the previous arrays file removed. A crash at any moment leaves
 either the old checkpoint or the new one, whole.
+
+Two processes saving into one directory (two `agent.save(path)` at once) take
+turns on the directory's lock, so neither removes the other's arrays, and
+the last to finish wins whole; a reader that meets a save replacing the files
+under it reads again (`load`).
 """
 
 from __future__ import annotations
@@ -55,10 +60,32 @@ def _write_npz(f: Any, arrays: dict[str, np.ndarray]) -> None:
         zf.fp = None  # never closed again by the finaliser
 
 
+@contextlib.contextmanager
+def _writing(directory: Path):
+    """The checkpoint directory's own lock (flock on the directory, so a checkpoint holds no extra file),
+    waited for: one save at a time, so that a save may remove every arrays file its meta.json does not name
+    (those of a save killed midway) without touching another's. Where the filesystem cannot lock a directory
+    (NFS), saves go on unserialised, as before."""
+    import fcntl
+
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        with contextlib.suppress(OSError):
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def save(directory: str | Path, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Path:
     """Write a checkpoint into `directory` (created if needed) atomically."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    with _writing(directory):
+        return _save(directory, meta, arrays)
+
+
+def _save(directory: Path, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> Path:
     name = f"arrays-{secrets.token_hex(6)}.npz"
     final = directory / name
     tmp = directory / f".{name}.tmp"
@@ -115,9 +142,22 @@ def resolve(path: str | Path, which: str | None = None) -> Path:
     raise CheckpointError(f"{path} holds no checkpoint (neither {META} nor checkpoints/best|last)")
 
 
-def load(directory: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Read and verify a checkpoint; any problem is a one-line CheckpointError."""
+def load(directory: str | Path, attempts: int = 5) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Read and verify a checkpoint; any problem is a one-line CheckpointError. A checkpoint replaced while
+    it is read (`softac eval RUN` while the run saves its best) is read again."""
     directory = Path(directory)
+    for attempt in range(attempts):
+        meta = _read_meta(directory)
+        try:
+            return meta, _read_arrays(directory, meta)
+        except CheckpointError:
+            # a save that replaced the checkpoint meanwhile left a meta.json naming another arrays file
+            if attempt + 1 == attempts or _read_meta(directory)["arrays_file"] == meta["arrays_file"]:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _read_meta(directory: Path) -> dict[str, Any]:
     try:
         meta = json.loads((directory / META).read_text())
     except FileNotFoundError:
@@ -133,6 +173,11 @@ def load(directory: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     name = meta.get("arrays_file")
     if not isinstance(name, str) or "/" in name or not name.endswith(".npz"):
         raise CheckpointError(f"corrupt checkpoint {directory}: bad arrays_file in {META}")
+    return meta
+
+
+def _read_arrays(directory: Path, meta: dict[str, Any]) -> dict[str, np.ndarray]:
+    name = meta["arrays_file"]
     arrays_path = directory / name
     if not arrays_path.is_file():
         raise CheckpointError(f"corrupt checkpoint {directory}: {name} is missing")
@@ -140,7 +185,6 @@ def load(directory: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         raise CheckpointError(f"corrupt checkpoint {directory}: {name} does not match its checksum")
     try:
         with np.load(arrays_path, allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
+            return {k: npz[k] for k in npz.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise CheckpointError(f"corrupt checkpoint {directory}: cannot read {name} ({exc})".splitlines()[0]) from None
-    return meta, arrays

@@ -57,6 +57,12 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _add_allow_new_bounds(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-new-bounds", action="store_true",
+                   help="load a checkpoint into an env whose action bounds differ from the ones it was trained with "
+                        "(its actions are scaled to the new bounds); refused otherwise")
+
+
 def build_parser() -> _Parser:
     parser = _Parser(prog="softac", description="Soft Actor-Critic for continuous-control Gymnasium envs.")
     parser.add_argument("--version", action="store_true", help="print the version and exit")
@@ -85,6 +91,7 @@ def build_parser() -> _Parser:
     t.add_argument("--target-return", type=_finite_float, metavar="R",
                    help="stop once the deterministic eval mean reaches R")
     t.add_argument("--video", action="store_true", help="record the final policy to RUN/videos at the end")
+    _add_allow_new_bounds(t)
     t.add_argument("--logger", metavar="NAMES",
                    help="where metrics go besides the CSV files: tensorboard (default), wandb, mlflow, comma-separated, "
                         "or none (sets the loggers key; allowed with --resume)")
@@ -100,6 +107,7 @@ def build_parser() -> _Parser:
     e.add_argument("--seed", type=int, help="seed of the first eval episode (default: the run's eval seed)")
     e.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    _add_allow_new_bounds(e)
 
     sub.add_parser("presets", help="list presets")
 
@@ -114,6 +122,7 @@ def build_parser() -> _Parser:
     v.add_argument("--stochastic", action="store_true")
     v.add_argument("--checkpoint", choices=["best", "last"])
     v.add_argument("--max-steps", type=_positive_int, help="stop each episode after this many steps")
+    _add_allow_new_bounds(v)
 
     rp = sub.add_parser("report", help="one self-contained HTML page for a run")
     rp.add_argument("run", metavar="RUN")
@@ -125,6 +134,7 @@ def build_parser() -> _Parser:
                    help="onnx: policy.onnx (needs the [export] extra); numpy: policy.npz (default onnx)")
     x.add_argument("--out", help="file to write (default RUN/export/policy.onnx or RUN/export/policy.npz)")
     x.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
+    _add_allow_new_bounds(x)
 
     b = sub.add_parser("baselines", help="random, zero and heuristic policies' returns")
     b.add_argument("--env", default="InvertedPendulum-v5")
@@ -209,15 +219,7 @@ def _pin_cpus(n: int | None) -> str | None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from softac import checkpoint as ckpt
-    if args.video:  # MuJoCo picks its GL backend when first imported: choose it now, fail early
-        from softac.video import choose_gl_backend
-
-        choose_gl_backend()
-    from softac.agent import SAC
-    from softac.buffer import check_buffer_memory
-    from softac.rundir import check_new_run_dir
-    from softac.loggers import check_backends_installed, parse_backends
+    from softac.rundir import run_lock
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -226,37 +228,27 @@ def cmd_train(args: argparse.Namespace) -> int:
         if clash:
             raise SoftacError(f"--resume continues a run with its own config; drop {', '.join(clash)}")
         run = Path(args.resume)
-        directory = ckpt.resolve(run, "last")
-        if directory.parent.parent != run:
-            raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
-        pinned = _pin_cpus(args.cpus)
-        agent = SAC.load(run, which="last", device=args.device, env_workers=args.env_workers)
-        if args.logger is not None:  # where metrics go is not part of the experiment: it may change on resume
-            agent.config = agent.config.replace(loggers=args.logger)
-        if args.steps is not None:
-            steps = args.steps
-        else:
-            steps = max(agent.config.total_steps - agent.num_steps, 0)
-        start = f"resuming {run} at step {agent.num_steps}; training {steps} more steps"
+        if not run.exists():  # before the lock, which would make the directory
+            raise SoftacError(f"no such run or checkpoint: {run}")
     else:
+        if args.allow_new_bounds:
+            raise SoftacError("--allow-new-bounds goes with --resume (a new run takes its env's bounds)")
         config = _resolve_train_config(args)
         run = Path(args.out) if args.out else _default_run_dir(config)
-        check_new_run_dir(run)  # before JAX starts: a clash should fail fast
-        check_backends_installed(parse_backends(config.loggers))
-        pinned = _pin_cpus(args.cpus)
-        agent = SAC(config)
-        per = agent.buffer_bytes_per_transition
-        check_buffer_memory(config.buffer_size, per)
-        steps = config.total_steps
-        start = (f"training {config.env_id} for {steps} steps (seed {config.seed}) -> {run}; replay buffer "
-                 f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
-                 f"{config.buffer_size:,}")
-    for line in (pinned, start):  # printed once every input is accepted: a refused one gets one line only
-        if line:
-            print(line, file=sys.stderr)
-    summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
-    if args.video:
-        _record_video(run, which=None, out=None, episodes=1, deterministic=True)
+    # one writer per run, from before the checks that read it until the last file is written: a second
+    # `softac train` into it (or `--resume` of it) exits 2 naming this process
+    with run_lock(run):
+        if args.resume:
+            agent, steps, start, pinned = _resume_agent(run, args)
+        else:
+            agent, steps, start, pinned = _new_agent(config, run, args)
+        for line in (pinned, start):  # printed once every input is accepted: a refused one gets one line only
+            if line:
+                print(line, file=sys.stderr)
+        summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
+        if args.video:
+            _record_video(run, which=None, out=None, episodes=1, deterministic=True,
+                          allow_new_bounds=args.allow_new_bounds)
     last = summary["last_eval"]
     solved = " (target reached)" if summary["stop_reason"] == "target_return" else ""
     eval_text = f"; last eval mean return {last:.1f}" if last is not None else ""
@@ -265,13 +257,56 @@ def cmd_train(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _resume_agent(run: Path, args: argparse.Namespace):
+    from softac import checkpoint as ckpt
+    from softac.agent import SAC
+
+    directory = ckpt.resolve(run, "last")
+    if directory.parent.parent != run:
+        raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
+    _choose_gl_backend_if(args.video)
+    pinned = _pin_cpus(args.cpus)
+    agent = SAC.load(run, which="last", device=args.device, env_workers=args.env_workers,
+                     allow_new_bounds=args.allow_new_bounds)
+    if args.logger is not None:  # where metrics go is not part of the experiment: it may change on resume
+        agent.config = agent.config.replace(loggers=args.logger)
+    steps = args.steps if args.steps is not None else max(agent.config.total_steps - agent.num_steps, 0)
+    return agent, steps, f"resuming {run} at step {agent.num_steps}; training {steps} more steps", pinned
+
+
+def _new_agent(config, run: Path, args: argparse.Namespace):
+    from softac.agent import SAC
+    from softac.buffer import check_buffer_memory
+    from softac.loggers import check_backends_installed, parse_backends
+    from softac.rundir import check_new_run_dir
+
+    check_new_run_dir(run)  # before JAX starts: a clash should fail fast
+    check_backends_installed(parse_backends(config.loggers))
+    _choose_gl_backend_if(args.video)
+    pinned = _pin_cpus(args.cpus)
+    agent = SAC(config)
+    per = agent.buffer_bytes_per_transition
+    check_buffer_memory(config.buffer_size, per)
+    start = (f"training {config.env_id} for {config.total_steps} steps (seed {config.seed}) -> {run}; replay buffer "
+             f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
+             f"{config.buffer_size:,}")
+    return agent, config.total_steps, start, pinned
+
+
+def _choose_gl_backend_if(video: bool) -> None:
+    if video:  # MuJoCo picks its GL backend when first imported: choose it now, fail early
+        from softac.video import choose_gl_backend
+
+        choose_gl_backend()
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from softac.agent import SAC
     from softac.evaluation import evaluate
 
     if args.episodes < 1:
         raise SoftacError("--episodes must be >= 1")
-    agent = SAC.load(args.path, which=args.checkpoint, device=args.device)
+    agent = SAC.load(args.path, which=args.checkpoint, device=args.device, allow_new_bounds=args.allow_new_bounds)
     stats = evaluate(agent, episodes=args.episodes, deterministic=not args.stochastic, seed=args.seed)
     stats["checkpoint_step"] = agent.num_steps
     stats["path"] = str(args.path)
@@ -289,7 +324,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _record_video(path: Path, which: str | None, out: str | None, episodes: int, deterministic: bool,
-                  max_steps: int | None = None) -> dict[str, Any]:
+                  max_steps: int | None = None, allow_new_bounds: bool = False) -> dict[str, Any]:
     from softac.video import choose_gl_backend
 
     choose_gl_backend()  # first: it probes backends in subprocesses, before JAX starts its threads
@@ -299,7 +334,7 @@ def _record_video(path: Path, which: str | None, out: str | None, episodes: int,
     from softac.video import default_video_path, record
 
     directory = ckpt.resolve(path, which)
-    agent = SAC.load(directory)
+    agent = SAC.load(directory, allow_new_bounds=allow_new_bounds)
     target = Path(out) if out else default_video_path(Path(path), agent.num_steps)
     if target.suffix.lower() != ".mp4":
         raise SoftacError(f"--out must name an .mp4 file, got {target}")
@@ -316,7 +351,8 @@ def _record_video(path: Path, which: str | None, out: str | None, episodes: int,
 def cmd_video(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise SoftacError("--episodes must be >= 1")
-    _record_video(Path(args.path), args.checkpoint, args.out, args.episodes, not args.stochastic, args.max_steps)
+    _record_video(Path(args.path), args.checkpoint, args.out, args.episodes, not args.stochastic, args.max_steps,
+                  args.allow_new_bounds)
     return EXIT_OK
 
 
@@ -346,7 +382,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from softac.export import export_policy
 
-    print(export_policy(args.path, args.out, args.format, which=args.checkpoint))
+    print(export_policy(args.path, args.out, args.format, which=args.checkpoint,
+                        allow_new_bounds=args.allow_new_bounds))
     return EXIT_OK
 
 

@@ -217,7 +217,7 @@ ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
 GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "sac-100k")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
-                    "buffer_bytes_per_transition", "cpus", "machine")
+                    "buffer_bytes_per_transition", "cpus", "machine", "segments")
 
 
 def parse_overrides(pairs: list[str]) -> dict[str, Any]:

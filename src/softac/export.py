@@ -223,10 +223,10 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
 # ---- the API ----------------------------------------------------------------------
 
 def export_policy(agent_or_path: SAC | str | Path, path: str | Path | None = None, format: str = "onnx",
-                  which: str | None = None) -> Path:
+                  which: str | None = None, allow_new_bounds: bool = False) -> Path:
     """Write the deterministic policy of an agent, a run or a checkpoint directory to `path` (default for a run:
-    RUN/export/policy.onnx or .npz); `which` picks a run's best or last checkpoint (default best, else last).
-    Returns the path written."""
+    RUN/export/policy.onnx or .npz); `which` picks a run's best or last checkpoint (default best, else last);
+    `allow_new_bounds` as in SAC.load. Returns the path written."""
     check_format(format)
     if format == "onnx":
         require_onnx()  # before loading anything: fail fast
@@ -236,7 +236,7 @@ def export_policy(agent_or_path: SAC | str | Path, path: str | Path | None = Non
         path = default_export_path(agent_or_path, format)
     path = Path(path)
     check_target(path, format)
-    agent = _load(agent_or_path, which) if isinstance(agent_or_path, (str, Path)) else agent_or_path
+    agent = _load(agent_or_path, which, allow_new_bounds) if isinstance(agent_or_path, (str, Path)) else agent_or_path
     arrays = policy_arrays(agent)
     data = numpy_bytes(arrays) if format == "numpy" else onnx_model(arrays).SerializeToString()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -244,8 +244,8 @@ def export_policy(agent_or_path: SAC | str | Path, path: str | Path | None = Non
     return path
 
 
-def _load(run_or_ckpt: str | Path, which: str | None) -> SAC:
+def _load(run_or_ckpt: str | Path, which: str | None, allow_new_bounds: bool) -> SAC:
     from softac.agent import SAC
 
     # the CPU is enough to read weights, and a GPU run then exports on a machine without one
-    return SAC.load(run_or_ckpt, which=which, device="cpu")
+    return SAC.load(run_or_ckpt, which=which, device="cpu", allow_new_bounds=allow_new_bounds)

@@ -3,6 +3,7 @@ progress bar."""
 
 from __future__ import annotations
 
+import collections
 import csv
 import math
 import sys
@@ -10,12 +11,40 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from softac.rundir import write_atomic
 
 PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
                     "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
 EPISODE_COLUMNS = ["step", "return", "length"]
 EVAL_COLUMNS = ["step", "mean_return", "std_return", "episodes"]
+RECENT_EPISODES = 20  # the training episodes behind progress.csv's return_mean and the progress bar
+
+
+class TrainRows:
+    """progress.csv's bookkeeping columns, with one meaning for softac and the peers it is compared with:
+    `time_s` the run's seconds so far (evaluations included), `fps` env steps per second since the previous
+    row, `episodes` the training episodes finished so far, `return_mean` the mean return of the last
+    RECENT_EPISODES of them."""
+
+    def __init__(self, step: int, recent_returns: list[float] | tuple[float, ...] = ()):
+        self.recent: collections.deque[float] = collections.deque(recent_returns, maxlen=RECENT_EPISODES)
+        self.last_step, self.last_time = step, time.perf_counter()
+
+    def episode_finished(self, episode_return: float) -> None:
+        self.recent.append(episode_return)
+
+    def recent_mean(self) -> float | None:
+        return float(np.mean(self.recent)) if self.recent else None
+
+    def row(self, step: int, time_s: float, episodes: int) -> dict[str, Any]:
+        now = time.perf_counter()
+        fps = (step - self.last_step) / max(now - self.last_time, 1e-9)
+        self.last_step, self.last_time = step, now
+        mean = self.recent_mean()
+        return {"step": step, "time_s": round(time_s, 3), "fps": round(fps, 1), "episodes": episodes,
+                "return_mean": float("nan") if mean is None else mean}
 
 
 class CsvLog:

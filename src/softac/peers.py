@@ -88,16 +88,25 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
              eval_episodes: int, log_interval: int) -> dict[str, Any]:
     """Train a peer's SAC at its defaults and write a softac-style run directory (config.yaml, progress.csv,
     episodes.csv, eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions,
-    episode i of every evaluation seeded `seed + EVAL_SEED_OFFSET + i`."""
+    episode i of every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what
+    softac's mean (softac.logs.TrainRows). The run directory is locked as softac's are (one writer)."""
+    from softac.rundir import run_lock
+
+    with run_lock(out):
+        return _peer_run(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval)
+
+
+def _peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
+              eval_episodes: int, log_interval: int) -> dict[str, Any]:
     import gymnasium as gym
     from stable_baselines3.common.callbacks import BaseCallback
 
     from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
     from softac.loggers import CsvLogger
+    from softac.logs import TrainRows
     from softac.rundir import write_config, write_summary
 
     SAC, kwargs = peer_sac(framework)
-    out.mkdir(parents=True, exist_ok=True)
     model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
     hyper = {k: getattr(model, k) for k in ("learning_rate", "buffer_size", "batch_size", "learning_starts", "tau",
                                             "gamma", "train_freq", "gradient_steps", "ent_coef", "target_entropy")
@@ -112,7 +121,8 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     logs = CsvLogger(out)  # the same files as a softac run: plots, reports and sweep tables read both
     eval_envs = [gym.make(env_id) for _ in range(min(eval_episodes, MAX_PARALLEL))]
     t0 = time.perf_counter()
-    state: dict[str, Any] = {"best": None, "best_step": None, "last": None, "episodes": 0, "recent": []}
+    rows = TrainRows(0)
+    state: dict[str, Any] = {"best": None, "best_step": None, "last": None, "episodes": 0}
 
     def evaluate(step: int) -> None:
         stats = run_episodes(lambda obs: model.predict(obs, deterministic=True)[0], lambda: gym.make(env_id),
@@ -129,15 +139,12 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
             for info in self.locals.get("infos", []):
                 if "episode" in info:
                     state["episodes"] += 1
-                    state["recent"] = (state["recent"] + [float(info["episode"]["r"])])[-100:]
+                    rows.episode_finished(float(info["episode"]["r"]))
                     logs.log("rollout", {"return": float(info["episode"]["r"]), "length": int(info["episode"]["l"])},
                              step)
             if step % log_interval == 0:
-                elapsed = time.perf_counter() - t0
-                logs.log("train", {"time_s": round(elapsed, 3), "fps": round(step / elapsed, 1),
-                                   "episodes": state["episodes"],
-                                   "return_mean": sum(state["recent"]) / len(state["recent"]) if state["recent"]
-                                   else float("nan")}, step)
+                row = rows.row(step, time.perf_counter() - t0, state["episodes"])
+                logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
             if eval_interval > 0 and step % eval_interval == 0:
                 evaluate(step)
             return True

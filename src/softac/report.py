@@ -5,12 +5,10 @@ from __future__ import annotations
 import base64
 import html
 import json
-import platform
 import time
 from pathlib import Path
 from typing import Any
 
-from softac.cpus import machine_description
 from softac.logs import read_csv
 from softac.plots import load_baselines, load_run_config, plot_runs
 
@@ -61,6 +59,13 @@ def _fmt(value: Any) -> str:
     return f"{f:.1f}" if abs(f) >= 10 else f"{f:.3g}"
 
 
+def _segments(config: dict[str, Any]) -> list[dict[str, Any]]:
+    """config.yaml's training segments; a run written before they were kept has its one record at the top."""
+    return config.get("segments") or [{"start_step": 0, **{k: config[k] for k in ("machine", "cpus", "versions",
+                                                                                  "resolved_matmul_dtype")
+                                                           if k in config}}]
+
+
 def build_report(run: Path, out: Path | None = None, video: Path | None = None) -> Path:
     config = load_run_config(run)
     figures = plot_runs([run])
@@ -68,7 +73,6 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
     episodes = read_csv(run / "episodes.csv")
     progress = read_csv(run / "progress.csv")
     baselines = load_baselines(run) or {}
-    versions = config.get("versions", {})
     if video is None:
         videos = sorted((run / "videos").glob("*.mp4"), key=lambda p: p.stat().st_mtime)
         video = videos[-1] if videos else None
@@ -105,12 +109,16 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
         parts.append(f"<h2>Video</h2><p>{html.escape(video.name)}</p>"
                      f"<video controls muted loop playsinline preload='metadata' "
                      f"src='{_data_uri(video, 'video/mp4')}'></video>")
-    shown = {k: v for k, v in config.items() if k not in ("versions",)}
+    shown = {k: v for k, v in config.items() if k not in ("versions", "machine", "segments")}
     cfg_rows = [[k, json.dumps(v) if isinstance(v, (list, dict)) else v] for k, v in shown.items()]
     parts.append("<h2>Configuration</h2><div class='cols'>" + _table(["key", "value"], cfg_rows) + "</div>")
-    env_rows = [[k, v] for k, v in versions.items()] + [["python", platform.python_version()],
-                                                        ["machine", machine_description()]]
-    parts.append("<h2>Versions and machine</h2>" + _table(["", ""], env_rows))
+    parts.append("<h2>Versions and machine</h2><p>Each stretch of training (a resumed run may have gone on "
+                 "elsewhere), as config.yaml records it.</p>" + _table(
+                     ["from step", "started", "host", "machine", "CPUs", "matmuls", "versions"],
+                     [[s.get("start_step", ""), s.get("started", ""), s.get("host", ""),
+                       s.get("machine") or "not recorded", s.get("cpus", ""), s.get("resolved_matmul_dtype", ""),
+                       ", ".join(f"{k} {v}" for k, v in (s.get("versions") or {}).items())]
+                      for s in _segments(config)]))
     page = ("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
             "<meta name='viewport' content='width=device-width, initial-scale=1'>"
             f"<title>softac report: {html.escape(str(config.get('env_id', '')))}</title>"

@@ -7,7 +7,6 @@ one buffer write (vectorised) and one jitted update that runs all
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import os
 import signal
@@ -24,14 +23,13 @@ from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
 from softac.callbacks import CallbackList, TrainingInfo
 from softac.loggers import Loggers, check_backends_installed, parse_backends, run_loggers
-from softac.logs import Progress
-from softac.rundir import check_run_dir_for, checkpoint_path, versions, write_config, write_summary
+from softac.logs import Progress, TrainRows
+from softac.rundir import check_run_dir_for, checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.sac import Batch
 
 if TYPE_CHECKING:  # the agent imports this module when it trains
     from softac.agent import SAC
 
-RECENT_EPISODES = 20  # episodes behind return_mean in progress.csv and the progress bar
 SHOW_EVERY = 100  # env steps between progress-bar refreshes
 
 
@@ -81,7 +79,8 @@ class RunWriter:
         except OSError as exc:
             raise SoftacError(f"cannot create run directory {run}: {exc.strerror or exc}") from None
         self.run = run
-        write_config(run, config, {"versions": versions(), **extra})
+        write_config(run, config, {"versions": versions(), **extra}, start_step=resume_step,
+                     continuing=holds_run(run))  # a resumed run keeps each segment's record
         self.loggers = run_loggers(run, parse_backends(config["loggers"]), config, resume_step)
 
     def has_checkpoint(self, name: str) -> bool:
@@ -115,9 +114,20 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     start_step = run_state.num_steps
     end_step = start_step + steps
     n_envs, act_dim = cfg.n_envs, agent.spaces.act_dim
+    run = Path(run_dir) if run_dir is not None else None
+    last_metrics: dict[str, Any] | None = None
+
+    def read_metrics() -> dict[str, float]:
+        return {k: float(v) for k, v in last_metrics.items()} if last_metrics is not None else {}
+
+    # every input is checked before the run directory is written (a refused callback leaves no half-made run)
+    info = TrainingInfo(agent, start_step, end_step, run.resolve() if run is not None else None, read_metrics)
+    try:
+        hooks = CallbackList(list(callbacks or []), info)
+    except TypeError as exc:
+        raise SoftacError(str(exc)) from None
     writer: RunWriter | None = None
-    if run_dir is not None:
-        run = Path(run_dir)
+    if run is not None:
         check_run_dir_for(run_state, run)
         extra = {"resolved_target_entropy": fns.target_entropy, "resolved_matmul_dtype": fns.matmul_dtype,
                  "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1),
@@ -127,26 +137,14 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     all_loggers = (writer.loggers if writer is not None else []) + list(loggers or [])
     logs = Loggers(all_loggers) if all_loggers else None
 
-    recent = collections.deque(run_state.recent_returns, maxlen=RECENT_EPISODES)
-    last_metrics: dict[str, Any] | None = None
     eval_envs: list | None = None
     show = Progress(start_step, end_step, enabled=progress)
     wall0 = time.perf_counter()
     time0 = run_state.train_time_s
-    steps_at_last_log, time_at_last_log = start_step, wall0
+    rows = TrainRows(start_step, run_state.recent_returns)  # progress.csv's fps and return_mean
     logged_at: int | None = None
     next_show = start_step
     stop_reason = "steps"  # or target_return, or a callback's reason
-
-    def read_metrics() -> dict[str, float]:
-        return {k: float(v) for k, v in last_metrics.items()} if last_metrics is not None else {}
-
-    info = TrainingInfo(agent, start_step, end_step, run_state.run_dir if writer is not None else None,
-                        read_metrics)
-    try:
-        hooks = CallbackList(list(callbacks or []), info)
-    except TypeError as exc:
-        raise SoftacError(str(exc)) from None
 
     def elapsed() -> float:
         return time0 + time.perf_counter() - wall0
@@ -157,7 +155,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
         if last_metrics is not None:  # never replace a good checkpoint with diverged weights
             _check_finite({k: float(v) for k, v in last_metrics.items()}, run_state.num_steps)
         run_state.train_time_s = elapsed()
-        run_state.recent_returns = list(recent)
+        run_state.recent_returns = list(rows.recent)
         path = writer.save_checkpoint(name, *agent.checkpoint_parts(include_buffer=with_buffer))
         if hooks:
             hooks.call("on_checkpoint", name, path)
@@ -188,7 +186,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
         run_state.num_steps = after = before + n_envs
         for _, episode_return, length in result.finished:
             run_state.num_episodes += 1
-            recent.append(episode_return)
+            rows.episode_finished(episode_return)
             if logs is not None:
                 logs.log("rollout", {"return": round(episode_return, 6), "length": length}, after)
         return before, after
@@ -222,14 +220,9 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
         return stats
 
     def log_row(step: int) -> None:
-        nonlocal steps_at_last_log, time_at_last_log, logged_at
+        nonlocal logged_at
         logged_at = step
-        now = time.perf_counter()
-        fps = (step - steps_at_last_log) / max(now - time_at_last_log, 1e-9)
-        steps_at_last_log, time_at_last_log = step, now
-        row: dict[str, Any] = {"step": step, "time_s": round(elapsed(), 3), "fps": round(fps, 1),
-                               "episodes": run_state.num_episodes,
-                               "return_mean": float(np.mean(recent)) if recent else float("nan")}
+        row = rows.row(step, elapsed(), run_state.num_episodes)
         if last_metrics is not None:
             values = {k: float(v) for k, v in last_metrics.items()}
             _check_finite(values, step)
@@ -277,7 +270,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
                 stop_reason = on_intervals(before, after, stop) or stop_reason
                 if after >= next_show or stop_reason != "steps":  # the bar redraws at most every SHOW_EVERY steps
                     next_show = after + SHOW_EVERY
-                    show.update(after, ret=float(np.mean(recent)) if recent else None, eval=run_state.last_eval)
+                    show.update(after, ret=rows.recent_mean(), eval=run_state.last_eval)
 
             final_step = run_state.num_steps
             if final_step > start_step and logged_at != final_step:
@@ -291,6 +284,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     finally:
         show.close(run_state.num_steps)
         run_state.train_time_s = elapsed()
+        run_state.recent_returns = list(rows.recent)  # the next learn() (and save()) go on from them
         if writer is not None:
             writer.close()
         if eval_envs is not None:
@@ -307,7 +301,7 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
         "best_eval": run_state.best_eval,
         "stopped_early": stop_reason != "steps",
         "stop_reason": stop_reason,
-        "recent_return_mean": float(np.mean(recent)) if recent else None,
+        "recent_return_mean": rows.recent_mean(),
         "best_step": run_state.best_step,
         "total_steps": cfg.total_steps,
     }

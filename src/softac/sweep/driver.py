@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from softac.errors import SoftacError
+from softac.rundir import run_lock
 from softac.sweep.results import unfinished_trials, write_summaries
 from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SweepSpec, grid_trials, planned_trials, prepare_out_dir,
                                validate)
@@ -108,22 +109,23 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
     _require_ray()
     if address:
         _check_reachable(address)
-    prepare_out_dir(out, spec)
-    out = out.resolve()
-    failed: list[str] = []
-    if spec.search:
-        if unfinished_trials(out, spec):
-            failed = _run_search(spec, out, address, resources, max_concurrent, log)
+    with run_lock(out, "sweep"):  # one driver per sweep directory; each trial's run has its own lock
+        prepare_out_dir(out, spec)
+        out = out.resolve()
+        failed: list[str] = []
+        if spec.search:
+            if unfinished_trials(out, spec):
+                failed = _run_search(spec, out, address, resources, max_concurrent, log)
+            else:
+                log(f"sweep {out}: all {spec.samples} sampled trials are finished")
         else:
-            log(f"sweep {out}: all {spec.samples} sampled trials are finished")
-    else:
-        trials = grid_trials(spec)
-        todo = [t for t in trials if trial_state(out / t["name"]) != "done"]
-        log(f"sweep {out}: {len(trials)} trial{'s' * (len(trials) != 1)} ({len(trials) - len(todo)} already finished), {spec.framework} on "
-            f"{spec.env_id}, {spec.steps} steps each")
-        if todo:
-            failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, log)
-    files = write_summaries(out, spec, threshold)
+            trials = grid_trials(spec)
+            todo = [t for t in trials if trial_state(out / t["name"]) != "done"]
+            log(f"sweep {out}: {len(trials)} trial{'s' * (len(trials) != 1)} ({len(trials) - len(todo)} already "
+                f"finished), {spec.framework} on {spec.env_id}, {spec.steps} steps each")
+            if todo:
+                failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, log)
+        files = write_summaries(out, spec, threshold)
     for path in files:
         log(f"wrote {path}")
     unfinished = unfinished_trials(out, spec)

@@ -270,9 +270,10 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
             raise SoftacError(f"{out} holds a different sweep (differs in {', '.join(differs)}); continue it with "
                               f"`softac sweep --resume {out}` or pick another --out")
         return
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    from softac.rundir import LOCK, write_atomic
+
+    if out.exists() and (not out.is_dir() or any(p.name != LOCK for p in out.iterdir())):
         raise SoftacError(f"{out} exists and is not a sweep directory; pick another --out")
-    from softac.rundir import write_atomic
 
     try:
         out.mkdir(parents=True, exist_ok=True)
