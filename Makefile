@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.softac-installed
 TEST_STAMP := $(VENV)/.softac-test-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-fast test-min bench docs venv clean-venv render-deps system-deps
+.PHONY: demo test test-fast test-isa test-min bench docs venv clean-venv render-deps system-deps
 
 venv: $(STAMP)
 
@@ -63,6 +63,12 @@ test: $(TEST_STAMP) system-deps
 test-fast: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -m "not slow and not faults and not ray and not bench"
 
+# the numerics-sensitive tests (export parity, exact resume, the losses, CrossQ, the bf16 choice) as on a CPU
+# without AVX-512: XLA limited to AVX2 sums in other orders than on this machine's own instruction set
+ISA ?= AVX2
+test-isa: $(TEST_STAMP)
+	XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q -m "numerics and not ray"
+
 # the lowest supported versions of JAX, Gymnasium, MuJoCo, optax, NumPy and SciPy (.ci/min-versions.txt, the
 # floors in pyproject.toml), in their own .venv-min, with the [export] extra; the W&B and MLflow tests skip there
 MIN_VENV  := .venv-min
@@ -70,7 +76,8 @@ MIN_STAMP := $(MIN_VENV)/.softac-min-installed
 $(MIN_STAMP): pyproject.toml .ci/min-versions.txt
 	@test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
 	$(MIN_VENV)/bin/python -m pip install -q --upgrade pip
-	$(MIN_VENV)/bin/python -m pip install -q -c .ci/min-versions.txt -e ".[export]" "pytest>=7" "hypothesis>=6.80"
+	$(MIN_VENV)/bin/python -m pip install -q -c .ci/min-versions.txt -e ".[export]" "pytest>=7" "hypothesis>=6.80" \
+	  "pytest-randomly>=3.15"
 	@touch $@
 
 test-min: $(MIN_STAMP)
