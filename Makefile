@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.softac-installed
 TEST_STAMP := $(VENV)/.softac-test-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-fast test-isa test-min bench docs venv clean-venv render-deps system-deps
+.PHONY: demo test test-fast test-isa test-min test-min-full bench docs venv clean-venv render-deps system-deps
 
 venv: $(STAMP)
 
@@ -56,8 +56,13 @@ demo: $(STAMP) render-deps
 	@echo "  video:   $$(ls $(DEMO)/videos/*.mp4 2>/dev/null || echo 'none (rendering unavailable)')"
 	@echo "  report:  $(DEMO)/report.html"
 
+# the suite on two pytest-xdist workers (the Ray sweeps on one of them, in turn: tests/conftest.py);
+# PYTEST_WORKERS=0 runs it in this one process
+PYTEST_WORKERS ?= 2
+XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
+
 test: $(TEST_STAMP) system-deps
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(XDIST)
 
 # without the learning test, the kill/signal campaigns, the Ray sweeps and the bench runs (CI runs them all)
 test-fast: $(TEST_STAMP)
@@ -67,21 +72,26 @@ test-fast: $(TEST_STAMP)
 # without AVX-512: XLA limited to AVX2 sums in other orders than on this machine's own instruction set
 ISA ?= AVX2
 test-isa: $(TEST_STAMP)
-	XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q -m "numerics and not ray"
+	XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q $(XDIST) -m "numerics and not ray"
 
 # the lowest supported versions of JAX, Gymnasium, MuJoCo, optax, NumPy and SciPy (.ci/min-versions.txt, the
-# floors in pyproject.toml), in their own .venv-min, with the [export] extra; the W&B and MLflow tests skip there
+# floors in pyproject.toml), in their own .venv-min, with the [export] extra. test-min (in CI) runs the numerics
+# tests there (the losses, exact resume through the envs' saved state, exports); test-min-full runs all but the
+# Ray, fault, learning and bench tests (the W&B and MLflow tests skip there): run it when a floor changes
 MIN_VENV  := .venv-min
 MIN_STAMP := $(MIN_VENV)/.softac-min-installed
 $(MIN_STAMP): pyproject.toml .ci/min-versions.txt
 	@test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
 	$(MIN_VENV)/bin/python -m pip install -q --upgrade pip
 	$(MIN_VENV)/bin/python -m pip install -q -c .ci/min-versions.txt -e ".[export]" "pytest>=7" "hypothesis>=6.80" \
-	  "pytest-randomly>=3.15"
+	  "pytest-randomly>=3.15" "pytest-xdist>=3.5"
 	@touch $@
 
 test-min: $(MIN_STAMP)
-	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider -m "not slow and not faults and not ray and not bench"
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "numerics and not ray"
+
+test-min-full: $(MIN_STAMP)
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "not slow and not faults and not ray and not bench"
 
 # softac vs Stable-Baselines3 vs SBX on this machine; torch 2.13.0 (CPU build) goes in first so that
 # no CUDA packages are pulled. BENCH_ARGS adds options, e.g. BENCH_ARGS="--repeats 5".

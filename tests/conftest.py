@@ -29,6 +29,15 @@ def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig
     return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook reads the groups
+def pytest_collection_modifyitems(config, items):
+    # `make test` runs the suite on two pytest-xdist workers (--dist loadgroup); the Ray sweeps go to one
+    # worker, one after another: each starts a local Ray that takes the machine's CPUs for its trials
+    for item in items:
+        if item.get_closest_marker("ray") is not None:
+            item.add_marker(pytest.mark.xdist_group("ray"))
+
+
 def pytest_terminal_summary(terminalreporter, config):
     # pytest-randomly (the test extra) runs the tests in a random order; its seed is in the header, which -q
     # hides: say it at the end too, so that a failure that depends on the order can be repeated

@@ -245,7 +245,7 @@ gym.register("Bounded-v0", entry_point=Bounded, max_episode_steps=25)
 
 def test_a_changed_env_with_other_action_bounds_is_refused_unless_asked(tmp_path):
     (tmp_path / "boundedenv.py").write_text(BOUNDED_ENV)
-    path = os.pathsep.join([str(tmp_path), str(TESTS), os.environ.get("PYTHONPATH", "")])
+    path = child_env(tmp_path)["PYTHONPATH"]
     run = tmp_path / "run"
     r = run_cli("train", "--env", "boundedenv:Bounded-v0", "--steps", "250", "--out", str(run), "--no-progress",
                 *TINY_SETS, "eval_interval=0", env_extra={"PYTHONPATH": path})

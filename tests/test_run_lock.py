@@ -3,7 +3,6 @@ second is refused with one line naming the holder, and a holder killed with -9 n
 Also the checkpoint writer's own turn-taking, and what a refused start leaves behind (nothing)."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import TESTS, assert_clean_error, run_cli, tiny_config
+from conftest import assert_clean_error, child_env, run_cli, tiny_config
 from softac import SAC
 from softac import checkpoint as ckpt
 from softac.errors import SoftacError
@@ -27,9 +26,8 @@ TINY_SET = ["--set", "hidden_sizes=16,16", "batch_size=16", "learning_starts=100
 
 
 def _popen(*args: str) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     return subprocess.Popen([sys.executable, "-m", "softac", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=child_env())
 
 
 def _wait_until(condition, proc: subprocess.Popen, limit_s: float = 300) -> None:

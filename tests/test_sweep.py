@@ -192,9 +192,13 @@ def test_peers_take_eval_settings_spelled_either_way():
 @pytest.fixture(scope="module")
 def grid_sweep(tmp_path_factory):
     out = tmp_path_factory.mktemp("sweeps") / "grid"
-    result = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "400",
-                     "--threshold=-1e9", "--out", str(out), *TINY_SET, timeout=600)
+    result = run_cli(*GRID_SWEEP, "--out", str(out), *TINY_SET, timeout=600)
     return out, result
+
+
+# the grid sweep's command; a test that runs it again passes the same arguments, so that the summary it
+# rewrites is the one the other tests of the shared sweep read, in whatever order they run
+GRID_SWEEP = ["sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "400", "--threshold=-1e9"]
 
 
 @pytest.mark.ray
@@ -240,8 +244,7 @@ def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
 def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
     out, first = grid_sweep
     before = {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")}
-    again = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "400",
-                    "--out", str(out), *TINY_SET, timeout=120)
+    again = run_cli(*GRID_SWEEP, "--out", str(out), *TINY_SET, timeout=120)
     assert again.returncode == 0, again.stderr
     assert "4 trials (4 already finished)" in again.stderr
     assert {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")} == before

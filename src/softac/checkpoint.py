@@ -146,15 +146,17 @@ def load(directory: str | Path, attempts: int = 5) -> tuple[dict[str, Any], dict
     """Read and verify a checkpoint; any problem is a one-line CheckpointError. A checkpoint replaced while
     it is read (`softac eval RUN` while the run saves its best) is read again."""
     directory = Path(directory)
-    for attempt in range(attempts):
-        meta = _read_meta(directory)
+    meta = _read_meta(directory)
+    for _ in range(attempts - 1):
         try:
             return meta, _read_arrays(directory, meta)
         except CheckpointError:
             # a save that replaced the checkpoint meanwhile left a meta.json naming another arrays file
-            if attempt + 1 == attempts or _read_meta(directory)["arrays_file"] == meta["arrays_file"]:
+            now = _read_meta(directory)
+            if now["arrays_file"] == meta["arrays_file"]:
                 raise
-    raise AssertionError("unreachable")
+            meta = now
+    return meta, _read_arrays(directory, meta)
 
 
 def _read_meta(directory: Path) -> dict[str, Any]:

@@ -325,9 +325,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def _record_video(path: Path, which: str | None, out: str | None, episodes: int, deterministic: bool,
                   max_steps: int | None = None, allow_new_bounds: bool = False) -> dict[str, Any]:
-    from softac.video import choose_gl_backend
-
-    choose_gl_backend()  # first: it probes backends in subprocesses, before JAX starts its threads
+    _choose_gl_backend_if(True)  # first: it probes backends in subprocesses, before JAX starts its threads
 
     from softac import checkpoint as ckpt
     from softac.agent import SAC

@@ -272,10 +272,14 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
                     next_show = after + SHOW_EVERY
                     show.update(after, ret=rows.recent_mean(), eval=run_state.last_eval)
 
+            # the run's last log row and evaluation, off the intervals' grid, only where the run ends (its
+            # total_steps, a target or a callback): a segment that stops short of it and is resumed later
+            # must leave the logs, the best checkpoint and eval.csv as one straight run leaves them
             final_step = run_state.num_steps
-            if final_step > start_step and logged_at != final_step:
+            run_ends = final_step > start_step and (final_step >= cfg.total_steps or stop_reason != "steps")
+            if run_ends and logged_at != final_step:
                 log_row(final_step)
-            if final_step > start_step and cfg.eval_interval > 0 and run_state.last_eval_step != final_step:
+            if run_ends and cfg.eval_interval > 0 and run_state.last_eval_step != final_step:
                 evaluate_now(final_step, stop)
             save_checkpoint("last", with_buffer=True)
             if stop.requested:
