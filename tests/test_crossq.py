@@ -77,9 +77,9 @@ def test_crossq_critic_loss_bootstraps_from_the_online_critics():
                "norm_bias": np.zeros((2, layer["w"].shape[1]), np.float32)} for layer in critic]
     critic_stats = jax.tree_util.tree_map(lambda *x: np.stack(x), *[init_norm_stats([OBS + ACT, 4, 1])] * 2)
     key = jax.random.PRNGKey(3)
-    loss, (metrics, new_stats) = sac.crossq_critic_loss(critic, critic_stats, actor, actor_stats, jnp.float32(alpha),
-                                                        b, key, POLICY, CRITICS, gamma)
-    _, log_prob = POLICY.sample(actor, b.next_obs, key, actor_stats)
+    loss, (metrics, new_stats) = sac.soft_q_loss(critic, critic_stats, (), actor, actor_stats, jnp.float32(alpha),
+                                                 b, key, POLICY, CRITICS, gamma)
+    _, log_prob = POLICY.sample(actor, actor_stats, b.next_obs, key)
     target = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (1.0 - alpha * np.asarray(log_prob))
     expected = 0.5 * (np.mean((1.0 - target) ** 2) + np.mean((2.0 - target) ** 2))
     assert float(loss) == pytest.approx(expected, rel=1e-5)
@@ -92,8 +92,8 @@ def test_crossq_critic_loss_bootstraps_from_the_online_critics():
     np.testing.assert_array_less(np.abs(np.asarray(new_stats[0]["mean"])[:, :OBS] - 0.1 * rows.mean(0)),
                                  np.tile(0.1 * (2 * BATCH + 4) * 2**-24 * sizes, (2, 1)))
     # the gradient lowers Q_2 (above every target) and keeps the target fixed (stop_gradient)
-    grads = jax.grad(lambda c: sac.crossq_critic_loss(c, critic_stats, actor, actor_stats, jnp.float32(alpha), b, key,
-                                                      POLICY, CRITICS, gamma)[0])(critic)
+    grads = jax.grad(lambda c: sac.soft_q_loss(c, critic_stats, (), actor, actor_stats, jnp.float32(alpha), b, key,
+                                               POLICY, CRITICS, gamma)[0])(critic)
     assert float(grads[-1]["b"][1, 0]) == pytest.approx(np.mean(2.0 - target), rel=1e-5)
 
 
@@ -108,8 +108,8 @@ def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_a
     critics = sac.Critics("relu", unroll=True, norm=BatchRenorm())
 
     def loss(critic_stats):
-        return sac.crossq_actor_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,
-                                     critics)
+        return sac.policy_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,
+                               critics)
 
     value, (log_prob, new_actor_stats) = loss(state.critic_stats)
     shifted = jax.tree_util.tree_map(lambda s: s + 1.0, state.critic_stats)
