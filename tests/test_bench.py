@@ -84,3 +84,18 @@ def test_bench_refuses_a_warmup_too_short_for_any_framework():
     """`--frameworks sb3 --warmup 0` passed the checks, then the peer's clock never started and it crashed."""
     for frameworks in ("sb3", "sbx", "softac", "softac,sbx"):
         assert_clean_error(run_cli("bench", "--frameworks", frameworks, "--warmup", "0"), "--warmup must be >= 300")
+
+
+@pytest.mark.parametrize("module", ["softac.peers", "softac.bench"])  # the peers' entry point, and the older form
+def test_a_peer_process_is_started_through_the_peers_entry_point(module):
+    """`python -m softac.peers` runs a peer (the sweep's peer trials and softac bench start it); the older
+    `python -m softac.bench run|throughput|solve sb3|sbx` goes to the same parser."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", module, "run", "sbx", "--env", "Pendulum-v1"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and "run needs --out" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", module, "throughput", "rllib"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "invalid choice: 'rllib'" in r.stderr, r.stderr

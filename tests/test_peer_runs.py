@@ -42,7 +42,7 @@ def assert_progress_columns_mean_what_softac_means(run, min_interval_s: float = 
 def test_a_peer_run_writes_the_columns_as_softac_does(tmp_path):
     run = tmp_path / "peer"
     env = {"PYTHONPATH": os.pathsep.join([str(FAKE_PEERS), str(TESTS), os.environ.get("PYTHONPATH", "")])}
-    r = subprocess.run([sys.executable, "-m", "softac.bench", "run", "sbx", "--env", DRIFT, "--seed", "0", "--steps",
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx", "--env", DRIFT, "--seed", "0", "--steps",
                         "700", "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2", "--log-interval",
                         "100"], capture_output=True, text=True, timeout=300, env={**os.environ, **env})
     assert r.returncode == 0, r.stderr

@@ -28,9 +28,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from softac import peers
 from softac.cpus import cpu_has_bf16, machine_description
 from softac.errors import SoftacError
-from softac.peers import PEER_MODULES, peer_run, peer_solve, peer_throughput
+from softac.peers import PEER_MODULES
 
 # softac variants: the same preset with these settings added (the driver passes them as --set)
 VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
@@ -58,36 +59,21 @@ def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, override
 
 
 def worker(argv: list[str]) -> None:
-    p = argparse.ArgumentParser()
-    p.add_argument("kind", choices=["throughput", "solve", "run"])
-    p.add_argument("framework", choices=FRAMEWORKS)
+    """A softac variant's throughput probe (`python -m softac.bench throughput softac ...`); a peer's
+    measurements go to its own entry point, softac.peers (also when asked here, the older form)."""
+    if len(argv) > 1 and argv[1] in PEER_MODULES:
+        peers.main(argv)
+        return
+    p = argparse.ArgumentParser(prog="python -m softac.bench")
+    p.add_argument("kind", choices=["throughput"])
+    p.add_argument("framework", choices=list(VARIANTS))
     p.add_argument("--env", default="InvertedPendulum-v5")
     p.add_argument("--warmup", type=int, default=500)
     p.add_argument("--steps", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--target", type=float, default=1000.0)
-    p.add_argument("--max-steps", type=int, default=50_000)
     p.add_argument("--set", dest="overrides", nargs="*", default=[])
-    p.add_argument("--out", help="run: the run directory to write")
-    p.add_argument("--eval-interval", type=int, default=1000)
-    p.add_argument("--eval-episodes", type=int, default=10)
-    p.add_argument("--log-interval", type=int, default=1000)
     a = p.parse_args(argv)
-    if a.kind == "run":
-        if a.framework in VARIANTS:
-            p.error("run is for the peers; softac trains with `softac train`")
-        out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
-                       a.log_interval)
-        print(json.dumps(out), flush=True)
-        return
-    if a.kind == "throughput":
-        if a.framework in VARIANTS:
-            out = _throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)
-        else:
-            out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
-    else:
-        out = peer_solve(a.framework, a.env, a.seed, a.target, a.max_steps)
-    print(json.dumps(out), flush=True)
+    print(json.dumps(_throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)), flush=True)
 
 
 # ---- the driver ------------------------------------------------------------------------
@@ -126,16 +112,6 @@ def solve_softac(env_id: str, seed: int, target: float, timeout: float,
                 "train_s": train_s}, wall, ""
 
 
-def available_frameworks(requested: list[str]) -> tuple[list[str], list[str]]:
-    import importlib.util
-
-    ok, missing = [], []
-    for name in requested:
-        module = PEER_MODULES.get(name)
-        (ok if module is None or importlib.util.find_spec(module) else missing).append(name)
-    return ok, missing
-
-
 def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repeats: int, solve_seeds: list[int],
               target: float, max_steps: int, timeout: float, overrides: list[str], log=print) -> dict[str, Any]:
     result: dict[str, Any] = {"machine": machine_description(), "env": env_id, "throughput": {}, "solve": {}}
@@ -146,7 +122,8 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
         for fw in frameworks:
             settings = VARIANTS[fw] + overrides if fw in VARIANTS else []
             extra = ["--set", *settings] if settings else []
-            out, _, err = _run(["-m", "softac.bench", "throughput", fw, "--env", env_id, "--warmup", str(warmup),
+            module = "softac.bench" if fw in VARIANTS else "softac.peers"
+            out, _, err = _run(["-m", module, "throughput", fw, "--env", env_id, "--warmup", str(warmup),
                                 "--steps", str(steps), *extra], timeout)
             entry = result["throughput"].setdefault(fw, {"runs": []})
             if out is None:
@@ -179,7 +156,7 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
                     out, wall, err = solve_softac(env_id, seed, target, timeout,
                                                   ["--set", *variant] if variant else [])
                 else:
-                    out, wall, err = _run(["-m", "softac.bench", "solve", fw, "--env", env_id, "--seed", str(seed),
+                    out, wall, err = _run(["-m", "softac.peers", "solve", fw, "--env", env_id, "--seed", str(seed),
                                            "--target", str(target), "--max-steps", str(max_steps)], timeout)
                 if out is None:
                     runs.append({"seed": seed, "error": err, "wall_s": round(wall, 1)})
@@ -233,7 +210,7 @@ def main_from_args(args: argparse.Namespace) -> int:
     if args.warmup < MIN_WARMUP:  # the timed steps must all learn, and every peer's clock starts at `warmup`
         raise SoftacError(f"--warmup must be >= {MIN_WARMUP} (every framework starts learning at step 100: softac's "
                           f"sb3 preset, SB3's and SBX's learning_starts), got {args.warmup}")
-    frameworks, missing = available_frameworks(requested)
+    missing = peers.missing_peers(requested)
     if missing:
         raise SoftacError(f"{', '.join(missing)} not installed: `make bench` installs the [bench] extra "
                           "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
@@ -246,7 +223,7 @@ def main_from_args(args: argparse.Namespace) -> int:
         from softac.config import SACConfig
 
         SACConfig.preset("sb3").with_overrides(overrides)  # bad keys fail here, before minutes of benchmarking
-    result = run_bench(frameworks, args.env, args.warmup, args.steps, args.repeats,
+    result = run_bench(requested, args.env, args.warmup, args.steps, args.repeats,
                        args.solve_seeds if args.solve else [], args.target, args.max_steps, args.timeout, overrides,
                        log=log)
     if args.json:

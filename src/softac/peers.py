@@ -1,17 +1,30 @@
 """The peers softac is compared with, Stable-Baselines3's SAC and SBX's, at their defaults: how to make
 them, and three ways to run them (a throughput probe, a run to a target return, and a whole run that
 writes a softac-style run directory, evaluated exactly as softac evaluates). `softac bench` and
-`softac sweep --framework sb3|sbx` run these in worker processes (`python -m softac.bench ...`).
-Needs the `[bench]` extra."""
+`softac sweep --framework sb3|sbx` run each in its own process through this module's entry point:
+
+    python -m softac.peers run|throughput|solve sb3|sbx --env ENV [...]
+
+which prints one JSON line (`python -m softac.bench ...`, the older form, still works). Needs the `[bench]`
+extra."""
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
+import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 PEER_MODULES = {"sb3": "stable_baselines3", "sbx": "sbx"}
+
+
+def missing_peers(names: list[str]) -> list[str]:
+    """The peers among `names` whose package is not installed (the [bench] extra)."""
+    return [name for name in names if name in PEER_MODULES and importlib.util.find_spec(PEER_MODULES[name]) is None]
 
 
 def peer_sac(framework: str):
@@ -161,3 +174,41 @@ def _peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eva
                "best_step": state["best_step"], "total_steps": steps, "framework": framework}
     write_summary(out, summary)
     return summary
+
+
+# ---- the entry point of a peer's process ------------------------------------------------------------
+
+def arguments() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m softac.peers", description="run a peer's SAC; prints one JSON line")
+    p.add_argument("kind", choices=["throughput", "solve", "run"])
+    p.add_argument("framework", choices=list(PEER_MODULES))
+    p.add_argument("--env", default="InvertedPendulum-v5")
+    p.add_argument("--warmup", type=int, default=500, help="throughput: untimed steps first")
+    p.add_argument("--steps", type=int, default=2000, help="throughput: timed steps; run: steps to train")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--target", type=float, default=1000.0, help="solve: the evaluation return to reach")
+    p.add_argument("--max-steps", type=int, default=50_000, help="solve: the step budget")
+    p.add_argument("--out", help="run: the run directory to write")
+    p.add_argument("--eval-interval", type=int, default=1000)
+    p.add_argument("--eval-episodes", type=int, default=10)
+    p.add_argument("--log-interval", type=int, default=1000)
+    return p
+
+
+def main(argv: list[str]) -> None:
+    parser = arguments()
+    a = parser.parse_args(argv)
+    if a.kind == "run":
+        if not a.out:
+            parser.error("run needs --out")
+        out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
+                       a.log_interval)
+    elif a.kind == "throughput":
+        out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
+    else:
+        out = peer_solve(a.framework, a.env, a.seed, a.target, a.max_steps)
+    print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -232,9 +232,9 @@ def validate(spec: SweepSpec) -> SACConfig:
             raise SoftacError(f"--framework {spec.framework} runs its SAC at its own defaults; --grid, --search, "
                               f"--preset and --set (other than eval_interval/eval_episodes/log_interval) "
                               f"are for softac")
-        from softac.bench import available_frameworks
+        from softac.peers import missing_peers
 
-        if available_frameworks([spec.framework])[1]:
+        if missing_peers([spec.framework]):
             raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
                               "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
     if spec.search:

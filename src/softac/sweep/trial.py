@@ -32,7 +32,7 @@ def trial_state(run: Path) -> str:
 
 def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: Path) -> list[str]:
     if spec.framework != "softac":
-        return [sys.executable, "-m", "softac.bench", "run", spec.framework, "--env", spec.env_id,
+        return [sys.executable, "-m", "softac.peers", "run", spec.framework, "--env", spec.env_id,
                 "--seed", str(trial["seed"]), "--steps", str(spec.steps), "--out", str(run),
                 "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
                 "--log-interval", str(base.log_interval)]
