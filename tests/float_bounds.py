@@ -149,7 +149,7 @@ def _weights(layer: dict) -> tuple[np.ndarray, np.ndarray]:
 def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
                   norm=None, stats: list | None = None,
                   out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(reference, bound) of an MLP's outputs (networks.mlp, or networks.normalized_mlp in evaluation mode with
+    """(reference, bound) of an MLP's outputs (networks.mlp, or networks.batch_renorm_mlp in evaluation mode with
     `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only."""
     from softac.networks import multiplies_in_bf16
 
@@ -215,7 +215,7 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
         x = np.clip(q, -clip, clip)  # monotone: a value beyond the clip by more than its error has none left
         e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
 
-    norm = agent.fns.policy.norm
+    norm = agent.fns.policy.batch_renorm
     x, e = network_bound(agent.state.actor, x, e, agent.config.activation, matmul_dtype or agent.fns.matmul_dtype,
                          norm, agent.state.actor_stats if norm is not None else None,
                          out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)

@@ -16,8 +16,8 @@ from test_sac_losses import ACT, BATCH, OBS, batch, constant_actor, constant_cri
 pytestmark = pytest.mark.numerics
 
 NORM = BatchRenorm(momentum=0.9)
-POLICY = sac.Policy("relu", -20.0, 2.0, "clamp", norm=NORM)
-CRITICS = sac.Critics("relu", unroll=True, norm=NORM)
+POLICY = sac.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=NORM)
+CRITICS = sac.Critics("relu", unroll=True, batch_renorm=NORM)
 
 
 def _layer(n, scale=1.0, bias=0.0):
@@ -105,7 +105,7 @@ def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_a
     state = fns.init(0)
     obs = jnp.asarray(np.random.default_rng(2).normal(2.0, 1.0, size=(BATCH, OBS)), jnp.float32)
     key = jax.random.PRNGKey(0)
-    critics = sac.Critics("relu", unroll=True, norm=BatchRenorm())
+    critics = sac.Critics("relu", unroll=True, batch_renorm=BatchRenorm())
 
     def loss(critic_stats):
         return sac.policy_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,

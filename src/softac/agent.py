@@ -98,16 +98,17 @@ class SAC:
         # env worker processes that a finished learn() closed; the next pool starts from it
         self.parked_envs: tuple[dict, dict[str, np.ndarray]] | None = None
 
-    # ---- the run state, as attributes (the API before RunState) ------------------
+    # ---- where training stands (the rest of the run state: agent.run) ------------
 
-    num_steps = property(lambda self: self.run.num_steps, lambda self, v: setattr(self.run, "num_steps", v))
-    num_episodes = property(lambda self: self.run.num_episodes, lambda self, v: setattr(self.run, "num_episodes", v))
-    train_time_s = property(lambda self: self.run.train_time_s, lambda self, v: setattr(self.run, "train_time_s", v))
-    act_key = property(lambda self: self.run.act_key, lambda self, v: setattr(self.run, "act_key", v))
-    predict_key = property(lambda self: self.run.predict_key, lambda self, v: setattr(self.run, "predict_key", v))
-    rng = property(lambda self: self.run.rng)
-    run_dir = property(lambda self: self.run.run_dir)
-    restored_from = property(lambda self: self.run.restored_from)
+    @property
+    def num_steps(self) -> int:
+        """Environment steps trained so far (SB3's num_timesteps)."""
+        return self.run.num_steps
+
+    @property
+    def num_episodes(self) -> int:
+        """Training episodes finished so far."""
+        return self.run.num_episodes
 
     # ---- parts made on first use ----------------------------------------------
 

@@ -90,7 +90,7 @@ def _actor_layers(agent: SAC) -> list[dict[str, np.ndarray]]:
     (the log-std is not needed)."""
     from softac.networks import multiplies_in_bf16  # imports JAX, which the agent has loaded by now
 
-    actor, norm = agent.state.actor, agent.fns.policy.norm
+    actor, norm = agent.state.actor, agent.fns.policy.batch_renorm
     stats = agent.state.actor_stats if norm is not None else [None] * len(actor)
     layers = []
     for layer, layer_stats in zip(actor, stats):

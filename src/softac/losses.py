@@ -2,9 +2,9 @@
 (parameters, running statistics, batch, key, settings).
 
 One critic loss and one actor loss serve both algorithms. CrossQ differs from SAC in two places, each
-written once: its critics normalise their inputs with batch renormalisation (`Critics.norm`), and it
-computes the next-state value with the online critics in one joint pass over (s, a) and (s', a') instead
-of with target critics (`q_and_next_q`). `critic_loss` and `actor_loss` are SAC's form of the two (no
+written once: its critics normalise their inputs with batch renormalisation (`Critics.batch_renorm`),
+and it computes the next-state value with the online critics in one joint pass over (s, a) and (s', a')
+instead of with target critics (`q_and_next_q`). `critic_loss` and `actor_loss` are SAC's form of the two (no
 running statistics), as the loss tests pin them.
 """
 
@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from softac.networks import BatchRenorm, critics_apply, normalized_critics_apply
+from softac.networks import BatchRenorm, critics_apply, batch_renorm_critics_apply
 from softac.policy import Policy
 
 
@@ -36,21 +36,21 @@ class Critics:
     matmul_dtype: str = "float32"
     layer_norm: bool = False
     unroll: bool = False  # critic by critic (faster on CPU, see critics_apply) instead of vmap
-    norm: BatchRenorm | None = None  # batch renormalisation between layers (CrossQ)
+    batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
 
     def q_values(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
         """Q-values of every critic, shape [n_critics, batch] (with batch renormalisation: normalised with
         its running statistics)."""
-        if self.norm is not None:
-            return normalized_critics_apply(critic, stats, obs, actions, self.activation, self.norm, False,
-                                            matmul_dtype=self.matmul_dtype, unroll=self.unroll)[0]
+        if self.batch_renorm is not None:
+            return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm,
+                                              False, matmul_dtype=self.matmul_dtype, unroll=self.unroll)[0]
         return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll)
 
     def q_values_training(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                           renorm: jax.Array | bool) -> tuple[jax.Array, Any]:
         """Q-values normalised with this batch's statistics, and the updated running statistics."""
-        return normalized_critics_apply(critic, stats, obs, actions, self.activation, self.norm, True, renorm,
-                                        self.matmul_dtype, self.unroll)
+        return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm, True,
+                                          renorm, self.matmul_dtype, self.unroll)
 
 
 # ---- the critics' loss --------------------------------------------------------------------------
@@ -64,7 +64,7 @@ def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batc
     critics see (s, a) and (s', a') in one batch, so that batch renormalisation normalises both with the
     same statistics (with separate passes the next pair is out of distribution for the normalisation);
     the target is held fixed by stop_gradient alone."""
-    if critics.norm is None:
+    if critics.batch_renorm is None:
         q = critics.q_values(critic, critic_stats, batch.obs, batch.actions)
         return q, critics.q_values(target_critic, critic_stats, batch.next_obs, next_actions), critic_stats
     both, critic_stats = critics.q_values_training(critic, critic_stats, jnp.concatenate([batch.obs, batch.next_obs]),

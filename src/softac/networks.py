@@ -159,7 +159,7 @@ class BatchRenorm:
         return y, new_stats
 
 
-def normalized_mlp(params: Params, stats: Params, x: jax.Array, activation: str, norm: BatchRenorm,
+def batch_renorm_mlp(params: Params, stats: Params, x: jax.Array, activation: str, norm: BatchRenorm,
                    train: bool, renorm: jax.Array | bool = False,
                    matmul_dtype: str = "float32") -> tuple[jax.Array, Params]:
     """An MLP whose every layer normalises its input first (CrossQ's networks: the observation, then each
@@ -217,7 +217,7 @@ def _each_critic(params: Params, i: int) -> Params:
     return jax.tree_util.tree_map(lambda p: p[i], params)
 
 
-def normalized_critics_apply(params: Params, stats: Params, obs: jax.Array, actions: jax.Array, activation: str,
+def batch_renorm_critics_apply(params: Params, stats: Params, obs: jax.Array, actions: jax.Array, activation: str,
                              norm: BatchRenorm, train: bool, renorm: jax.Array | bool = False,
                              matmul_dtype: str = "float32", unroll: bool = False) -> tuple[jax.Array, Params]:
     """`critics_apply` for critics with batch renormalisation: Q-values [n_critics, batch] and the new
@@ -225,7 +225,7 @@ def normalized_critics_apply(params: Params, stats: Params, obs: jax.Array, acti
     x = jnp.concatenate([obs, actions], axis=-1)
 
     def one(p: Params, s: Params) -> tuple[jax.Array, Params]:
-        return normalized_mlp(p, s, x, activation, norm, train, renorm, matmul_dtype)
+        return batch_renorm_mlp(p, s, x, activation, norm, train, renorm, matmul_dtype)
 
     if unroll:
         n = jax.tree_util.tree_leaves(params)[0].shape[0]

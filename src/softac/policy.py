@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softac.networks import BatchRenorm, mlp, normalized_mlp
+from softac.networks import BatchRenorm, mlp, batch_renorm_mlp
 
 LOG_2 = float(np.log(2.0))
 LOG_SQRT_2PI = float(0.5 * np.log(2.0 * np.pi))
@@ -58,14 +58,15 @@ class Policy:
     log_std_max: float
     log_std_mode: str
     matmul_dtype: str = "float32"
-    norm: BatchRenorm | None = None  # batch renormalisation between layers (CrossQ)
+    batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
 
     def _outputs(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
                  renorm: jax.Array | bool = False) -> tuple[jax.Array, jax.Array, Any]:
-        if self.norm is None:
+        if self.batch_renorm is None:
             out = mlp(actor, obs, self.activation, self.matmul_dtype)
         else:
-            out, stats = normalized_mlp(actor, stats, obs, self.activation, self.norm, train, renorm, self.matmul_dtype)
+            out, stats = batch_renorm_mlp(actor, stats, obs, self.activation, self.batch_renorm, train, renorm,
+                                          self.matmul_dtype)
         mean, raw_log_std = jnp.split(out, 2, axis=-1)
         return mean, bound_log_std(raw_log_std, self.log_std_min, self.log_std_max, self.log_std_mode), stats
 

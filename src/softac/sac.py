@@ -63,7 +63,7 @@ class UpdateSettings:
 
     @property
     def has_targets(self) -> bool:
-        return self.critics.norm is None  # CrossQ, with batch-renormalised critics, has no target critics
+        return self.critics.batch_renorm is None  # CrossQ, with batch-renormalised critics, has no target critics
 
 
 # ---- one gradient step ---------------------------------------------------------------------------
@@ -96,7 +96,8 @@ def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: Upd
         state.actor, state.actor_stats, state.critic, state.critic_stats, alpha_of(state, s), obs, key, s.policy,
         s.critics, renorm_active(state, s))
     updates, actor_opt = s.actor_tx.update(grads, state.actor_opt, state.actor)
-    state = state._replace(actor=optax.apply_updates(state.actor, updates), actor_opt=actor_opt, actor_stats=actor_stats)
+    state = state._replace(actor=optax.apply_updates(state.actor, updates), actor_opt=actor_opt,
+                           actor_stats=actor_stats)
     if s.autotune_alpha:
         a_loss, grad = jax.value_and_grad(alpha_loss)(state.log_alpha, log_prob, s.target_entropy)
         updates, alpha_opt = s.alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
@@ -199,11 +200,11 @@ def resolve_matmul_dtype(setting: str) -> str:
 def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> UpdateSettings:
     c = config
     norm = BatchRenorm(c.batch_norm_momentum) if c.crossq else None
-    # critics with batch renormalisation stay vmapped: on CPU their unrolled form was no faster
+    # critics with batch renormalisation stay vmapped: unrolled, they were no faster (docs/performance.md)
     unroll = jax.default_backend() == "cpu" and c.n_critics <= 8 and norm is None
     return UpdateSettings(
         policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm),
-        critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, norm=norm),
+        critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm),
         actor_tx=optax.adam(c.actor_lr, b1=c.adam_b1), critic_tx=optax.adam(c.critic_lr, b1=c.adam_b1),
         alpha_tx=optax.adam(c.alpha_lr, b1=c.adam_b1),
         target_entropy=-float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy),
