@@ -106,211 +106,234 @@ def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_retu
     """Train `agent` for `steps` more env steps; with `run_dir`, write the run directory as it goes.
     `callbacks` (softac.callbacks.Callback) run at the loop's hooks; `loggers` (softac.loggers.Logger) get
     every metrics record besides the run directory's own logs."""
-    if steps < 0:
-        raise SoftacError(f"steps must be >= 0, got {steps}")
-    check_backends_installed(parse_backends(agent.config.loggers) if run_dir is not None else [])
-    cfg, fns, run_state = agent.config, agent.fns, agent.run
-    buffer, pool = agent.training_parts()
-    start_step = run_state.num_steps
-    end_step = start_step + steps
-    n_envs, act_dim = cfg.n_envs, agent.spaces.act_dim
-    run = Path(run_dir) if run_dir is not None else None
-    last_metrics: dict[str, Any] | None = None
+    return TrainingLoop(agent, steps, run_dir, target_return, progress, callbacks, loggers).run()
 
-    def read_metrics() -> dict[str, float]:
-        return {k: float(v) for k, v in last_metrics.items()} if last_metrics is not None else {}
 
-    # every input is checked before the run directory is written (a refused callback leaves no half-made run)
-    info = TrainingInfo(agent, start_step, end_step, run.resolve() if run is not None else None, read_metrics)
-    try:
-        hooks = CallbackList(list(callbacks or []), info)
-    except TypeError as exc:
-        raise SoftacError(str(exc)) from None
-    writer: RunWriter | None = None
-    if run is not None:
-        check_run_dir_for(run_state, run)
-        extra = {"resolved_target_entropy": fns.target_entropy, "resolved_matmul_dtype": fns.matmul_dtype,
-                 "buffer_bytes_per_transition": round(agent.buffer_bytes_per_transition, 1),
-                 "cpus": len(usable_cpus()) or os.cpu_count()}
-        writer = RunWriter(run, cfg.to_dict(), extra, resume_step=start_step)
-        run_state.run_dir = run.resolve()
-    all_loggers = (writer.loggers if writer is not None else []) + list(loggers or [])
-    logs = Loggers(all_loggers) if all_loggers else None
+class TrainingLoop:
+    """One training call: collect, learn, and the work due at each interval (log rows, evaluations,
+    checkpoints, callbacks), until `steps` more env steps, a target return or a stop. Every input is
+    checked when it is made, before the run directory is written (a refused callback leaves no half-made
+    run); `run()` opens the run directory and everything else inside one `try`."""
 
-    eval_envs: list | None = None
-    show = Progress(start_step, end_step, enabled=progress)
-    wall0 = time.perf_counter()
-    time0 = run_state.train_time_s
-    rows = TrainRows(start_step, run_state.recent_returns)  # progress.csv's fps and return_mean
-    logged_at: int | None = None
-    next_show = start_step
-    stop_reason = "steps"  # or target_return, or a callback's reason
+    def __init__(self, agent: SAC, steps: int, run_dir: str | Path | None, target_return: float | None,
+                 progress: bool | None, callbacks: list | None, loggers: list | None):
+        if steps < 0:
+            raise SoftacError(f"steps must be >= 0, got {steps}")
+        self.run_path = Path(run_dir) if run_dir is not None else None
+        check_backends_installed(parse_backends(agent.config.loggers) if self.run_path is not None else [])
+        self.agent, self.config, self.fns, self.run_state = agent, agent.config, agent.fns, agent.run
+        self.start_step = self.run_state.num_steps
+        self.end_step = self.start_step + steps
+        self.target_return = target_return
+        self.info = TrainingInfo(agent, self.start_step, self.end_step,
+                                 self.run_path.resolve() if self.run_path is not None else None, self.metric_values)
+        try:
+            self.hooks = CallbackList(list(callbacks or []), self.info)
+        except TypeError as exc:
+            raise SoftacError(str(exc)) from None
+        if self.run_path is not None:
+            check_run_dir_for(self.run_state, self.run_path)
+        self.extra_loggers = list(loggers or [])
+        self.progress = progress
+        self.writer: RunWriter | None = None
+        self.logs: Loggers | None = None
+        self.eval_envs: list | None = None
+        self.last_metrics: dict[str, Any] | None = None  # the last update's, on the device until read
+        self.stop_reason: str | None = None  # target_return or a callback's reason, once training should stop
+        self.logged_at: int | None = None
 
-    def elapsed() -> float:
-        return time0 + time.perf_counter() - wall0
+    def run(self) -> dict[str, Any]:
+        self.buffer, self.pool = self.agent.training_parts()
+        self.wall0, self.time0 = time.perf_counter(), self.run_state.train_time_s
+        self.rows = TrainRows(self.start_step, self.run_state.recent_returns)  # progress.csv's fps and return_mean
+        self.show = Progress(self.start_step, self.end_step, enabled=self.progress)
+        next_show = self.start_step
+        try:
+            self.open_run_dir()
+            with StopSignal() as self.stop:
+                if self.hooks and self.hooks.call("on_training_start"):
+                    self.stop_reason = f"callback: {self.info.stop_reason}"
+                if self.writer is not None and not self.writer.has_checkpoint("last"):
+                    self.save_checkpoint("last")  # from its first moment a run holds a loadable checkpoint
+                while self.run_state.num_steps < self.end_step and self.stop_reason is None:
+                    if self.stop.requested:
+                        raise TrainingInterrupted(self.run_state.num_steps, self.save_checkpoint("last"))
+                    self.reset_if_due()
+                    before, after = self.collect()
+                    self.learn(after)
+                    self.stop_reason = self.on_intervals(before, after)
+                    if after >= next_show or self.stop_reason is not None:  # redraw at most every SHOW_EVERY
+                        next_show = after + SHOW_EVERY
+                        self.show.update(after, ret=self.rows.recent_mean(), eval=self.run_state.last_eval)
+                self.finish()
+        finally:
+            self.close()
+        return self.summarise()
 
-    def save_checkpoint(name: str, with_buffer: bool) -> str | None:
-        if writer is None:
-            return None
-        if last_metrics is not None:  # never replace a good checkpoint with diverged weights
-            _check_finite({k: float(v) for k, v in last_metrics.items()}, run_state.num_steps)
-        run_state.train_time_s = elapsed()
-        run_state.recent_returns = list(rows.recent)
-        path = writer.save_checkpoint(name, *agent.checkpoint_parts(include_buffer=with_buffer))
-        if hooks:
-            hooks.call("on_checkpoint", name, path)
-        return path
+    # ---- set up and tear down ------------------------------------------------------------------------
 
-    # ---- the steps of the loop -------------------------------------------------------------
+    def open_run_dir(self) -> None:
+        if self.run_path is not None:
+            extra = {"resolved_target_entropy": self.fns.target_entropy,
+                     "resolved_matmul_dtype": self.fns.matmul_dtype,
+                     "buffer_bytes_per_transition": round(self.agent.buffer_bytes_per_transition, 1),
+                     "cpus": len(usable_cpus()) or os.cpu_count()}
+            self.writer = RunWriter(self.run_path, self.config.to_dict(), extra, resume_step=self.start_step)
+            self.run_state.run_dir = self.run_path.resolve()
+        all_loggers = (self.writer.loggers if self.writer is not None else []) + self.extra_loggers
+        self.logs = Loggers(all_loggers) if all_loggers else None
 
-    def collect() -> tuple[int, int]:
+    def close(self) -> None:
+        self.show.close(self.run_state.num_steps)
+        self.run_state.train_time_s = self.elapsed()
+        self.run_state.recent_returns = list(self.rows.recent)  # the next learn() (and save()) go on from them
+        if self.writer is not None:
+            self.writer.close()
+        for env in self.eval_envs or []:
+            with contextlib.suppress(Exception):
+                env.close()
+
+    def finish(self) -> None:
+        """The run's last log row and evaluation, off the intervals' grid, only where the run ends (its
+        total_steps, a target or a callback): a segment that stops short of it and is resumed later must
+        leave the logs, the best checkpoint and eval.csv as one straight run leaves them. Then the last
+        checkpoint."""
+        final_step = self.run_state.num_steps
+        run_ends = final_step > self.start_step and (final_step >= self.config.total_steps
+                                                     or self.stop_reason is not None)
+        if run_ends and self.logged_at != final_step:
+            self.log_row(final_step)
+        if run_ends and self.config.eval_interval > 0 and self.run_state.last_eval_step != final_step:
+            self.evaluate(final_step)
+        where = self.save_checkpoint("last")
+        if self.stop.requested:
+            raise TrainingInterrupted(self.run_state.num_steps, where)
+
+    def summarise(self) -> dict[str, Any]:
+        rs = self.run_state
+        summary = {
+            "steps": rs.num_steps, "episodes": rs.num_episodes, "train_time_s": rs.train_time_s,
+            "wall_s": time.perf_counter() - self.wall0, "last_eval": rs.last_eval, "best_eval": rs.best_eval,
+            "stopped_early": self.stop_reason is not None, "stop_reason": self.stop_reason or "steps",
+            "recent_return_mean": self.rows.recent_mean(), "best_step": rs.best_step,
+            "total_steps": self.config.total_steps,
+        }
+        if self.writer is not None:
+            self.writer.write_summary(summary)
+        if self.hooks:
+            self.hooks.call("on_training_end", summary)
+        return summary
+
+    # ---- the steps of the loop ---------------------------------------------------------------------
+
+    def elapsed(self) -> float:
+        return self.time0 + time.perf_counter() - self.wall0
+
+    def metric_values(self) -> dict[str, float]:
+        """The last update's metrics as floats (reading them waits for the device); {} before learning."""
+        return {k: float(v) for k, v in self.last_metrics.items()} if self.last_metrics is not None else {}
+
+    def reset_if_due(self) -> None:
+        """reset_interval: at the first step past each multiple, so the evaluation and checkpoint at the
+        multiple see the policy before the reset and a resumed run resets where a straight one does; none
+        at or past total_steps (a rule of the config, not of this call): a reset needs the rest of the
+        budget to recover."""
+        step, cfg = self.run_state.num_steps, self.config
+        if 0 < step < cfg.total_steps and crossed(step - cfg.n_envs, step, cfg.reset_interval):
+            self.agent.state = self.fns.reset(self.agent.state, cfg.seed, step // cfg.reset_interval)
+
+    def collect(self) -> tuple[int, int]:
         """One vector-env step: act (uniformly at random before learning_starts), step the envs, store the
         transitions, count finished episodes. Returns the step counter before and after."""
-        before = run_state.num_steps
-        obs = pool.obs
+        agent, cfg, rs = self.agent, self.config, self.run_state
+        before, obs = rs.num_steps, self.pool.obs
         if agent.obs_norm is not None:  # every observation the policy acts on, warm-up included
             agent.obs_norm.update(obs)
         if before < cfg.learning_starts:
-            actions = run_state.rng.uniform(-1.0, 1.0, (n_envs, act_dim)).astype(np.float32)
+            actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, agent.spaces.act_dim)).astype(np.float32)
             env_actions = agent.scaler.to_env(actions)
         else:  # NumPy goes straight into the jitted call: jnp.asarray would cost more than the env step
-            actions, env_actions, run_state.act_key = fns.act(agent.state.actor, agent.state.actor_stats,
-                                                              agent.normalize_obs(obs), run_state.act_key)
+            actions, env_actions, rs.act_key = self.fns.act(agent.state.actor, agent.state.actor_stats,
+                                                            agent.normalize_obs(obs), rs.act_key)
             actions, env_actions = np.asarray(actions), np.asarray(env_actions)
             if not np.all(np.isfinite(actions)):
                 raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "
                                 "actions; the last good checkpoint is kept")
-        result = pool.step(env_actions, before)
-        buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated,
-                   result.terminated | result.truncated)
-        run_state.num_steps = after = before + n_envs
+        result = self.pool.step(env_actions, before)
+        self.buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated,
+                        result.terminated | result.truncated)
+        rs.num_steps = after = before + cfg.n_envs
         for _, episode_return, length in result.finished:
-            run_state.num_episodes += 1
-            rows.episode_finished(episode_return)
-            if logs is not None:
-                logs.log("rollout", {"return": round(episode_return, 6), "length": length}, after)
+            rs.num_episodes += 1
+            self.rows.episode_finished(episode_return)
+            if self.logs is not None:
+                self.logs.log("rollout", {"return": round(episode_return, 6), "length": length}, after)
         return before, after
 
-    def learn(after: int) -> None:
+    def learn(self, after: int) -> None:
         """`gradient_steps` updates in one jitted call, on batches normalised with the current statistics."""
-        nonlocal last_metrics
-        if after >= cfg.learning_starts and cfg.gradient_steps > 0 and len(buffer) > 0:
-            batch = buffer.sample(run_state.rng, cfg.batch_size, cfg.gradient_steps)
+        cfg, agent = self.config, self.agent
+        if after >= cfg.learning_starts and cfg.gradient_steps > 0 and len(self.buffer) > 0:
+            batch = self.buffer.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
             batch["obs"] = agent.normalize_obs(batch["obs"])  # the buffer holds raw observations
             batch["next_obs"] = agent.normalize_obs(batch["next_obs"])
-            agent.state, last_metrics = fns.update(agent.state, Batch(**batch))
+            agent.state, self.last_metrics = self.fns.update(agent.state, Batch(**batch))
 
-    def evaluate_now(step: int, stop: StopSignal) -> dict[str, Any] | None:
-        nonlocal eval_envs
-        if eval_envs is None:
-            eval_envs = [agent.make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
-        stats = run_episodes(lambda obs: agent.predict(obs, deterministic=True), agent.make_env, cfg.eval_episodes,
-                             cfg.seed + EVAL_SEED_OFFSET, envs=eval_envs, should_stop=lambda: stop.requested)
-        if stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
-            return None
-        run_state.last_eval, run_state.last_eval_step = stats["mean_return"], step
-        if logs is not None:
-            logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
-                              "episodes": stats["episodes"]}, step)
-        if run_state.best_eval is None or stats["mean_return"] > run_state.best_eval:
-            run_state.best_eval, run_state.best_step = stats["mean_return"], step
-            save_checkpoint("best", with_buffer=False)
-        if hooks:
-            hooks.call("on_eval", stats)
-        return stats
-
-    def log_row(step: int) -> None:
-        nonlocal logged_at
-        logged_at = step
-        row = rows.row(step, elapsed(), run_state.num_episodes)
-        if last_metrics is not None:
-            values = {k: float(v) for k, v in last_metrics.items()}
-            _check_finite(values, step)
-            row.update(values)
-        if logs is not None:
-            logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
-
-    def on_intervals(before: int, after: int, stop: StopSignal) -> str | None:
+    def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training
         should stop now (target_return or a callback's reason), else None."""
-        reached = False
+        cfg, reached = self.config, False
         if crossed(before, after, cfg.log_interval):
-            log_row(after)
+            self.log_row(after)
         if crossed(before, after, cfg.eval_interval):
-            stats = evaluate_now(after, stop)
-            reached = stats is not None and target_return is not None and stats["mean_return"] >= target_return
-        if hooks:
-            hooks.call("on_step")
-        stopping = reached or info.stop_reason is not None
-        if crossed(before, after, cfg.checkpoint_interval) and not stopping:  # (saved below when stopping)
-            save_checkpoint("last", with_buffer=True)
+            stats = self.evaluate(after)
+            reached = (stats is not None and self.target_return is not None
+                       and stats["mean_return"] >= self.target_return)
+        if self.hooks:
+            self.hooks.call("on_step")
+        stopping = reached or self.info.stop_reason is not None
+        if crossed(before, after, cfg.checkpoint_interval) and not stopping:  # (saved by finish() when stopping)
+            self.save_checkpoint("last")
         if reached:
             return "target_return"
-        return f"callback: {info.stop_reason}" if info.stop_reason is not None else None
+        return f"callback: {self.info.stop_reason}" if self.info.stop_reason is not None else None
 
-    try:
-        with StopSignal() as stop:
-            if hooks and hooks.call("on_training_start"):
-                stop_reason = f"callback: {info.stop_reason}"
-            if writer is not None and not writer.has_checkpoint("last"):
-                save_checkpoint("last", with_buffer=True)  # from its first moment a run holds a loadable checkpoint
-            while run_state.num_steps < end_step and stop_reason == "steps":
-                if stop.requested:
-                    where = save_checkpoint("last", with_buffer=True)
-                    raise TrainingInterrupted(run_state.num_steps, where)
-                before = run_state.num_steps
-                # reset_interval: at the first step past each multiple, so the evaluation and checkpoint at
-                # the multiple see the policy before the reset and a resumed run resets where a straight one
-                # does; none at or past total_steps (a rule of the config, not of this call): a reset needs
-                # the rest of the budget to recover
-                if 0 < before < cfg.total_steps and crossed(before - n_envs, before, cfg.reset_interval):
-                    agent.state = fns.reset(agent.state, cfg.seed, before // cfg.reset_interval)
-                before, after = collect()
-                learn(after)
-                stop_reason = on_intervals(before, after, stop) or stop_reason
-                if after >= next_show or stop_reason != "steps":  # the bar redraws at most every SHOW_EVERY steps
-                    next_show = after + SHOW_EVERY
-                    show.update(after, ret=rows.recent_mean(), eval=run_state.last_eval)
+    def log_row(self, step: int) -> None:
+        self.logged_at = step
+        row = self.rows.row(step, self.elapsed(), self.run_state.num_episodes)
+        values = self.metric_values()
+        _check_finite(values, step)
+        row.update(values)
+        if self.logs is not None:
+            self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
 
-            # the run's last log row and evaluation, off the intervals' grid, only where the run ends (its
-            # total_steps, a target or a callback): a segment that stops short of it and is resumed later
-            # must leave the logs, the best checkpoint and eval.csv as one straight run leaves them
-            final_step = run_state.num_steps
-            run_ends = final_step > start_step and (final_step >= cfg.total_steps or stop_reason != "steps")
-            if run_ends and logged_at != final_step:
-                log_row(final_step)
-            if run_ends and cfg.eval_interval > 0 and run_state.last_eval_step != final_step:
-                evaluate_now(final_step, stop)
-            save_checkpoint("last", with_buffer=True)
-            if stop.requested:
-                raise TrainingInterrupted(run_state.num_steps,
-                                          str(checkpoint_path(writer.run, "last")) if writer is not None else None)
-    finally:
-        show.close(run_state.num_steps)
-        run_state.train_time_s = elapsed()
-        run_state.recent_returns = list(rows.recent)  # the next learn() (and save()) go on from them
-        if writer is not None:
-            writer.close()
-        if eval_envs is not None:
-            for env in eval_envs:
-                with contextlib.suppress(Exception):
-                    env.close()
+    def evaluate(self, step: int) -> dict[str, Any] | None:
+        agent, cfg, rs = self.agent, self.config, self.run_state
+        if self.eval_envs is None:
+            self.eval_envs = [agent.make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
+        stats = run_episodes(lambda obs: agent.predict(obs, deterministic=True), agent.make_env, cfg.eval_episodes,
+                             cfg.seed + EVAL_SEED_OFFSET, envs=self.eval_envs, should_stop=lambda: self.stop.requested)
+        if self.stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
+            return None
+        rs.last_eval, rs.last_eval_step = stats["mean_return"], step
+        if self.logs is not None:
+            self.logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
+                                   "episodes": stats["episodes"]}, step)
+        if rs.best_eval is None or stats["mean_return"] > rs.best_eval:
+            rs.best_eval, rs.best_step = stats["mean_return"], step
+            self.save_checkpoint("best")
+        if self.hooks:
+            self.hooks.call("on_eval", stats)
+        return stats
 
-    summary = {
-        "steps": run_state.num_steps,
-        "episodes": run_state.num_episodes,
-        "train_time_s": run_state.train_time_s,
-        "wall_s": time.perf_counter() - wall0,
-        "last_eval": run_state.last_eval,
-        "best_eval": run_state.best_eval,
-        "stopped_early": stop_reason != "steps",
-        "stop_reason": stop_reason,
-        "recent_return_mean": rows.recent_mean(),
-        "best_step": run_state.best_step,
-        "total_steps": cfg.total_steps,
-    }
-    if writer is not None:
-        writer.write_summary(summary)
-    if hooks:
-        hooks.call("on_training_end", summary)
-    return summary
+    def save_checkpoint(self, name: str) -> str | None:
+        """`last` with the buffer and envs (to resume), `best` without; never diverged weights over good ones."""
+        if self.writer is None:
+            return None
+        _check_finite(self.metric_values(), self.run_state.num_steps)
+        self.run_state.train_time_s = self.elapsed()
+        self.run_state.recent_returns = list(self.rows.recent)
+        path = self.writer.save_checkpoint(name, *self.agent.checkpoint_parts(include_buffer=name == "last"))
+        if self.hooks:
+            self.hooks.call("on_checkpoint", name, path)
+        return path
