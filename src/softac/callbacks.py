@@ -17,17 +17,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
-
-if TYPE_CHECKING:
-    from softac.agent import SAC
+from typing import Any, Callable
 
 
 @dataclass
 class TrainingInfo:
     """What a callback sees; `stop(reason)` asks the loop to end after the current step."""
 
-    agent: SAC
+    agent: Any  # the softac.SAC being trained (not imported: the agent imports the modules below it)
     start_step: int  # where this learn() call started (a resumed run starts past 0)
     end_step: int  # where it will stop unless stopped earlier
     run_dir: Path | None

@@ -63,13 +63,7 @@ def _add_allow_new_bounds(p: argparse.ArgumentParser) -> None:
                         "(its actions are scaled to the new bounds); refused otherwise")
 
 
-def build_parser() -> _Parser:
-    parser = _Parser(prog="softac", description="Soft Actor-Critic for continuous-control Gymnasium envs.")
-    parser.add_argument("--version", action="store_true", help="print the version and exit")
-    sub = parser.add_subparsers(dest="command", parser_class=_Parser)
-    parser.commands = sub.choices  # to name the command whose arguments were not understood
-
-    t = sub.add_parser("train", help="train an agent (InvertedPendulum-v5 by default)")
+def _train_arguments(t: argparse.ArgumentParser) -> None:
     t.add_argument("--env", help="Gymnasium env id, or module:EnvId")
     src = t.add_mutually_exclusive_group()
     src.add_argument("--preset", help="preset name (see `softac presets`)")
@@ -98,6 +92,42 @@ def build_parser() -> _Parser:
     bar = t.add_mutually_exclusive_group()
     bar.add_argument("--progress", dest="progress", action="store_true", default=None, help="force the progress bar")
     bar.add_argument("--no-progress", dest="progress", action="store_false", help="plain log lines instead")
+
+
+def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
+    sw.add_argument("--env", help="Gymnasium env id (default InvertedPendulum-v5)")
+    sw.add_argument("--seeds", default="1", help="a count N (seeds 0..N-1, or from --first-seed) or a comma list")
+    sw.add_argument("--first-seed", type=int, default=0, help="first seed when --seeds is a count")
+    sw.add_argument("--grid", action="append", nargs="+", default=[], metavar="KEY=V1,V2",
+                    help="sweep a config key over values (repeatable; the grid is their product)")
+    sw.add_argument("--preset", help="preset name (default: the env's preset)")
+    sw.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="override a config key in every trial")
+    sw.add_argument("--steps", type=_positive_int, help="env steps per trial (default: the preset's total_steps)")
+    sw.add_argument("--out", help="sweep directory: one run directory per trial, summary.csv, summary.md, plots/")
+    sw.add_argument("--resume", metavar="DIR", help="continue the sweep in DIR (finished trials are not redone)")
+    sw.add_argument("--address", help="an existing Ray cluster (e.g. auto or ray://HEAD:10001); default: local Ray")
+    sw.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each trial (default 1)")
+    sw.add_argument("--gpus-per-trial", type=float, default=0.0,
+                    help="GPUs Ray reserves for each trial (with --set device=gpu; fractions share a GPU)")
+    sw.add_argument("--max-concurrent", type=_positive_int, help="at most this many trials at once")
+    sw.add_argument("--framework", choices=["softac", "sb3", "sbx"], default="softac",
+                    help="sb3/sbx: their SAC at their defaults, evaluated like softac (needs the [bench] extra)")
+    sw.add_argument("--search", choices=["random", "optuna"], help="sample configurations instead of a grid")
+    sw.add_argument("--samples", type=_positive_int, default=8, help="configurations a search tries (default 8)")
+    sw.add_argument("--space", metavar="FILE", help="YAML search space (default: the documented SAC space)")
+    sw.add_argument("--asha", action="store_true", help="with --search: stop poor trials early (ASHA)")
+    sw.add_argument("--threshold", type=_finite_float, metavar="R",
+                    help="also report steps and seconds until the eval mean first reaches R")
+
+
+def build_parser() -> _Parser:
+    parser = _Parser(prog="softac", description="Soft Actor-Critic for continuous-control Gymnasium envs.")
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", parser_class=_Parser)
+    parser.commands = sub.choices  # to name the command whose arguments were not understood
+
+    _train_arguments(sub.add_parser("train", help="train an agent (InvertedPendulum-v5 by default)"))
 
     e = sub.add_parser("eval", help="evaluate a run or checkpoint")
     e.add_argument("path", metavar="RUN_OR_CKPT")
@@ -143,31 +173,8 @@ def build_parser() -> _Parser:
     b.add_argument("--out", metavar="RUN", help="also write RUN/baselines.json (plots and reports draw it)")
     b.add_argument("--json", action="store_true")
 
-    sw = sub.add_parser("sweep", help="many runs on Ray Tune (seeds x a grid, or a search): summary, CI table, plots")
-    sw.add_argument("--env", help="Gymnasium env id (default InvertedPendulum-v5)")
-    sw.add_argument("--seeds", default="1", help="a count N (seeds 0..N-1, or from --first-seed) or a comma list")
-    sw.add_argument("--first-seed", type=int, default=0, help="first seed when --seeds is a count")
-    sw.add_argument("--grid", action="append", nargs="+", default=[], metavar="KEY=V1,V2",
-                    help="sweep a config key over values (repeatable; the grid is their product)")
-    sw.add_argument("--preset", help="preset name (default: the env's preset)")
-    sw.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
-                    help="override a config key in every trial")
-    sw.add_argument("--steps", type=_positive_int, help="env steps per trial (default: the preset's total_steps)")
-    sw.add_argument("--out", help="sweep directory: one run directory per trial, summary.csv, summary.md, plots/")
-    sw.add_argument("--resume", metavar="DIR", help="continue the sweep in DIR (finished trials are not redone)")
-    sw.add_argument("--address", help="an existing Ray cluster (e.g. auto or ray://HEAD:10001); default: local Ray")
-    sw.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each trial (default 1)")
-    sw.add_argument("--gpus-per-trial", type=float, default=0.0,
-                    help="GPUs Ray reserves for each trial (with --set device=gpu; fractions share a GPU)")
-    sw.add_argument("--max-concurrent", type=_positive_int, help="at most this many trials at once")
-    sw.add_argument("--framework", choices=["softac", "sb3", "sbx"], default="softac",
-                    help="sb3/sbx: their SAC at their defaults, evaluated like softac (needs the [bench] extra)")
-    sw.add_argument("--search", choices=["random", "optuna"], help="sample configurations instead of a grid")
-    sw.add_argument("--samples", type=_positive_int, default=8, help="configurations a search tries (default 8)")
-    sw.add_argument("--space", metavar="FILE", help="YAML search space (default: the documented SAC space)")
-    sw.add_argument("--asha", action="store_true", help="with --search: stop poor trials early (ASHA)")
-    sw.add_argument("--threshold", type=_finite_float, metavar="R",
-                    help="also report steps and seconds until the eval mean first reaches R")
+    _sweep_arguments(sub.add_parser("sweep", help="many runs on Ray Tune (seeds x a grid, or a search): summary, CI "
+                                                  "table, plots"))
 
     from softac.bench import add_arguments
 

@@ -9,15 +9,21 @@ the key).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable, Protocol
 
 import gymnasium as gym
 import numpy as np
 
 from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name
 
-if TYPE_CHECKING:
-    from softac.agent import SAC
+
+class Evaluable(Protocol):
+    """What `evaluate` needs of an agent (softac.SAC is one): its config (for the eval seed), its env, and
+    predict(). Typed by shape, so this module never imports the agent."""
+    config: Any
+    env_source: EnvSource
+
+    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray: ...
 
 MAX_PARALLEL = 32
 EVAL_SEED_OFFSET = 1_000_000
@@ -112,7 +118,7 @@ def summarize(returns: np.ndarray, lengths: np.ndarray,
     }
 
 
-def evaluate(agent: SAC, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
+def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
              env: Any = None) -> dict[str, Any]:
     """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env."""
     if episodes < 1:

@@ -12,7 +12,7 @@ and where a checkpoint sits in a run. (What one training call writes is the trai
     RUN/.lock               held (an OS lock) by the one process that writes the run (`run_lock`)
 
 A crash at any moment leaves each file either whole and old or whole and new (`write_atomic`), a new
-run never writes over another run's checkpoints (`check_run_dir_for`), and two processes never write one
+run never writes over another run's checkpoints (`RunState.check_may_write`), and two processes never write one
 run (or one sweep directory) at the same time (`run_lock`).
 """
 
@@ -27,14 +27,11 @@ import socket
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import Any, Iterator
 
 import yaml
 
 from softac.errors import SoftacError
-
-if TYPE_CHECKING:
-    from softac.runstate import RunState
 
 CHECKPOINTS = "checkpoints"
 LOCK = ".lock"
@@ -144,19 +141,6 @@ def check_new_run_dir(run: Path) -> None:
         raise SoftacError(f"run directory {run} exists and is not a directory")
     if holds_run(run):
         raise SoftacError(f"{run} already holds a run; continue it with --resume {run} or pick another --out")
-
-
-def check_run_dir_for(state: RunState, run: Path) -> None:
-    """An agent writes only into a new directory or the run its state is the latest of: a loaded agent never
-    writes over another run, nor rewinds its own from an older (best) checkpoint. Its own run includes one
-    killed (kill -9, power loss) before its first periodic checkpoint, continued from the step-0 checkpoint."""
-    if state.run_dir == run.resolve():
-        return
-    if state.num_steps > 0 and holds_run(run):
-        raise SoftacError(f"{run} already holds a run that this agent is not the latest state of (it was loaded "
-                          f"from {state.restored_from or 'elsewhere'}); train into a new directory, or load "
-                          f"{checkpoint_path(run, 'last')} to continue that run")
-    check_new_run_dir(run)
 
 
 # ---- one writer at a time -------------------------------------------------------------------

@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from softac.rundir import run_of_last_checkpoint
+from softac.errors import SoftacError
+from softac.rundir import check_new_run_dir, checkpoint_path, holds_run, run_of_last_checkpoint
 
 
 @dataclass
@@ -73,3 +74,16 @@ class RunState:
         self.recent_returns = list(trainer.get("recent_returns", []))
         self.restored_from = Path(where).resolve() if where else None
         self.run_dir = run_of_last_checkpoint(self.restored_from) if self.restored_from else None
+
+    def check_may_write(self, run: Path) -> None:
+        """Training writes only into a new directory or the run this state is the latest of: a loaded agent
+        never writes over another run, nor rewinds its own from an older (best) checkpoint. Its own run
+        includes one killed (kill -9, power loss) before its first periodic checkpoint, continued from the
+        step-0 checkpoint."""
+        if self.run_dir == run.resolve():
+            return
+        if self.num_steps > 0 and holds_run(run):
+            raise SoftacError(f"{run} already holds a run that this agent is not the latest state of (it was "
+                              f"loaded from {self.restored_from or 'elsewhere'}); train into a new directory, or "
+                              f"load {checkpoint_path(run, 'last')} to continue that run")
+        check_new_run_dir(run)

@@ -13,7 +13,7 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -24,11 +24,33 @@ from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
 from softac.callbacks import CallbackList, TrainingInfo
 from softac.loggers import Loggers, check_backends_installed, parse_backends, run_loggers
 from softac.logs import Progress, TrainRows
-from softac.rundir import check_run_dir_for, checkpoint_path, holds_run, versions, write_config, write_summary
-from softac.sac import Batch
+from softac.rundir import checkpoint_path, holds_run, versions, write_config, write_summary
+from softac.config import SACConfig
+from softac.envs import SpaceInfo
+from softac.normalization import RunningObsNorm
+from softac.policy import ActionScaler
+from softac.runstate import RunState
+from softac.sac import Batch, SACFunctions, SACState
 
-if TYPE_CHECKING:  # the agent imports this module when it trains
-    from softac.agent import SAC
+
+
+class TrainableAgent(Protocol):
+    """What the loop reads and writes of the agent it trains (softac.SAC): typed by shape, so this module
+    never imports the agent (the agent imports it)."""
+    config: SACConfig
+    fns: SACFunctions
+    run: RunState
+    state: SACState  # the loop replaces it after each update
+    obs_norm: RunningObsNorm | None
+    spaces: SpaceInfo
+    scaler: ActionScaler
+    buffer_bytes_per_transition: float
+
+    def training_parts(self) -> tuple[Any, Any]: ...
+    def normalize_obs(self, obs: np.ndarray) -> np.ndarray: ...
+    def make_env(self, render_mode: str | None = None, **kwargs: Any) -> Any: ...
+    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray: ...
+    def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]: ...
 
 SHOW_EVERY = 100  # env steps between progress-bar refreshes
 
@@ -101,7 +123,7 @@ class RunWriter:
         Loggers(self.loggers).close()
 
 
-def train(agent: SAC, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
+def train(agent: TrainableAgent, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
           progress: bool | None = None, callbacks: list | None = None, loggers: list | None = None) -> dict[str, Any]:
     """Train `agent` for `steps` more env steps; with `run_dir`, write the run directory as it goes.
     `callbacks` (softac.callbacks.Callback) run at the loop's hooks; `loggers` (softac.loggers.Logger) get
@@ -115,7 +137,7 @@ class TrainingLoop:
     checked when it is made, before the run directory is written (a refused callback leaves no half-made
     run); `run()` opens the run directory and everything else inside one `try`."""
 
-    def __init__(self, agent: SAC, steps: int, run_dir: str | Path | None, target_return: float | None,
+    def __init__(self, agent: TrainableAgent, steps: int, run_dir: str | Path | None, target_return: float | None,
                  progress: bool | None, callbacks: list | None, loggers: list | None):
         if steps < 0:
             raise SoftacError(f"steps must be >= 0, got {steps}")
@@ -132,7 +154,7 @@ class TrainingLoop:
         except TypeError as exc:
             raise SoftacError(str(exc)) from None
         if self.run_path is not None:
-            check_run_dir_for(self.run_state, self.run_path)
+            self.run_state.check_may_write(self.run_path)
         self.extra_loggers = list(loggers or [])
         self.progress = progress
         self.writer: RunWriter | None = None
