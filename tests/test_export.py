@@ -10,7 +10,6 @@ import ast
 import functools
 import hashlib
 import importlib.util
-import os
 from pathlib import Path
 
 import jax
@@ -19,7 +18,7 @@ import onnxruntime
 import pytest
 
 import softac
-from conftest import TESTS, assert_clean_error, run_cli, tiny_config
+from conftest import TESTS, assert_clean_error, child_env, run_cli, tiny_config
 from float_bounds import action_bound, assert_within_bound
 from softac import SAC, SoftacError
 from softac.export import export_policy
@@ -216,7 +215,7 @@ def test_bad_inputs_are_one_line_errors(trained, tmp_path):
     shim = tmp_path / "shim" / "onnx"  # an environment without the onnx package
     shim.mkdir(parents=True)
     (shim / "__init__.py").write_text("raise ImportError(\"No module named 'onnx'\")\n")
-    without_onnx = {"PYTHONPATH": os.pathsep.join([str(shim.parent), str(TESTS), os.environ.get("PYTHONPATH", "")])}
+    without_onnx = {"PYTHONPATH": child_env(shim.parent)["PYTHONPATH"]}
 
     assert_clean_error(run_cli("export", str(tmp_path / "missing")), "no such run or checkpoint")
     assert_clean_error(run_cli("export", str(tmp_path / "empty")), "holds no checkpoint")

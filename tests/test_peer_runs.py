@@ -4,14 +4,13 @@ the last 20 training episodes (the peers used 100), `fps` is env steps per secon
 (the peers gave the cumulative rate), `time_s` the run's seconds so far. The peer is a stand-in
 (tests/fake_peers) driven through softac's real adapter (softac.peers.peer_run)."""
 
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from conftest import TESTS, run_cli
+from conftest import TESTS, child_env, run_cli
 from softac.logs import RECENT_EPISODES, read_csv
 
 DRIFT = "softac_test_envs:Drift-v0"  # 25-step episodes
@@ -41,10 +40,9 @@ def assert_progress_columns_mean_what_softac_means(run, min_interval_s: float = 
 
 def test_a_peer_run_writes_the_columns_as_softac_does(tmp_path):
     run = tmp_path / "peer"
-    env = {"PYTHONPATH": os.pathsep.join([str(FAKE_PEERS), str(TESTS), os.environ.get("PYTHONPATH", "")])}
     r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx", "--env", DRIFT, "--seed", "0", "--steps",
                         "700", "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2", "--log-interval",
-                        "100"], capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+                        "100"], capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
     assert r.returncode == 0, r.stderr
     # each 100-step interval takes >= 0.1 s in the stand-in, and those with an evaluation >= 0.05 s more: a
     # cumulative rate (what the peers wrote before) is off from theirs by far more than the rounding allows

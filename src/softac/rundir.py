@@ -198,8 +198,8 @@ def run_lock(directory: str | Path, what: str = "run") -> Iterator[Path]:
     naming the holder's pid. Re-entrant within a process (the CLI takes it, then learn() again). The directory
     is made if missing, and removed again on the way out if nothing but the lock was written into it (a run
     refused before it started leaves nothing behind: a lock file it made, and the directory if it made that).
-    A lock file next to other files stays, emptied (it names its holder only while held). Works across nodes where the shared filesystem supports locks
-    (NFSv4, Lustre, GPFS, CephFS)."""
+    A lock file next to other files stays, emptied (it names its holder only while held). Works across nodes
+    where the shared filesystem supports locks (NFSv4, Lustre, GPFS, CephFS)."""
     directory = Path(directory)
     key = str(directory.resolve())
     if key in _held:

@@ -18,20 +18,19 @@ from typing import Any, Protocol
 import numpy as np
 
 from softac import checkpoint as ckpt
+from softac.callbacks import CallbackList, TrainingInfo
+from softac.config import SACConfig
 from softac.cpus import usable_cpus
+from softac.envs import SpaceInfo
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-from softac.callbacks import CallbackList, TrainingInfo
 from softac.loggers import Loggers, check_backends_installed, parse_backends, run_loggers
 from softac.logs import Progress, TrainRows
-from softac.rundir import checkpoint_path, holds_run, versions, write_config, write_summary
-from softac.config import SACConfig
-from softac.envs import SpaceInfo
 from softac.normalization import RunningObsNorm
 from softac.policy import ActionScaler
+from softac.rundir import checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.runstate import RunState
 from softac.sac import Batch, SACFunctions, SACState
-
 
 
 class TrainableAgent(Protocol):
