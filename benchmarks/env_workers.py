@@ -45,7 +45,7 @@ def measure(env_id: str, env_workers: int, a: argparse.Namespace) -> dict:
     agent = SAC(config, env=gym.make(env_id, sleep_ms=a.sleep_ms) if env_id == SLOW_ENV else env_id)
     agent.learn(max(a.warmup, config.learning_starts + config.n_envs), progress=False)
     start = time.perf_counter()
-    agent.training_parts()  # the workers start here (learn() closed the warm-up's)
+    agent.collector.start(agent.num_steps)  # the workers start here (learn() closed the warm-up's)
     started = time.perf_counter()
     training_s = agent.learn(a.steps, progress=False)["wall_s"]  # the loop alone: learn() closes workers after it
     done = time.perf_counter()

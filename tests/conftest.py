@@ -125,8 +125,8 @@ def assert_same_learner(a, b) -> None:
     import jax
     import numpy as np
 
-    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.state)
-    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.state)
+    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.learner.state)
+    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.learner.state)
     assert tree_a == tree_b
     for (path, x), (_, y) in zip(paths_a, paths_b, strict=True):
         np.testing.assert_array_equal(np.array(x, copy=True), np.array(y, copy=True),
@@ -155,7 +155,7 @@ def assert_same_training(a, b) -> None:
     for f in dataclasses.fields(RunState):
         if f.name in RUN_STATE_NOT_COMPARED:
             continue
-        x, y = getattr(a.run, f.name), getattr(b.run, f.name)
+        x, y = getattr(a.run_state, f.name), getattr(b.run_state, f.name)
         if f.name == "rng":
             assert x.bit_generator.state == y.bit_generator.state, f.name
         elif f.name.endswith("_key"):
@@ -163,21 +163,21 @@ def assert_same_training(a, b) -> None:
         else:
             assert x == y, (f.name, x, y)
 
-    assert type(a.buffer) is type(b.buffer)
-    if a.buffer is not None:
-        buffer_a, buffer_b = a.buffer.state_dict(), b.buffer.state_dict()
+    assert type(a.collector.buffer) is type(b.collector.buffer)
+    if a.collector.buffer is not None:
+        buffer_a, buffer_b = a.collector.buffer.state_dict(), b.collector.buffer.state_dict()
         assert buffer_a.keys() == buffer_b.keys()
         for name in buffer_a:
             np.testing.assert_array_equal(buffer_a[name], buffer_b[name], err_msg=f"buffer {name}")
 
-    assert (a.obs_norm is None) == (b.obs_norm is None)
-    if a.obs_norm is not None:
-        norm_a, norm_b = a.obs_norm.state_dict(), b.obs_norm.state_dict()
+    assert (a.learner.obs_norm is None) == (b.learner.obs_norm is None)
+    if a.learner.obs_norm is not None:
+        norm_a, norm_b = a.learner.obs_norm.state_dict(), b.learner.obs_norm.state_dict()
         assert norm_a.keys() == norm_b.keys()
         for name in norm_a:
             np.testing.assert_array_equal(norm_a[name], norm_b[name], err_msg=f"obs_norm {name}")
 
-    envs_a, envs_b = a.env_state(), b.env_state()
+    envs_a, envs_b = a.collector.env_state(), b.collector.env_state()
     assert (envs_a is None) == (envs_b is None)
     if envs_a is not None:
         (meta_a, arrays_a), (meta_b, arrays_b) = envs_a, envs_b

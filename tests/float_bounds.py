@@ -198,32 +198,32 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     float32 observations `obs` [batch, obs_dim], and a bound on |a - reference| for the actions `a` of any
     float32 evaluation of the same network (agent.predict on any CPU, the ONNX and NumPy exports).
 
-    `matmul_dtype`: how the program multiplies, if not as the agent's config says (agent.fns.matmul_dtype):
+    `matmul_dtype`: how the program multiplies, if not as the agent's config says (agent.learner.functions.matmul_dtype):
     "float32" for a program that skips the bf16 roundings, as JAX 0.4.30's jitted bf16 layers do."""
     from softac.normalization import EPSILON
 
     x = np.asarray(obs, np.float32).reshape(-1, agent.spaces.obs_dim).astype(np.float64)
     e = np.zeros_like(x)
-    if agent.obs_norm is not None:
+    if agent.learner.obs_norm is not None:
         # clip((obs - mean) / std) with the float32 mean and std that predict() and the export use: a
         # subtraction and a division, u each (4u: also a division done as a multiplication by 1/std)
-        mean = agent.obs_norm.mean.astype(np.float32).astype(np.float64)
-        std = np.sqrt(agent.obs_norm.var + EPSILON).astype(np.float32).astype(np.float64)
-        clip = agent.obs_norm.clip
+        mean = agent.learner.obs_norm.mean.astype(np.float32).astype(np.float64)
+        std = np.sqrt(agent.learner.obs_norm.var + EPSILON).astype(np.float32).astype(np.float64)
+        clip = agent.learner.obs_norm.clip
         q = (x - mean) / std
         e = 4 * U * np.abs(q)
         x = np.clip(q, -clip, clip)  # monotone: a value beyond the clip by more than its error has none left
         e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
 
-    norm = agent.fns.policy.batch_renorm
-    x, e = network_bound(agent.state.actor, x, e, agent.config.activation, matmul_dtype or agent.fns.matmul_dtype,
-                         norm, agent.state.actor_stats if norm is not None else None,
+    norm = agent.learner.functions.policy.batch_renorm
+    x, e = network_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype or agent.learner.functions.matmul_dtype,
+                         norm, agent.learner.state.actor_stats if norm is not None else None,
                          out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
 
     # action = clip(mid + half * tanh(x), low, high): tanh carries the error through as above and adds its own,
     # the product and the sum round (u each), the clip is 1-Lipschitz
-    low, high = agent.scaler.low.astype(np.float64), agent.scaler.high.astype(np.float64)
-    mid, half = agent.scaler.bias.astype(np.float64), agent.scaler.scale.astype(np.float64)
+    low, high = agent.learner.scaler.low.astype(np.float64), agent.learner.scaler.high.astype(np.float64)
+    mid, half = agent.learner.scaler.bias.astype(np.float64), agent.learner.scaler.scale.astype(np.float64)
     t, e = _activation_error("tanh", x, e)
     reference = np.clip(mid + half * t, low, high)
     bound = half * e + U * half * (np.abs(t) + e) + U * (np.abs(mid + half * t) + half * e)

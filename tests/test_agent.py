@@ -40,7 +40,7 @@ def test_resume_is_exact(tiny, tmp_path, obs_once, n_step, obs_norm, crossq):
     first = SAC(cfg)
     first.learn(500, run_dir=tmp_path / "split", progress=False)
     resumed = SAC.load(tmp_path / "split", which="last")
-    assert resumed.num_steps == 500 and len(resumed.buffer) == 500
+    assert resumed.num_steps == 500 and len(resumed.collector.buffer) == 500
     resumed.learn(400, run_dir=tmp_path / "split", progress=False)
 
     assert_same_training(straight, resumed)
@@ -51,9 +51,9 @@ def test_resume_is_exact(tiny, tmp_path, obs_once, n_step, obs_norm, crossq):
                             for row in read_csv(tmp_path / run / "progress.csv")]
     assert timeless("straight") == timeless("split")
     if obs_norm:
-        assert straight.obs_norm.count == resumed.obs_norm.count == 900
-        np.testing.assert_array_equal(straight.obs_norm.mean, resumed.obs_norm.mean)
-        np.testing.assert_array_equal(straight.obs_norm.m2, resumed.obs_norm.m2)
+        assert straight.learner.obs_norm.count == resumed.learner.obs_norm.count == 900
+        np.testing.assert_array_equal(straight.learner.obs_norm.mean, resumed.learner.obs_norm.mean)
+        np.testing.assert_array_equal(straight.learner.obs_norm.m2, resumed.learner.obs_norm.m2)
 
 
 def test_env_instance_and_vector_envs(tiny):
@@ -171,9 +171,9 @@ def test_evaluate_reports_the_reward_terms_an_env_puts_in_info(tiny):
 def test_reset_renews_networks_and_optimisers_and_keeps_alpha(tiny):
     agent = SAC(tiny(alpha=0.5))
     agent.learn(400, progress=False)
-    before = agent.state
-    after = agent.fns.reset(before, agent.config.seed, 3)
-    fresh = agent.fns.init(agent.config.seed)
+    before = agent.learner.state
+    after = agent.learner.functions.reset(before, agent.config.seed, 3)
+    fresh = agent.learner.functions.init(agent.config.seed)
     assert float(after.log_alpha) == float(before.log_alpha) != float(fresh.log_alpha)
     assert int(after.n_updates) == int(before.n_updates) > 0
     np.testing.assert_array_equal(np.asarray(after.key), np.asarray(before.key))
@@ -185,8 +185,8 @@ def test_reset_renews_networks_and_optimisers_and_keeps_alpha(tiny):
     # the k-th reset draws its own weights: not the initial ones, not another reset's, not the trained ones
     w = lambda s: np.asarray(s.actor[0]["w"])  # noqa: E731
     assert not np.array_equal(w(after), w(fresh)) and not np.array_equal(w(after), w(before))
-    assert not np.array_equal(w(after), w(agent.fns.reset(before, agent.config.seed, 4)))
-    np.testing.assert_array_equal(w(after), w(agent.fns.reset(before, agent.config.seed, 3)))
+    assert not np.array_equal(w(after), w(agent.learner.functions.reset(before, agent.config.seed, 4)))
+    np.testing.assert_array_equal(w(after), w(agent.learner.functions.reset(before, agent.config.seed, 3)))
 
 
 @pytest.mark.parametrize("n_envs", [1, 2])
@@ -195,8 +195,9 @@ def test_resets_happen_at_each_multiple_before_total_steps_and_resume_exactly(ti
 
     def counting(agent):
         calls = []
-        reset = agent.fns.reset
-        agent.fns = agent.fns._replace(reset=lambda state, seed, k: calls.append(k) or reset(state, seed, k))
+        functions = agent.learner.functions
+        agent.learner.functions = functions._replace(reset=lambda state, seed, k: calls.append(k) or
+                                                     functions.reset(state, seed, k))
         return calls
 
     straight = SAC(cfg)
@@ -235,7 +236,7 @@ def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
     a, b = SAC(cfg), SAC(cfg)
     for agent in (a, b):
         agent.learn(300, progress=False)
-        agent.run.recent_returns = [1.0, 2.0]  # (learn() without a run directory leaves them empty)
+        agent.run_state.recent_returns = [1.0, 2.0]  # (learn() without a run directory leaves them empty)
     assert_same_training(a, b)
 
     def differs(what, change, undo):
@@ -249,18 +250,19 @@ def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
             undo()
         assert_same_training(a, b)  # undone
 
-    state = b.state
+    state = b.learner.state
     leaves, treedef = jax.tree_util.tree_flatten(state)
     for i, leaf in enumerate(leaves):
         changed = [*leaves[:i], jnp.asarray(leaf) + jnp.ones((), leaf.dtype), *leaves[i + 1:]]
-        differs(f"learner leaf {i}", lambda c=changed: setattr(b, "state", treedef.unflatten(c)),
-                lambda: setattr(b, "state", state))
+        differs(f"learner leaf {i}", lambda c=changed: setattr(b.learner, "state", treedef.unflatten(c)),
+                lambda: setattr(b.learner, "state", state))
 
     for f in dataclasses.fields(RunState):
-        value = getattr(b.run, f.name)
+        value = getattr(b.run_state, f.name)
         if f.name == "rng":
             saved = value.bit_generator.state
-            differs("rng", lambda: b.run.rng.random(), lambda s=saved: setattr(b.run.rng.bit_generator, "state", s))
+            differs("rng", lambda: b.run_state.rng.random(),
+                    lambda s=saved: setattr(b.run_state.rng.bit_generator, "state", s))
             continue
         if f.name.endswith("_key"):
             other = jnp.asarray(np.asarray(value) ^ np.uint32(1))
@@ -271,31 +273,31 @@ def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
         else:
             other = value + 1
         if f.name in RUN_STATE_NOT_COMPARED:
-            setattr(b.run, f.name, other)
+            setattr(b.run_state, f.name, other)
             assert_same_training(a, b)  # a resumed run's own: not compared
-            setattr(b.run, f.name, value)
+            setattr(b.run_state, f.name, value)
         else:
-            differs(f.name, lambda n=f.name, o=other: setattr(b.run, n, o),
-                    lambda n=f.name, v=value: setattr(b.run, n, v))
+            differs(f.name, lambda n=f.name, o=other: setattr(b.run_state, n, o),
+                    lambda n=f.name, v=value: setattr(b.run_state, n, v))
 
-    for name, array in b.buffer.state_dict().items():
+    for name, array in b.collector.buffer.state_dict().items():
         if name == "pos_size":
-            differs("buffer position", lambda: setattr(b.buffer, "pos", b.buffer.pos + 1),
-                    lambda p=b.buffer.pos: setattr(b.buffer, "pos", p))
+            differs("buffer position", lambda: setattr(b.collector.buffer, "pos", b.collector.buffer.pos + 1),
+                    lambda p=b.collector.buffer.pos: setattr(b.collector.buffer, "pos", p))
             continue
         old = array.flat[-1].copy()  # a view of the buffer's array
         new = ~old if array.dtype == bool else old + 1
         differs(f"buffer {name}", lambda a_=array, n=new: a_.flat.__setitem__(-1, n),
                 lambda a_=array, o=old: a_.flat.__setitem__(-1, o))
 
-    norm = b.obs_norm
+    norm = b.learner.obs_norm
     differs("obs_norm count", lambda: setattr(norm, "count", norm.count + 1),
             lambda c=norm.count: setattr(norm, "count", c))
     for name in ("mean", "m2"):
         differs(f"obs_norm {name}", lambda n=name: setattr(norm, n, getattr(norm, n) + 1.0),
                 lambda n=name, v=getattr(norm, name): setattr(norm, n, v))
 
-    pool = b.pool
+    pool = b.collector.pool
     for name in ("obs", "episode_return", "episode_length", "resets"):
         array = getattr(pool, name)
         differs(f"envs {name}", lambda a_=array: a_.__setitem__(1, a_[1] + 1),
@@ -329,7 +331,7 @@ def test_loading_into_an_env_with_other_action_bounds_is_refused_unless_asked(ti
     actions = moved.predict(obs)
     assert actions.min() >= -2.0 and actions.max() <= 0.5
     # the same policy, scaled to the new bounds: a few float32 roundings of values below 4 in magnitude apart
-    np.testing.assert_allclose(moved.scaler.to_normalised(actions), agent.scaler.to_normalised(agent.predict(obs)),
+    np.testing.assert_allclose(moved.learner.scaler.to_normalised(actions), agent.learner.scaler.to_normalised(agent.predict(obs)),
                                rtol=0, atol=1e-6)
 
 
@@ -339,7 +341,7 @@ def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):
     once, twice = SAC(tiny()), SAC(tiny())
     whole = once.learn(600, progress=False)
     twice.learn(300, progress=False)
-    assert twice.run.recent_returns  # kept after the first call
+    assert twice.run_state.recent_returns  # kept after the first call
     split = twice.learn(300, progress=False)
     assert split["recent_return_mean"] == whole["recent_return_mean"]
-    assert twice.run.recent_returns == once.run.recent_returns and len(once.run.recent_returns) == 20
+    assert twice.run_state.recent_returns == once.run_state.recent_returns and len(once.run_state.recent_returns) == 20

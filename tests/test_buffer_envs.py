@@ -1,6 +1,5 @@
 """Replay buffer and env pool: truncation bootstraps, termination does not, true final observations."""
 
-import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -58,7 +57,7 @@ def test_training_stores_terminated_and_truncated_apart(tiny):
 
     agent = SAC(tiny(learning_starts=10_000, n_envs=2))
     agent.learn(600, progress=False)
-    buf = agent.buffer
+    buf = agent.collector.buffer
     x, t = buf.next_obs[: len(buf), 0], buf.next_obs[: len(buf), 1]
     term = buf.terminated[: len(buf)]
     truncated_rows = (t == 25) & (np.abs(x) <= 0.3)

@@ -101,7 +101,7 @@ def test_metrics_and_a_curriculum_through_the_training_envs(tiny):
     agent.learn(400, progress=False, callbacks=[Curriculum()])
     assert {"critic_loss", "actor_loss", "alpha"} <= set(seen["metrics"])
     assert len(seen["old"]) == 2
-    assert [env.unwrapped.difficulty for env in agent.pool.envs] == [2, 2]
+    assert [env.unwrapped.difficulty for env in agent.collector.pool.envs] == [2, 2]
 
 
 def _difficulty(env):
@@ -229,5 +229,5 @@ def test_the_readme_curriculum_example_changes_the_training_envs_only(tiny):
     agent = SAC(tiny("InvertedPendulum-v5"))
     base = float(agent.make_env().unwrapped.model.body_mass[2])
     agent.learn(500, progress=False, callbacks=[namespace["HeavierPole"](every=200, factor=2.0)])
-    assert float(agent.pool.envs[0].unwrapped.model.body_mass[2]) == pytest.approx(base * 4)  # at 200 and 400
+    assert float(agent.collector.pool.envs[0].unwrapped.model.body_mass[2]) == pytest.approx(base * 4)  # at 200 and 400
     assert float(agent.make_env().unwrapped.model.body_mass[2]) == pytest.approx(base)

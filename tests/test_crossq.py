@@ -152,10 +152,10 @@ def test_adam_b1_sets_the_first_moment_decay():
 def test_crossq_reset_renews_the_statistics(tiny):
     agent = SAC(tiny(crossq=True))
     agent.learn(400, progress=False)
-    after = agent.fns.reset(agent.state, agent.config.seed, 1)
-    assert np.any(np.asarray(agent.state.critic_stats[0]["mean"]))
+    after = agent.learner.functions.reset(agent.learner.state, agent.config.seed, 1)
+    assert np.any(np.asarray(agent.learner.state.critic_stats[0]["mean"]))
     for leaf, fresh in zip(jax.tree_util.tree_leaves(after.critic_stats),
-                           jax.tree_util.tree_leaves(agent.fns.init(0).critic_stats), strict=True):
+                           jax.tree_util.tree_leaves(agent.learner.functions.init(0).critic_stats), strict=True):
         np.testing.assert_array_equal(leaf, fresh)
 
 
@@ -165,10 +165,10 @@ def test_a_crossq_agent_learns_and_predicts_with_its_statistics(tiny, tmp_path):
     obs = np.random.default_rng(0).normal(size=(8, 2)).astype(np.float32)
     loaded = SAC.load(tmp_path / "run", which="last")
     np.testing.assert_array_equal(agent.predict(obs), loaded.predict(obs))
-    zeroed = agent.fns.act_deterministic(agent.state.actor, jax.tree_util.tree_map(jnp.zeros_like,
-                                                                                   agent.state.actor_stats), obs)
-    assert not np.allclose(np.asarray(zeroed), np.asarray(agent.fns.act_deterministic(
-        agent.state.actor, agent.state.actor_stats, obs)))  # acting reads the running statistics
+    zeroed = agent.learner.functions.act_deterministic(agent.learner.state.actor, jax.tree_util.tree_map(jnp.zeros_like,
+                                                                                   agent.learner.state.actor_stats), obs)
+    assert not np.allclose(np.asarray(zeroed), np.asarray(agent.learner.functions.act_deterministic(
+        agent.learner.state.actor, agent.learner.state.actor_stats, obs)))  # acting reads the running statistics
 
 
 def test_crossq_with_layer_norm_critics_is_refused_in_one_line(tmp_path):

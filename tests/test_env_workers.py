@@ -115,10 +115,11 @@ def test_env_workers_give_the_same_run_and_leave_no_process(tiny):
     runs = []
     for env_workers in (0, 2):
         agent = SAC(tiny(n_envs=3, env_workers=env_workers))
-        _, pool = agent.training_parts()
+        agent.collector.start(agent.num_steps)
+        pool = agent.collector.pool
         pids = getattr(pool, "pids", [])
         agent.learn(450, progress=False)
-        assert agent.pool is None if env_workers else agent.pool is pool
+        assert agent.collector.pool is None if env_workers else agent.collector.pool is pool
         assert pids == [] or not any(map(_running, pids))
         runs.append(agent)
     local, workers = runs
@@ -155,7 +156,8 @@ def test_resume_with_env_workers_is_exact(tiny, tmp_path, straight_run, first_wo
 
 def test_a_killed_worker_fails_the_run_naming_the_env_and_the_next_learn_starts_afresh(tiny):
     agent = SAC(tiny("softac_test_envs:Slow-v0", n_envs=2, env_workers=2))
-    _, pool = agent.training_parts()
+    agent.collector.start(agent.num_steps)
+    pool = agent.collector.pool
     victim = pool.pids[1]
 
     class KillAtStep100(Callback):  # in the loop itself: not a thread racing the loop (which may finish first)
@@ -166,7 +168,7 @@ def test_a_killed_worker_fails_the_run_naming_the_env_and_the_next_learn_starts_
     with pytest.raises(EnvFailed, match=rf"env softac_test_envs:Slow-v0: the env worker process {victim} \(env 1\) "
                                         r"was killed by SIGKILL at step 100"):
         agent.learn(4000, progress=False, callbacks=[KillAtStep100()])
-    assert not any(map(_running, pool.pids)) and agent.pool is None
+    assert not any(map(_running, pool.pids)) and agent.collector.pool is None
     steps = agent.num_steps
     agent.learn(40, progress=False)  # new workers, fresh episodes
     assert agent.num_steps == steps + 40

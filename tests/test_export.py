@@ -104,7 +104,7 @@ def assert_exports_act_as_predict(agent: SAC, directory: Path, obs: np.ndarray) 
 def assert_bound_is_tight(agent: SAC, bound: np.ndarray, share: float) -> None:
     """The bound is far below what a wrong export is off by (a dropped normalisation or fold, a wrong clip or
     layer order: 1e-2 and more): below 1e-4 of the action range on `share` of the observations."""
-    width = (agent.scaler.high - agent.scaler.low).astype(np.float64)
+    width = (agent.learner.scaler.high - agent.learner.scaler.low).astype(np.float64)
     tight = np.all(bound <= 1e-4 * width, axis=1)
     assert np.mean(tight) >= share, (np.mean(tight), np.quantile(bound / width, [0.5, 0.95, 1.0]))
 
@@ -146,12 +146,12 @@ def trained(tmp_path_factory):
 def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     agent, _ = trained(kind)
     if kind == "crossq":  # the running statistics folded into the weights are not the initial ones
-        for stats in agent.state.actor_stats:
+        for stats in agent.learner.state.actor_stats:
             assert np.abs(np.asarray(stats["mean"])).max() > 1e-2
             assert np.abs(np.asarray(stats["var"]) - 1.0).max() > 1e-2
     obs = env_observations(agent)
-    if agent.obs_norm is not None:
-        assert np.abs(agent.normalize_obs(obs)).max() == agent.config.obs_norm_clip  # the clip is exercised
+    if agent.learner.obs_norm is not None:
+        assert np.abs(agent.learner.normalize_obs(obs)).max() == agent.config.obs_norm_clip  # the clip is exercised
     bound = assert_exports_act_as_predict(agent, tmp_path, obs)
     # on the episodes' observations (the FAR ones have outsized values, and bounds to match); with bf16 layers
     # an observation whose input to one is within its error bound of a bf16 rounding boundary may round to the
@@ -258,7 +258,7 @@ def test_the_readme_forward_pass_is_the_modules(tmp_path):
 
     agent = SAC(tiny_config(DRIFT, activation="gelu", obs_norm=True))
     rng = np.random.default_rng(0)
-    agent.obs_norm.update(rng.normal(loc=[0.1, 10.0], scale=[0.1, 5.0], size=(100, 2)))
+    agent.learner.obs_norm.update(rng.normal(loc=[0.1, 10.0], scale=[0.1, 5.0], size=(100, 2)))
     obs = rng.normal(loc=[0.1, 10.0], scale=[0.3, 15.0], size=(300, 2)).astype(np.float32)
     with np.load(export_policy(agent, tmp_path / "policy.npz", "numpy")) as npz:
         actions = readme_module["policy_forward"](dict(npz), obs)

@@ -242,7 +242,7 @@ def test_bad_env_or_divergence_stops_with_exit_3_and_keeps_the_checkpoint(tmp_pa
     import jax
 
     agent = SAC.load(run, which="last")
-    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(agent.state))
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(agent.learner.state))
 
 
 def test_checkpoints_never_execute_code(tmp_path):

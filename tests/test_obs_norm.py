@@ -44,25 +44,25 @@ def test_running_statistics_equal_those_of_all_observations_at_once():
 def test_predict_eval_and_every_checkpoint_use_the_statistics(tiny, tmp_path):
     agent = SAC(tiny(obs_norm=True, eval_interval=200))
     agent.learn(600, run_dir=tmp_path / "run", progress=False)
-    assert agent.obs_norm.count == 600 and agent.obs_norm.var[1] > 1.0  # the step count in Drift's observation
+    assert agent.learner.obs_norm.count == 600 and agent.learner.obs_norm.var[1] > 1.0  # the step count in Drift's observation
     obs = np.random.default_rng(1).normal(size=(32, 2)).astype(np.float32) * [0.1, 10.0]
-    by_hand = agent.scaler.to_env(np.asarray(agent.fns.act_deterministic(agent.state.actor, (),
-                                                                        agent.obs_norm.normalize(obs))))
+    by_hand = agent.learner.scaler.to_env(np.asarray(agent.learner.functions.act_deterministic(agent.learner.state.actor, (),
+                                                                        agent.learner.obs_norm.normalize(obs))))
     np.testing.assert_array_equal(agent.predict(obs), by_hand)
-    raw = agent.scaler.to_env(np.asarray(agent.fns.act_deterministic(agent.state.actor, (), obs)))
+    raw = agent.learner.scaler.to_env(np.asarray(agent.learner.functions.act_deterministic(agent.learner.state.actor, (), obs)))
     assert not np.allclose(raw, by_hand)  # the statistics matter for this agent
 
     for which in ("best", "last"):
         loaded = SAC.load(tmp_path / "run", which=which)
-        assert loaded.obs_norm is not None and loaded.obs_norm.count > 0
+        assert loaded.learner.obs_norm is not None and loaded.learner.obs_norm.count > 0
     loaded = SAC.load(tmp_path / "run", which="last")
-    np.testing.assert_array_equal(loaded.obs_norm.mean, agent.obs_norm.mean)
+    np.testing.assert_array_equal(loaded.learner.obs_norm.mean, agent.learner.obs_norm.mean)
     np.testing.assert_array_equal(loaded.predict(obs), agent.predict(obs))
     assert evaluate(loaded, episodes=3)["returns"] == evaluate(agent, episodes=3)["returns"]
-    count = loaded.obs_norm.count
+    count = loaded.learner.obs_norm.count
     evaluate(loaded, episodes=2)
     loaded.predict(obs)
-    assert loaded.obs_norm.count == count  # frozen outside training
+    assert loaded.learner.obs_norm.count == count  # frozen outside training
 
     r = run_cli("eval", str(tmp_path / "run"), "--checkpoint", "last", "--episodes", "3", "--json")
     assert r.returncode == 0, r.stderr
@@ -87,5 +87,5 @@ def test_obs_norm_is_set_from_the_command_line(tmp_path):
                 "learning_starts=100", "eval_interval=0")
     assert r.returncode == 0, r.stderr
     assert "obs_norm: true" in (run / "config.yaml").read_text()
-    assert SAC.load(run).obs_norm.clip == 5.0
+    assert SAC.load(run).learner.obs_norm.clip == 5.0
     assert_clean_error(run_cli("train", "--set", "obs_norm_clip=0", "--out", str(tmp_path / "x")), "obs_norm_clip")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import assert_clean_error, child_env, run_cli, tiny_config
+from conftest import assert_clean_error, child_env, run_cli
 from softac import SAC
 from softac import checkpoint as ckpt
 from softac.errors import SoftacError
@@ -101,7 +101,7 @@ def test_two_trains_started_together_into_one_new_directory_leave_one_run(tmp_pa
 
 def test_the_api_is_refused_too_and_a_lock_is_reentrant_within_a_process(tmp_path, tiny):
     run = tmp_path / "run"
-    holder = subprocess.Popen([sys.executable, "-c", f"""
+    holder = subprocess.Popen([sys.executable, "-c", """
 import sys, time
 from softac.rundir import run_lock
 with run_lock(sys.argv[1]):

@@ -114,16 +114,16 @@ def _leaves(tree):
 
 def test_update_moves_targets_by_tau_every_interval():
     cfg = SACConfig().replace(hidden_sizes=[16], tau=0.5, target_update_interval=2, batch_size=8)
-    fns = sac.build(cfg, 3, 2)
-    state = fns.init(0)
+    functions = sac.build(cfg, 3, 2)
+    state = functions.init(0)
     before = _leaves(state.target_critic)
     rng = np.random.default_rng(0)
-    state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
+    state, _ = functions.update(state, _batch(rng, 1, 8, 3, 2))
     for a, b in zip(before, _leaves(state.target_critic), strict=True):
         np.testing.assert_array_equal(a, b)  # 1 update: interval 2 not reached
     online_before = _leaves(state.critic)
     prev_target = _leaves(state.target_critic)
-    state, _ = fns.update(state, _batch(rng, 1, 8, 3, 2))
+    state, _ = functions.update(state, _batch(rng, 1, 8, 3, 2))
     # after the second update: target = 0.5 * online(after step 2) + 0.5 * old target
     for t_old, online, t_new in zip(prev_target, _leaves(state.critic), _leaves(state.target_critic), strict=True):
         np.testing.assert_allclose(t_new, 0.5 * online + 0.5 * t_old, rtol=1e-5, atol=1e-6)
@@ -133,9 +133,9 @@ def test_update_moves_targets_by_tau_every_interval():
 
 def test_gradient_steps_fuse_in_one_call():
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, gradient_steps=5)
-    fns = sac.build(cfg, 3, 2)
-    state = fns.init(0)
-    state, metrics = fns.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
+    functions = sac.build(cfg, 3, 2)
+    state = functions.init(0)
+    state, metrics = functions.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
     assert int(state.n_updates) == 5
     assert set(metrics) >= {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"}
 
@@ -154,13 +154,13 @@ def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
 def test_terminated_transitions_do_not_bootstrap():
     """With gamma=1 and terminated=1 the critic's target is the reward alone."""
     cfg = SACConfig().replace(hidden_sizes=[16], gamma=1.0, critic_lr=0.05, batch_size=16)
-    fns = sac.build(cfg, 2, 1)
-    state = fns.init(1)
+    functions = sac.build(cfg, 2, 1)
+    state = functions.init(1)
     rng = np.random.default_rng(1)
     batch = _batch(rng, 1, 16, 2, 1, terminated=1.0)
     batch = batch._replace(rewards=jnp.full((1, 16), 3.0), next_obs=batch.next_obs * 100.0)
     batches = sac.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
-    state, metrics = fns.update(state, batches)
+    state, metrics = functions.update(state, batches)
     assert float(metrics["q1_mean"]) == pytest.approx(3.0, abs=0.15)
 
 
@@ -183,14 +183,14 @@ def test_n_step_target_bootstraps_with_gamma_to_the_steps():
 
 def test_delayed_policy_updates_and_critic_ensemble():
     cfg = SACConfig.preset("cleanrl").replace(hidden_sizes=[16], n_critics=3, init="orthogonal")
-    fns = sac.build(cfg, 3, 2)
-    state = fns.init(0)
+    functions = sac.build(cfg, 3, 2)
+    state = functions.init(0)
     assert jax.tree_util.tree_leaves(state.critic)[0].shape[0] == 3
     actor_before = _leaves(state.actor)
-    state, _ = fns.update(state, _batch(np.random.default_rng(0), 1, 8, 3, 2))
+    state, _ = functions.update(state, _batch(np.random.default_rng(0), 1, 8, 3, 2))
     # step 1: no actor step
     assert all(np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor), strict=True))
-    state, _ = fns.update(state, _batch(np.random.default_rng(1), 1, 8, 3, 2))
+    state, _ = functions.update(state, _batch(np.random.default_rng(1), 1, 8, 3, 2))
     assert any(not np.array_equal(a, b) for a, b in zip(actor_before, _leaves(state.actor), strict=True))
 
 
@@ -202,8 +202,8 @@ def _adam_steps(opt_state) -> int:
 def test_policy_schedule_counts_actor_and_alpha_steps(frequency, delay, actor_steps):
     """Over 6 critic steps: CleanRL's policy_frequency catches up (same count), TD3's policy_delay does not."""
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, policy_frequency=frequency, policy_delay=delay)
-    fns = sac.build(cfg, 3, 2)
-    state, _ = fns.update(fns.init(0), _batch(np.random.default_rng(0), 6, 8, 3, 2))
+    functions = sac.build(cfg, 3, 2)
+    state, _ = functions.update(functions.init(0), _batch(np.random.default_rng(0), 6, 8, 3, 2))
     assert _adam_steps(state.critic_opt) == 6
     assert (_adam_steps(state.actor_opt), _adam_steps(state.alpha_opt)) == (actor_steps, actor_steps)
 

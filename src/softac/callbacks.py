@@ -1,7 +1,7 @@
 """Callbacks: user code that runs inside `agent.learn(steps, callbacks=[...])`.
 
-Subclass `Callback` and override the hooks you need. Each hook gets a `TrainingInfo` (the agent, the step,
-the latest metrics and evaluations, the run directory). A hook that returns False, or calls
+Subclass `Callback` and override the hooks you need. Each hook gets a `TrainingInfo` (the learner, the step,
+the latest metrics and evaluations, the run directory, and the agent being trained). A hook that returns False, or calls
 `info.stop("why")`, ends training cleanly: the loop stops after the current step, the final evaluation and
 the `last` checkpoint are written as at a normal end, and the summary's `stop_reason` says why.
 
@@ -17,36 +17,45 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
+
+if TYPE_CHECKING:
+    from softac.learner import Learner
+    from softac.runstate import RunState
 
 
 @dataclass
 class TrainingInfo:
     """What a callback sees; `stop(reason)` asks the loop to end after the current step."""
 
-    agent: Any  # the softac.SAC being trained (not imported: the agent imports the modules below it)
+    learner: Learner  # the learner being trained: predict(obs) (its deterministic policy), state, obs statistics
+    run_state: RunState  # the counters, random streams and evaluations the loop advances
     start_step: int  # where this learn() call started (a resumed run starts past 0)
     end_step: int  # where it will stop unless stopped earlier
     run_dir: Path | None
     read_metrics: Callable[[], dict[str, float]] = field(repr=False, default=dict)
+    apply_envs: Callable[[Callable[[Any], Any]], list[Any]] = field(repr=False, default=lambda fn: [])
     stop_reason: str | None = None
+    # the softac.SAC whose learn() runs the loop, for callbacks that save or evaluate the whole agent
+    # (SB3's `self.model`); the loop itself never reads it
+    agent: Any = field(repr=False, default=None)
 
     @property
     def step(self) -> int:
         """Env steps so far (summed over the vector envs)."""
-        return self.agent.num_steps
+        return self.run_state.num_steps
 
     @property
     def episodes(self) -> int:
-        return self.agent.num_episodes
+        return self.run_state.num_episodes
 
     @property
     def last_eval(self) -> float | None:
-        return self.agent.run.last_eval
+        return self.run_state.last_eval
 
     @property
     def best_eval(self) -> float | None:
-        return self.agent.run.best_eval
+        return self.run_state.best_eval
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -60,7 +69,7 @@ class TrainingInfo:
     def apply_to_envs(self, fn: Callable[[Any], Any]) -> list[Any]:
         """Call `fn(env)` on each training env (e.g. to change a physics parameter for a curriculum) and
         return the results. Evaluation envs are fresh copies of the env and are not changed."""
-        return self.agent.training_parts()[1].apply(fn)
+        return self.apply_envs(fn)
 
 
 class Callback:

@@ -273,10 +273,9 @@ def _resume_agent(run: Path, args: argparse.Namespace):
         raise SoftacError(f"--resume needs a run directory (with checkpoints/last), got {run}")
     _choose_gl_backend_if(args.video)
     pinned = _pin_cpus(args.cpus)
+    # where metrics go is not part of the experiment: --logger may change it on resume
     agent = SAC.load(run, which="last", device=args.device, env_workers=args.env_workers,
-                     allow_new_bounds=args.allow_new_bounds)
-    if args.logger is not None:  # where metrics go is not part of the experiment: it may change on resume
-        agent.config = agent.config.replace(loggers=args.logger)
+                     allow_new_bounds=args.allow_new_bounds, loggers=args.logger)
     steps = args.steps if args.steps is not None else max(agent.config.total_steps - agent.num_steps, 0)
     return agent, steps, f"resuming {run} at step {agent.num_steps}; training {steps} more steps", pinned
 

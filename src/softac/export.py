@@ -23,9 +23,10 @@ from softac.errors import SoftacError
 from softac.export_numpy import layer_count, round_bf16
 from softac.normalization import EPSILON
 from softac.rundir import write_atomic
+from softac.snapshot import load_learner
 
 if TYPE_CHECKING:
-    from softac.agent import SAC
+    from softac.learner import Learner
 
 FILE_NAMES = {"onnx": "policy.onnx", "numpy": "policy.npz"}
 ONNX_OPSET = 17
@@ -84,17 +85,17 @@ def _fold_batch_renorm(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray
     return (s[:, None] * w).astype(np.float32), (t @ w + b).astype(np.float32)
 
 
-def _actor_layers(agent: SAC) -> list[dict[str, np.ndarray]]:
+def _actor_layers(learner: Learner) -> list[dict[str, np.ndarray]]:
     """The actor's layers as export_numpy lays them out (w, b; norm, the input's batch renormalisation of a
     CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns
     (the log-std is not needed)."""
-    from softac.networks import multiplies_in_bf16  # imports JAX, which the agent has loaded by now
+    from softac.networks import multiplies_in_bf16  # imports JAX, which the learner has loaded by now
 
-    actor, norm = agent.state.actor, agent.fns.policy.batch_renorm
-    stats = agent.state.actor_stats if norm is not None else [None] * len(actor)
+    actor, norm = learner.state.actor, learner.functions.policy.batch_renorm
+    stats = learner.state.actor_stats if norm is not None else [None] * len(actor)
     layers = []
     for layer, layer_stats in zip(actor, stats):
-        bf16 = multiplies_in_bf16(np.shape(layer["w"]), agent.fns.matmul_dtype)
+        bf16 = multiplies_in_bf16(np.shape(layer["w"]), learner.matmul_dtype)
         entry = {"w": np.asarray(layer["w"], np.float32), "b": np.asarray(layer["b"], np.float32), "bf16": bf16}
         if norm is not None and bf16:  # folded, the weights would be rounded after scaling: not what JAX does
             entry["norm"] = _batch_renorm_steps(layer, layer_stats, norm.eps)
@@ -103,32 +104,33 @@ def _actor_layers(agent: SAC) -> list[dict[str, np.ndarray]]:
         if bf16:
             entry["w"] = round_bf16(entry["w"])
         layers.append(entry)
-    act_dim = agent.spaces.act_dim
+    act_dim = learner.spaces.act_dim
     layers[-1]["w"] = np.ascontiguousarray(layers[-1]["w"][:, :act_dim])
     layers[-1]["b"] = np.ascontiguousarray(layers[-1]["b"][:act_dim])
     return layers
 
 
-def policy_arrays(agent: SAC) -> dict[str, np.ndarray]:
+def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     """Everything the deterministic policy needs, as named float32 arrays (the activation's name aside), and a
-    few entries for the record."""
+    few entries for the record (`step`: the env steps it was trained for)."""
     arrays: dict[str, np.ndarray] = {}
-    if agent.obs_norm is not None:  # as RunningObsNorm.normalize computes them
-        arrays["obs_mean"] = agent.obs_norm.mean.astype(np.float32)
-        arrays["obs_std"] = np.sqrt(agent.obs_norm.var + EPSILON).astype(np.float32)
-        arrays["obs_clip"] = np.asarray(agent.obs_norm.clip, np.float32)
-    layers = _actor_layers(agent)
+    obs_norm = learner.obs_norm
+    if obs_norm is not None:  # as RunningObsNorm.normalize computes them
+        arrays["obs_mean"] = obs_norm.mean.astype(np.float32)
+        arrays["obs_std"] = np.sqrt(obs_norm.var + EPSILON).astype(np.float32)
+        arrays["obs_clip"] = np.asarray(obs_norm.clip, np.float32)
+    layers = _actor_layers(learner)
     for i, layer in enumerate(layers):
         arrays[f"w{i}"], arrays[f"b{i}"] = layer["w"], layer["b"]
         for key, value in layer.get("norm", {}).items():
             arrays[f"n{i}_{key}"] = value
     if any(layer["bf16"] for layer in layers):
         arrays["bf16"] = np.array([layer["bf16"] for layer in layers], np.int8)
-    arrays["activation"] = np.asarray(agent.config.activation)
-    arrays["action_low"] = agent.scaler.low.astype(np.float32)
-    arrays["action_high"] = agent.scaler.high.astype(np.float32)
-    arrays["env_id"] = np.asarray(agent.config.env_id)
-    arrays["step"] = np.asarray(agent.num_steps, np.int64)
+    arrays["activation"] = np.asarray(learner.config.activation)
+    arrays["action_low"] = learner.scaler.low.astype(np.float32)
+    arrays["action_high"] = learner.scaler.high.astype(np.float32)
+    arrays["env_id"] = np.asarray(learner.config.env_id)
+    arrays["step"] = np.asarray(step, np.int64)
     arrays["softac_version"] = np.asarray(__version__)
     return arrays
 
@@ -222,11 +224,11 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
 
 # ---- the API ----------------------------------------------------------------------
 
-def export_policy(agent_or_path: SAC | str | Path, path: str | Path | None = None, format: str = "onnx",
+def export_policy(agent_or_path: Any, path: str | Path | None = None, format: str = "onnx",
                   which: str | None = None, allow_new_bounds: bool = False) -> Path:
-    """Write the deterministic policy of an agent, a run or a checkpoint directory to `path` (default for a run:
-    RUN/export/policy.onnx or .npz); `which` picks a run's best or last checkpoint (default best, else last);
-    `allow_new_bounds` as in SAC.load. Returns the path written."""
+    """Write the deterministic policy of an agent (softac.SAC), a run or a checkpoint directory to `path`
+    (default for a run: RUN/export/policy.onnx or .npz); `which` picks a run's best or last checkpoint
+    (default best, else last); `allow_new_bounds` as in SAC.load. Returns the path written."""
     check_format(format)
     if format == "onnx":
         require_onnx()  # before loading anything: fail fast
@@ -236,16 +238,14 @@ def export_policy(agent_or_path: SAC | str | Path, path: str | Path | None = Non
         path = default_export_path(agent_or_path, format)
     path = Path(path)
     check_target(path, format)
-    agent = _load(agent_or_path, which, allow_new_bounds) if isinstance(agent_or_path, (str, Path)) else agent_or_path
-    arrays = policy_arrays(agent)
+    if isinstance(agent_or_path, (str, Path)):
+        # the CPU is enough to read weights, and a GPU run then exports on a machine without one
+        learner, step = load_learner(agent_or_path, which, device="cpu", allow_new_bounds=allow_new_bounds)
+    else:
+        learner, step = agent_or_path.learner, agent_or_path.num_steps
+    arrays = policy_arrays(learner, step)
     data = numpy_bytes(arrays) if format == "numpy" else onnx_model(arrays).SerializeToString()
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, data)
     return path
 
-
-def _load(run_or_ckpt: str | Path, which: str | None, allow_new_bounds: bool) -> SAC:
-    from softac.agent import SAC
-
-    # the CPU is enough to read weights, and a GPU run then exports on a machine without one
-    return SAC.load(run_or_ckpt, which=which, device="cpu", allow_new_bounds=allow_new_bounds)

@@ -1,6 +1,6 @@
 """Where a run's metrics go: one `Logger` interface, several backends.
 
-The trainer hands every logger the same records, each a dict of numbers at an env step:
+The training loop hands every logger the same records, each a dict of numbers at an env step:
 
     "train"    a row every log_interval steps (progress.csv's columns: fps, losses, alpha, ...)
     "rollout"  a finished training episode (episodes.csv: return, length)
@@ -199,7 +199,7 @@ class MlflowLogger(Logger):
 
 
 class Loggers(Logger):
-    """Several loggers as one: what the trainer writes to."""
+    """Several loggers as one: what the training loop writes to."""
 
     def __init__(self, loggers: list[Any]):
         self.loggers = list(loggers)

@@ -1,5 +1,5 @@
 """The run directory: its layout, atomic writes, the config and summary files, the checks before writing,
-and where a checkpoint sits in a run. (What one training call writes is the trainer's `RunWriter`.)
+and where a checkpoint sits in a run. (What one training call writes is the loop's `RunWriter`.)
 
     RUN/config.yaml         the resolved config, library versions, machine facts
     RUN/progress.csv        a row every log_interval steps (losses, alpha, fps, recent return)

@@ -13,43 +13,23 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
 from softac import checkpoint as ckpt
 from softac.callbacks import CallbackList, TrainingInfo
-from softac.config import SACConfig
+from softac.collector import Collector
 from softac.cpus import usable_cpus
-from softac.envs import SpaceInfo
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
 from softac.loggers import Loggers, check_backends_installed, parse_backends, run_loggers
 from softac.logs import Progress, TrainRows
-from softac.normalization import RunningObsNorm
-from softac.policy import ActionScaler
+from softac.learner import Learner
 from softac.rundir import checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.runstate import RunState
-from softac.sac import Batch, SACFunctions, SACState
+from softac.snapshot import checkpoint_parts
 
-
-class TrainableAgent(Protocol):
-    """What the loop reads and writes of the agent it trains (softac.SAC): typed by shape, so this module
-    never imports the agent (the agent imports it)."""
-    config: SACConfig
-    fns: SACFunctions
-    run: RunState
-    state: SACState  # the loop replaces it after each update
-    obs_norm: RunningObsNorm | None
-    spaces: SpaceInfo
-    scaler: ActionScaler
-    buffer_bytes_per_transition: float
-
-    def training_parts(self) -> tuple[Any, Any]: ...
-    def normalize_obs(self, obs: np.ndarray) -> np.ndarray: ...
-    def make_env(self, render_mode: str | None = None, **kwargs: Any) -> Any: ...
-    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray: ...
-    def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]: ...
 
 SHOW_EVERY = 100  # env steps between progress-bar refreshes
 
@@ -122,12 +102,13 @@ class RunWriter:
         Loggers(self.loggers).close()
 
 
-def train(agent: TrainableAgent, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
-          progress: bool | None = None, callbacks: list | None = None, loggers: list | None = None) -> dict[str, Any]:
-    """Train `agent` for `steps` more env steps; with `run_dir`, write the run directory as it goes.
-    `callbacks` (softac.callbacks.Callback) run at the loop's hooks; `loggers` (softac.loggers.Logger) get
-    every metrics record besides the run directory's own logs."""
-    return TrainingLoop(agent, steps, run_dir, target_return, progress, callbacks, loggers).run()
+def train(learner: Learner, collector: Collector, run: RunState, steps: int, run_dir: str | Path | None = None,
+          target_return: float | None = None, progress: bool | None = None, callbacks: list | None = None,
+          loggers: list | None = None) -> dict[str, Any]:
+    """Train `learner` for `steps` more env steps on what `collector` gathers, advancing `run`; with
+    `run_dir`, write the run directory as it goes. `callbacks` (softac.callbacks.Callback) run at the loop's
+    hooks; `loggers` (softac.loggers.Logger) get every metrics record besides the run directory's own logs."""
+    return TrainingLoop(learner, collector, run, steps, run_dir, target_return, progress, callbacks, loggers).run()
 
 
 class TrainingLoop:
@@ -136,18 +117,20 @@ class TrainingLoop:
     checked when it is made, before the run directory is written (a refused callback leaves no half-made
     run); `run()` opens the run directory and everything else inside one `try`."""
 
-    def __init__(self, agent: TrainableAgent, steps: int, run_dir: str | Path | None, target_return: float | None,
-                 progress: bool | None, callbacks: list | None, loggers: list | None):
+    def __init__(self, learner: Learner, collector: Collector, run_state: RunState, steps: int,
+                 run_dir: str | Path | None = None, target_return: float | None = None, progress: bool | None = None,
+                 callbacks: list | None = None, loggers: list | None = None, agent: Any = None):
         if steps < 0:
             raise SoftacError(f"steps must be >= 0, got {steps}")
         self.run_path = Path(run_dir) if run_dir is not None else None
-        check_backends_installed(parse_backends(agent.config.loggers) if self.run_path is not None else [])
-        self.agent, self.config, self.fns, self.run_state = agent, agent.config, agent.fns, agent.run
+        check_backends_installed(parse_backends(learner.config.loggers) if self.run_path is not None else [])
+        self.learner, self.collector, self.run_state, self.config = learner, collector, run_state, learner.config
         self.start_step = self.run_state.num_steps
         self.end_step = self.start_step + steps
         self.target_return = target_return
-        self.info = TrainingInfo(agent, self.start_step, self.end_step,
-                                 self.run_path.resolve() if self.run_path is not None else None, self.metric_values)
+        self.info = TrainingInfo(learner, run_state, self.start_step, self.end_step,
+                                 self.run_path.resolve() if self.run_path is not None else None, self.metric_values,
+                                 collector.apply, agent=agent)
         try:
             self.hooks = CallbackList(list(callbacks or []), self.info)
         except TypeError as exc:
@@ -164,7 +147,7 @@ class TrainingLoop:
         self.logged_at: int | None = None
 
     def run(self) -> dict[str, Any]:
-        self.buffer, self.pool = self.agent.training_parts()
+        self.collector.start(self.run_state.num_steps)
         self.wall0, self.time0 = time.perf_counter(), self.run_state.train_time_s
         self.rows = TrainRows(self.start_step, self.run_state.recent_returns)  # progress.csv's fps and return_mean
         self.show = Progress(self.start_step, self.end_step, enabled=self.progress)
@@ -195,9 +178,9 @@ class TrainingLoop:
 
     def open_run_dir(self) -> None:
         if self.run_path is not None:
-            extra = {"resolved_target_entropy": self.fns.target_entropy,
-                     "resolved_matmul_dtype": self.fns.matmul_dtype,
-                     "buffer_bytes_per_transition": round(self.agent.buffer_bytes_per_transition, 1),
+            extra = {"resolved_target_entropy": self.learner.target_entropy,
+                     "resolved_matmul_dtype": self.learner.matmul_dtype,
+                     "buffer_bytes_per_transition": round(self.collector.bytes_per_transition, 1),
                      "cpus": len(usable_cpus()) or os.cpu_count()}
             self.writer = RunWriter(self.run_path, self.config.to_dict(), extra, resume_step=self.start_step)
             self.run_state.run_dir = self.run_path.resolve()
@@ -261,28 +244,23 @@ class TrainingLoop:
         budget to recover."""
         step, cfg = self.run_state.num_steps, self.config
         if 0 < step < cfg.total_steps and crossed(step - cfg.n_envs, step, cfg.reset_interval):
-            self.agent.state = self.fns.reset(self.agent.state, cfg.seed, step // cfg.reset_interval)
+            self.learner.reset_networks(cfg.seed, step // cfg.reset_interval)
 
     def collect(self) -> tuple[int, int]:
         """One vector-env step: act (uniformly at random before learning_starts), step the envs, store the
         transitions, count finished episodes. Returns the step counter before and after."""
-        agent, cfg, rs = self.agent, self.config, self.run_state
-        before, obs = rs.num_steps, self.pool.obs
-        if agent.obs_norm is not None:  # every observation the policy acts on, warm-up included
-            agent.obs_norm.update(obs)
+        learner, cfg, rs = self.learner, self.config, self.run_state
+        before, obs = rs.num_steps, self.collector.obs
+        learner.observe(obs)  # every observation the policy acts on, warm-up included (obs_norm)
         if before < cfg.learning_starts:
-            actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, agent.spaces.act_dim)).astype(np.float32)
-            env_actions = agent.scaler.to_env(actions)
-        else:  # NumPy goes straight into the jitted call: jnp.asarray would cost more than the env step
-            actions, env_actions, rs.act_key = self.fns.act(agent.state.actor, agent.state.actor_stats,
-                                                            agent.normalize_obs(obs), rs.act_key)
-            actions, env_actions = np.asarray(actions), np.asarray(env_actions)
+            actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, learner.spaces.act_dim)).astype(np.float32)
+            env_actions = learner.scaler.to_env(actions)
+        else:
+            actions, env_actions, rs.act_key = learner.act(obs, rs.act_key)
             if not np.all(np.isfinite(actions)):
                 raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "
                                 "actions; the last good checkpoint is kept")
-        result = self.pool.step(env_actions, before)
-        self.buffer.add(obs, actions, result.rewards, result.next_obs, result.terminated,
-                        result.terminated | result.truncated)
+        result = self.collector.step(obs, actions, env_actions, before)
         rs.num_steps = after = before + cfg.n_envs
         for _, episode_return, length in result.finished:
             rs.num_episodes += 1
@@ -292,13 +270,11 @@ class TrainingLoop:
         return before, after
 
     def learn(self, after: int) -> None:
-        """`gradient_steps` updates in one jitted call, on batches normalised with the current statistics."""
-        cfg, agent = self.config, self.agent
-        if after >= cfg.learning_starts and cfg.gradient_steps > 0 and len(self.buffer) > 0:
-            batch = self.buffer.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
-            batch["obs"] = agent.normalize_obs(batch["obs"])  # the buffer holds raw observations
-            batch["next_obs"] = agent.normalize_obs(batch["next_obs"])
-            agent.state, self.last_metrics = self.fns.update(agent.state, Batch(**batch))
+        """`gradient_steps` updates in one jitted call, once learning has started."""
+        cfg = self.config
+        if after >= cfg.learning_starts and cfg.gradient_steps > 0 and self.collector.can_sample():
+            batch = self.collector.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
+            self.last_metrics = self.learner.update(batch)
 
     def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training
@@ -329,10 +305,10 @@ class TrainingLoop:
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
 
     def evaluate(self, step: int) -> dict[str, Any] | None:
-        agent, cfg, rs = self.agent, self.config, self.run_state
+        cfg, rs, make_env = self.config, self.run_state, self.collector.make_env
         if self.eval_envs is None:
-            self.eval_envs = [agent.make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
-        stats = run_episodes(lambda obs: agent.predict(obs, deterministic=True), agent.make_env, cfg.eval_episodes,
+            self.eval_envs = [make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
+        stats = run_episodes(self.learner.predict, make_env, cfg.eval_episodes,
                              cfg.seed + EVAL_SEED_OFFSET, envs=self.eval_envs, should_stop=lambda: self.stop.requested)
         if self.stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
             return None
@@ -354,7 +330,8 @@ class TrainingLoop:
         _check_finite(self.metric_values(), self.run_state.num_steps)
         self.run_state.train_time_s = self.elapsed()
         self.run_state.recent_returns = list(self.rows.recent)
-        path = self.writer.save_checkpoint(name, *self.agent.checkpoint_parts(include_buffer=name == "last"))
+        parts = checkpoint_parts(self.learner, self.run_state, self.collector, include_buffer=name == "last")
+        path = self.writer.save_checkpoint(name, *parts)
         if self.hooks:
             self.hooks.call("on_checkpoint", name, path)
         return path

@@ -1,0 +1,170 @@
+"""`Learner`: what the agent knows and how it acts and learns.
+
+It holds the networks, their optimisers and alpha (`sac.SACState`), the running observation statistics
+(obs_norm) and the action scaling, and the jitted functions `sac.build` made for them. It acts on
+observations (`act` while training, `predict` (deterministic; what evaluation runs) and `sample` for users), learns from a batch
+(`update`), and gives and takes its arrays for checkpoints. It knows no env, buffer, run directory or
+agent: the training loop hands it observations and batches, and `softac.SAC` builds it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from softac.buffer import ReplayBuffer
+from softac.checkpoint import CheckpointError
+from softac.config import SACConfig
+from softac.envs import SpaceInfo
+from softac.errors import SoftacError
+from softac.normalization import RunningObsNorm
+
+if TYPE_CHECKING:  # sac imports JAX, which loads only when a learner is made
+    from softac.sac import SACFunctions, SACState
+
+STATE_PREFIX = "state"  # checkpoint array names: state<path of the leaf in SACState>, obs_norm/<name>
+OBS_NORM_PREFIX = "obs_norm/"
+
+
+def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5) -> None:
+    """Refuse networks and batches the machine cannot hold, before allocating anything."""
+    from softac.buffer import _human, available_memory_bytes
+
+    def mlp_params(sizes: list[int]) -> int:
+        return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
+
+    actor = mlp_params([obs_dim, *config.hidden_sizes, 2 * act_dim])
+    critics = config.n_critics * mlp_params([obs_dim + act_dim, *config.hidden_sizes, 1])
+    parameters = 4 * (3 * actor + 4 * critics)  # weights + Adam moments; critics also have targets
+    # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases)
+    activations = 4 * config.batch_size * sum(config.hidden_sizes) * (4 * config.n_critics + 4)
+    batch = config.batch_size * config.gradient_steps * ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
+    need, have = parameters + activations + batch, available_memory_bytes()
+    if need > fraction * have:
+        raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "
+                          f"batch_size={config.batch_size}) but only {_human(have)} is available; "
+                          "lower hidden_sizes or batch_size")
+
+
+class Learner:
+    """The networks, optimisers, alpha, observation statistics and action scaling of one config and env shape."""
+
+    def __init__(self, config: SACConfig, spaces: SpaceInfo):
+        check_model_memory(config, spaces.obs_dim, spaces.act_dim)
+        from softac import sac
+
+        self.config, self.spaces = config, spaces
+        self.Batch = sac.Batch
+        self.functions: SACFunctions = sac.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high)
+        self.scaler = self.functions.scaler
+        self.state: SACState = self.functions.init(config.seed)
+        # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
+        self.obs_norm = RunningObsNorm(spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
+
+    @property
+    def target_entropy(self) -> float:
+        return self.functions.target_entropy
+
+    @property
+    def matmul_dtype(self) -> str:
+        """The matmul dtype as resolved (`auto` becomes float32 or bfloat16)."""
+        return self.functions.matmul_dtype
+
+    # ---- observations ---------------------------------------------------------------------------------
+
+    def observe(self, obs: np.ndarray) -> None:
+        """Count observations the policy acts on while training into the running statistics (obs_norm)."""
+        if self.obs_norm is not None:
+            self.obs_norm.update(obs)
+
+    def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
+        """What the networks see: raw observations, or with obs_norm the normalised ones."""
+        return obs if self.obs_norm is None else self.obs_norm.normalize(obs)
+
+    def as_batch(self, obs: Any) -> tuple[np.ndarray, bool]:
+        """One observation or a batch of them as a float32 batch, and whether it was one."""
+        obs = np.asarray(obs, np.float32)
+        single = obs.ndim <= 1
+        batch = obs.reshape(1, -1) if single else obs.reshape(obs.shape[0], -1)
+        if batch.shape[1] != self.spaces.obs_dim:
+            raise SoftacError(f"observation has {batch.shape[1]} values; this agent expects {self.spaces.obs_dim}")
+        return batch, single
+
+    # ---- acting -------------------------------------------------------------------------------------
+
+    def act(self, obs: np.ndarray, key: Any) -> tuple[np.ndarray, np.ndarray, Any]:
+        """Sample actions for a batch of raw observations: (in [-1, 1], env-scaled, the next key)."""
+        # NumPy goes straight into the jitted call: jnp.asarray would cost more than an env step
+        actions, env_actions, key = self.functions.act(self.state.actor, self.state.actor_stats,
+                                                       self.normalize_obs(obs), key)
+        return np.asarray(actions), np.asarray(env_actions), key
+
+    def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
+        """The env-scaled mean actions for a batch of raw observations."""
+        actions = self.functions.act_deterministic(self.state.actor, self.state.actor_stats, self.normalize_obs(obs))
+        return self.scaler.to_env(np.asarray(actions))
+
+    def predict(self, obs: Any) -> np.ndarray:
+        """The env-scaled mean action for one observation, or for each of a batch: the deterministic policy
+        as a function (what evaluation runs)."""
+        batch, single = self.as_batch(obs)
+        actions = self.act_deterministic(batch)
+        return actions[0] if single else actions
+
+    def sample(self, obs: Any, key: Any) -> tuple[np.ndarray, Any]:
+        """An env-scaled action drawn from the policy for one observation, or for each of a batch; and the
+        key to draw with next."""
+        batch, single = self.as_batch(obs)
+        _, actions, key = self.act(batch, key)
+        return (actions[0] if single else actions), key
+
+    # ---- learning ----------------------------------------------------------------------------------
+
+    def update(self, batch: dict[str, np.ndarray]) -> dict[str, Any]:
+        """All of a vector-env step's gradient steps in one jitted call, on a batch of raw observations
+        (normalised here with the current statistics); returns the last step's metrics, on the device."""
+        batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
+        self.state, metrics = self.functions.update(self.state, self.Batch(**batch))
+        return metrics
+
+    def reset_networks(self, seed: int, index: int) -> None:
+        """The `index`-th periodic reset (reset_interval): fresh networks and optimisers, alpha kept."""
+        self.state = self.functions.reset(self.state, seed, index)
+
+    # ---- checkpoints -------------------------------------------------------------------------------
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every array the learner holds, by checkpoint name (the state's leaves, the obs statistics)."""
+        import jax
+
+        arrays = {STATE_PREFIX + jax.tree_util.keystr(path): np.asarray(leaf)
+                  for path, leaf in jax.tree_util.tree_flatten_with_path(self.state)[0]}
+        if self.obs_norm is not None:  # in every checkpoint, best too: predict() needs them
+            arrays.update({OBS_NORM_PREFIX + k: v for k, v in self.obs_norm.state_dict().items()})
+        return arrays
+
+    def load_arrays(self, arrays: dict[str, np.ndarray], where: Any = "") -> None:
+        """Take the arrays a checkpoint saved (`where` names it in errors)."""
+        import jax
+        import jax.numpy as jnp
+
+        paths, treedef = jax.tree_util.tree_flatten_with_path(self.state)
+        leaves = []
+        for path, template in paths:
+            name = STATE_PREFIX + jax.tree_util.keystr(path)
+            value = arrays.get(name)
+            if value is None or value.shape != np.shape(template) or value.dtype != np.asarray(template).dtype:
+                raise CheckpointError(f"checkpoint {where} does not match this config/env at {name}")
+            # a copy the device owns: jnp.asarray may alias the NumPy array on CPU, and the update donates
+            # the state's buffers (older jaxlibs then corrupt the heap; seen with jax 0.4.30 and 0.5.3)
+            leaves.append(jnp.array(value, copy=True))
+        self.state = jax.tree_util.tree_unflatten(treedef, leaves)
+        if self.obs_norm is not None:
+            stats = {k[len(OBS_NORM_PREFIX):]: v for k, v in arrays.items() if k.startswith(OBS_NORM_PREFIX)}
+            if set(stats) != {"count", "mean", "m2"}:
+                raise CheckpointError(f"checkpoint {where} has obs_norm on but no observation statistics")
+            try:
+                self.obs_norm.load_state_dict(stats)
+            except SoftacError as exc:
+                raise CheckpointError(f"checkpoint {where}: {exc}") from None
