@@ -345,3 +345,51 @@ def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):
     split = twice.learn(300, progress=False)
     assert split["recent_return_mean"] == whole["recent_return_mean"]
     assert twice.run_state.recent_returns == once.run_state.recent_returns and len(once.run_state.recent_returns) == 20
+
+
+def test_the_parts_train_without_the_agent_as_the_agent_trains_them(tiny, tmp_path):
+    """Data flows one way: a learner, a collector and a run state, made and trained by hand with the loop,
+    end where SAC.learn ends, bit for bit, and their checkpoint loads as an agent."""
+    from softac import checkpoint, snapshot
+    from softac.collector import Collector
+    from softac.envs import check_spaces, make_env
+    from softac.learner import Learner
+    from softac.loop import train
+    from softac.runstate import RunState
+
+    cfg = tiny(obs_norm=True, n_envs=2)
+    agent = SAC(cfg)
+    agent.learn(600, progress=False)
+
+    env = make_env(cfg.env_id)
+    spaces = check_spaces(env)
+    env.close()
+    learner, collector, run_state = Learner(cfg, spaces), Collector(cfg, cfg.env_id, spaces), RunState.new(cfg.seed)
+    summary = train(learner, collector, run_state, 600, progress=False)
+    assert summary["steps"] == run_state.num_steps == 600
+
+    class Parts:  # what assert_same_training reads of an agent
+        pass
+
+    parts = Parts()
+    parts.learner, parts.collector, parts.run_state = learner, collector, run_state
+    assert_same_training(agent, parts)
+
+    checkpoint.save(tmp_path / "parts", *snapshot.checkpoint_parts(learner, run_state, collector, include_buffer=True))
+    loaded = SAC.load(tmp_path / "parts")
+    obs = np.linspace(-1.0, 1.0, 8, dtype=np.float32).reshape(4, 2)
+    np.testing.assert_array_equal(loaded.predict(obs), agent.predict(obs))
+    assert loaded.num_steps == 600 and len(loaded.collector.buffer) == 600
+
+
+def test_load_replaces_only_the_settings_that_do_not_change_what_is_computed(tiny, tmp_path):
+    from softac.errors import SoftacError
+
+    agent = SAC(tiny(loggers="tensorboard"))
+    agent.learn(300, run_dir=tmp_path / "run", progress=False)
+    loaded = SAC.load(tmp_path / "run", which="last", loggers="none", env_workers=1, device="cpu")
+    assert (loaded.config.loggers, loaded.config.env_workers) == ("none", 1)
+    assert loaded.config.replace(loggers="tensorboard", env_workers=0) == agent.config
+    assert loaded.learner.config == loaded.collector.config == loaded.config  # one config for every part
+    with pytest.raises(SoftacError, match="loggers"):
+        SAC.load(tmp_path / "run", loggers="tensorboard,wandbb")

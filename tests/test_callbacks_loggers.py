@@ -4,6 +4,7 @@ import functools
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import assert_clean_error, run_cli
@@ -231,3 +232,18 @@ def test_the_readme_curriculum_example_changes_the_training_envs_only(tiny):
     agent.learn(500, progress=False, callbacks=[namespace["HeavierPole"](every=200, factor=2.0)])
     assert float(agent.collector.pool.envs[0].unwrapped.model.body_mass[2]) == pytest.approx(base * 4)  # at 200 and 400
     assert float(agent.make_env().unwrapped.model.body_mass[2]) == pytest.approx(base)
+
+
+def test_a_callback_sees_the_learner_and_the_run_state_of_the_agent_it_trains(tiny):
+    class Probe(Callback):
+        seen: list = []
+
+        def on_eval(self, info, stats):
+            obs = np.linspace(-1.0, 1.0, 2 * info.learner.spaces.obs_dim, dtype=np.float32).reshape(2, -1)
+            np.testing.assert_array_equal(info.learner.predict(obs), info.agent.predict(obs, deterministic=True))
+            assert info.run_state is info.agent.run_state and info.learner is info.agent.learner
+            self.seen.append((info.step, info.last_eval == stats["mean_return"]))
+
+    agent = SAC(tiny(eval_interval=200))
+    agent.learn(400, progress=False, callbacks=[Probe()])
+    assert Probe.seen == [(200, True), (400, True)]
