@@ -99,3 +99,30 @@ def test_a_peer_process_is_started_through_the_peers_entry_point(module):
     r = subprocess.run([sys.executable, "-m", module, "throughput", "rllib"], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 2 and "invalid choice: 'rllib'" in r.stderr, r.stderr
+
+
+def test_bench_compares_like_with_like():
+    """Each --algorithm has its own peers: SAC's are SB3's and SBX's SAC, CrossQ's are SBX's CrossQ."""
+    assert_clean_error(run_cli("bench", "--algorithm", "crossq", "--frameworks", "softac,sb3"),
+                       "sb3", "another algorithm than --algorithm crossq")
+    assert_clean_error(run_cli("bench", "--frameworks", "softac,sbx-crossq"), "sbx-crossq", "--algorithm sac")
+    assert_clean_error(run_cli("bench", "--algorithm", "td3"), "--algorithm")
+
+
+@pytest.mark.bench
+def test_bench_crossq_runs_the_crossq_preset_beside_sbx_crossq_at_its_settings():
+    """softac's crossq preset and the (stand-in) SBX CrossQ at the same settings, each in its own process;
+    both learn from step 100 in a throughput run, whatever their learning_starts for whole runs."""
+    from conftest import TESTS, child_env
+
+    stand_ins = {"PYTHONPATH": child_env(TESTS / "fake_peers")["PYTHONPATH"]}
+    r = run_cli("bench", "--algorithm", "crossq", "--frameworks", "softac,sbx-crossq-softac", "--env",
+                "softac_test_envs:Drift-v0", "--steps", "40", "--warmup", "300", "--repeats", "1",
+                "--set", "hidden_sizes=16,16", "--json", env_extra=stand_ins)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert (out["algorithm"], out["softac_preset"]) == ("crossq", "crossq")
+    assert out["throughput"]["softac"]["median_steps_per_s"] > 0
+    assert out["throughput"]["sbx-crossq-softac"]["median_steps_per_s"] > 0
+    assert "softac_ratio" in out["throughput"]["sbx-crossq-softac"]
+    assert "SBX's CrossQ at softac's crossq preset settings" in r.stderr

@@ -58,3 +58,46 @@ def test_a_softac_run_writes_the_same_columns(tmp_path):
                 "eval_episodes=2", "log_interval=100")
     assert r.returncode == 0, r.stderr
     assert_progress_columns_mean_what_softac_means(run, min_interval_s=0.1)  # Slow-v0: >= 2 ms a step
+
+
+@pytest.mark.parametrize("framework", ["sbx-crossq", "sbx-crossq-softac"])
+def test_sbx_crossq_runs_at_its_defaults_or_at_the_crossq_presets_settings(tmp_path, framework):
+    import yaml
+
+    from softac.config import SACConfig
+
+    run = tmp_path / framework
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", framework, "--env", DRIFT, "--seed", "1",
+                        "--steps", "300", "--out", str(run), "--eval-interval", "100", "--eval-episodes", "2",
+                        "--log-interval", "100"], capture_output=True, text=True, timeout=300,
+                       env=child_env(FAKE_PEERS))
+    assert r.returncode == 0, r.stderr
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert (config["framework"], config["algorithm"]) == (framework, "CrossQ")
+    assert [int(row["step"]) for row in read_csv(run / "eval.csv")] == [100, 200, 300]
+    preset = SACConfig.preset("crossq")
+    if framework == "sbx-crossq":  # nothing passed: the stand-in's SBX defaults stay
+        assert (config["settings"], config["batch_size"], config["learning_starts"]) == ("defaults", 256, 100)
+        assert config["policy_kwargs"] == "{}"
+    else:
+        assert config["settings"] == "crossq"
+        assert (config["batch_size"], config["learning_starts"], config["policy_delay"], config["learning_rate"],
+                config["qf_learning_rate"]) == (preset.batch_size, preset.learning_starts, preset.policy_delay,
+                                                preset.actor_lr, preset.critic_lr)
+        for expected in ("'pi': [256, 256]", "'qf': [256, 256]", "'b1': 0.5", "'renorm_warmup_steps': 100000"):
+            assert expected in config["policy_kwargs"]
+
+
+def test_the_crossq_settings_carry_every_setting_or_refuse():
+    from softac.config import SACConfig
+    from softac.peers import crossq_settings
+
+    preset = SACConfig.preset("crossq")
+    settings = crossq_settings(preset)
+    assert settings["policy_kwargs"]["net_arch"] == {"pi": preset.hidden_sizes, "qf": preset.hidden_sizes}
+    assert settings["policy_kwargs"]["optimizer_kwargs"] == {"b1": preset.adam_b1}
+    assert crossq_settings(preset.replace(hidden_sizes=[64, 64], batch_size=32))["batch_size"] == 32
+    for change in ({"n_step": 3}, {"obs_norm": True}, {"critic_layer_norm": True}, {"crossq": False},
+                   {"activation": "tanh"}, {"alpha_lr": 3e-4}, {"gradient_steps": 2}):
+        with pytest.raises(ValueError, match=next(iter(change)).split("_")[0]):
+            crossq_settings(preset.replace(**change))

@@ -1,6 +1,7 @@
 """`softac sweep`: trials on a local Ray Tune, summaries, resume, search; bad input fails before Ray starts."""
 
 import csv
+import dataclasses
 import json
 import os
 import signal
@@ -172,18 +173,24 @@ def test_without_ray_the_sweep_says_how_to_install_it(tmp_path):
 
 def test_peers_need_the_bench_extra_and_take_no_softac_settings(tmp_path):
     result = run_cli("sweep", "--framework", "sb3", "--grid", "tau=0.1,0.2", "--out", str(tmp_path / "s"), timeout=60)
-    assert_clean_error(result, "own defaults")
+    assert_clean_error(result, "SAC at its defaults, not softac's settings")
+    result = run_cli("sweep", "--framework", "sbx-crossq-softac", "--preset", "crossq", "--out", str(tmp_path / "s"),
+                     timeout=60)
+    assert_clean_error(result, "CrossQ at softac's crossq preset settings", "not softac's settings")
 
 
-def test_peers_take_eval_settings_spelled_either_way():
+@pytest.mark.parametrize("framework", ["sb3", "sbx", "sbx-crossq", "sbx-crossq-softac"])
+def test_peers_take_eval_settings_spelled_either_way(framework):
     for pair in ("eval-interval=5000", "eval_interval=5000", " eval_episodes=5"):
-        spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=[pair], framework="sbx")
+        spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=[pair],
+                               framework=framework)
         try:
             sweep.validate(spec)
         except SoftacError as exc:  # without the [bench] extra: that, not a refusal of the key
-            assert "own defaults" not in str(exc) and "[bench]" in str(exc), str(exc)
-    spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=["tau=0.1"], framework="sbx")
-    with pytest.raises(SoftacError, match="own defaults"):
+            assert "not softac's settings" not in str(exc) and "[bench]" in str(exc), str(exc)
+    spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=["tau=0.1"],
+                           framework=framework)
+    with pytest.raises(SoftacError, match="not softac's settings"):
         sweep.validate(spec)
 
 
@@ -249,9 +256,35 @@ def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
     assert "4 trials (4 already finished)" in again.stderr
     assert {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")} == before
     assert all(len(_commands(out, t)) == 1 for t in ("tau=0.05,seed=0", "tau=0.2,seed=1"))
-    different = run_cli("sweep", "--env", DRIFT, "--seeds", "3", "--grid", "tau=0.05,0.2", "--steps", "400",
+    different = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "500",
                         "--out", str(out), *TINY_SET, timeout=60)
-    assert_clean_error(different, "differs in seeds", "--resume")
+    assert_clean_error(different, "differs in steps", "--resume")
+
+
+def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):
+    """`--seeds 5` after `--seeds 3` continues the sweep with seeds 3 and 4 (its finished trials are kept,
+    as any rerun keeps them); fewer or other seeds, or a search's seed, are another sweep."""
+    out = tmp_path / "s"
+    three = sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0, 1, 2], grid={"tau": [0.1, 0.2]})
+    sweep.prepare_out_dir(out, three)
+    (out / "seed=0").mkdir()  # a trial's run: growing the sweep leaves it alone
+    five = dataclasses.replace(three, seeds=[0, 1, 2, 3, 4])
+    sweep.prepare_out_dir(out, five)
+    assert sweep.load_spec(out) == five and (out / "seed=0").is_dir()
+    assert [t["name"] for t in sweep.grid_trials(sweep.load_spec(out))][-2:] == ["tau=0.2,seed=3", "tau=0.2,seed=4"]
+    for seeds in ([0, 1, 2], [0, 1, 5, 6], [0, 1, 2, 3, 4, 5]):
+        if seeds == [0, 1, 2, 3, 4, 5]:
+            changed = dataclasses.replace(five, seeds=seeds, steps=500)  # more seeds, but another budget too
+            fragment = "differs in seeds, steps"
+        else:
+            changed, fragment = dataclasses.replace(five, seeds=seeds), "may only gain seeds"
+        with pytest.raises(SoftacError, match=fragment):
+            sweep.prepare_out_dir(out, changed)
+    assert sweep.load_spec(out) == five
+    search = sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0], search="random", samples=2)
+    sweep.prepare_out_dir(tmp_path / "search", search)
+    with pytest.raises(SoftacError, match=r"differs in seeds\);"):
+        sweep.prepare_out_dir(tmp_path / "search", dataclasses.replace(search, seeds=[0, 1]))
 
 
 @pytest.mark.ray

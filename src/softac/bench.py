@@ -2,9 +2,12 @@
 
 Two measurements, each framework in its own fresh process, one after the other:
 
-- throughput: training steps/s at Stable-Baselines3's SAC defaults (softac's `sb3` preset:
-  256x256 networks, batch 256, one update per env step), timed between step `warmup` and
-  `warmup + steps`, so start-up and compilation are excluded;
+- throughput: training steps/s, timed between step `warmup` and `warmup + steps`, so start-up and
+  compilation are excluded. `--algorithm sac` (the default): at Stable-Baselines3's SAC defaults (softac's
+  `sb3` preset: 256x256 networks, batch 256, one update per env step) beside SB3's and SBX's SAC at their
+  defaults; `--algorithm crossq`: softac's `crossq` preset beside SBX's CrossQ at the same settings
+  (`sbx-crossq-softac`) and at its own defaults (`sbx-crossq`). Every framework learns from step 100 in
+  a throughput run (learning_starts 100, whatever its setting for whole runs);
 - seconds to solve: a whole training process, from its start to its exit, until the deterministic
   evaluation (10 episodes, every 1000 steps) reaches the target. softac runs its default command
   (`softac train --target-return R`); the peers run at their defaults with an EvalCallback. Both
@@ -31,26 +34,31 @@ from typing import Any
 from softac import peers
 from softac.cpus import cpu_has_bf16, machine_description
 from softac.errors import SoftacError
-from softac.peers import PEER_MODULES
+from softac.peers import PEERS
 
 # softac variants: the same preset with these settings added (the driver passes them as --set)
 VARIANTS = {"softac": [], "softac-bf16": ["matmul_dtype=bfloat16"]}
-FRAMEWORKS = (*VARIANTS, *PEER_MODULES)
+FRAMEWORKS = (*VARIANTS, *PEERS)
 MIN_WARMUP = 300
+# what each --algorithm compares: softac's preset, and the peers that run the same algorithm
+ALGORITHMS = {"sac": ("sb3", ["sb3", "sbx"]), "crossq": ("crossq", ["sbx-crossq-softac", "sbx-crossq"])}
 
 
-def default_frameworks() -> list[str]:
-    return [fw for fw in FRAMEWORKS if fw != "softac-bf16" or cpu_has_bf16()]
+def default_frameworks(algorithm: str = "sac") -> list[str]:
+    ours = [fw for fw in VARIANTS if fw != "softac-bf16" or cpu_has_bf16()]
+    return ours + ALGORITHMS[algorithm][1]
 
 
 # ---- workers: each runs in its own process and prints one JSON line -----------------
 
 
-def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, overrides: list[str]) -> dict[str, Any]:
+def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, overrides: list[str],
+                       preset: str = "sb3") -> dict[str, Any]:
     from softac.agent import SAC
     from softac.config import SACConfig
 
-    config = SACConfig.preset("sb3", env_id=env_id).replace(seed=seed, eval_interval=0, buffer_size=warmup + steps)
+    config = SACConfig.preset(preset, env_id=env_id).replace(seed=seed, eval_interval=0, buffer_size=warmup + steps,
+                                                             learning_starts=peers.THROUGHPUT_LEARNING_STARTS)
     agent = SAC(config.with_overrides(overrides))
     agent.learn(warmup, progress=False)
     t0 = time.perf_counter()
@@ -61,7 +69,7 @@ def _throughput_softac(env_id: str, warmup: int, steps: int, seed: int, override
 def worker(argv: list[str]) -> None:
     """A softac variant's throughput probe (`python -m softac.bench throughput softac ...`); a peer's
     measurements go to its own entry point, softac.peers (also when asked here, the older form)."""
-    if len(argv) > 1 and argv[1] in PEER_MODULES:
+    if len(argv) > 1 and argv[1] in PEERS:
         peers.main(argv)
         return
     p = argparse.ArgumentParser(prog="python -m softac.bench")
@@ -72,8 +80,9 @@ def worker(argv: list[str]) -> None:
     p.add_argument("--steps", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", dest="overrides", nargs="*", default=[])
+    p.add_argument("--preset", default="sb3")
     a = p.parse_args(argv)
-    print(json.dumps(_throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides)), flush=True)
+    print(json.dumps(_throughput_softac(a.env, a.warmup, a.steps, a.seed, a.overrides, a.preset)), flush=True)
 
 
 # ---- the driver ------------------------------------------------------------------------
@@ -113,15 +122,19 @@ def solve_softac(env_id: str, seed: int, target: float, timeout: float,
 
 
 def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repeats: int, solve_seeds: list[int],
-              target: float, max_steps: int, timeout: float, overrides: list[str], log=print) -> dict[str, Any]:
-    result: dict[str, Any] = {"machine": machine_description(), "env": env_id, "throughput": {}, "solve": {}}
+              target: float, max_steps: int, timeout: float, overrides: list[str], log=print,
+              algorithm: str = "sac") -> dict[str, Any]:
+    preset = ALGORITHMS[algorithm][0]
+    result: dict[str, Any] = {"machine": machine_description(), "env": env_id, "algorithm": algorithm,
+                              "softac_preset": preset, "throughput": {}, "solve": {}}
     log(f"machine: {result['machine']}")
-    log(f"throughput at SB3's SAC defaults on {env_id}: {steps} steps after {warmup} warm-up steps, "
-        f"median of {repeats}")
+    log(f"throughput of {algorithm} on {env_id} (softac's {preset} preset; peers: "
+        f"{', '.join(PEERS[fw].about for fw in frameworks if fw in PEERS) or 'none'}): {steps} steps after "
+        f"{warmup} warm-up steps, median of {repeats}")
     for round_ in range(1, repeats + 1):  # interleaved, so drift of the machine hits every framework alike
         for fw in frameworks:
             settings = VARIANTS[fw] + overrides if fw in VARIANTS else []
-            extra = ["--set", *settings] if settings else []
+            extra = (["--set", *settings] if settings else []) + (["--preset", preset] if fw in VARIANTS else [])
             module = "softac.bench" if fw in VARIANTS else "softac.peers"
             out, _, err = _run(["-m", module, "throughput", fw, "--env", env_id, "--warmup", str(warmup),
                                 "--steps", str(steps), *extra], timeout)
@@ -153,8 +166,9 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
             for seed in solve_seeds:
                 if fw in VARIANTS:
                     variant = VARIANTS[fw]
+                    preset_args = ["--preset", preset] if algorithm != "sac" else []  # sac: the env's preset
                     out, wall, err = solve_softac(env_id, seed, target, timeout,
-                                                  ["--set", *variant] if variant else [])
+                                                  preset_args + (["--set", *variant] if variant else []))
                 else:
                     out, wall, err = _run(["-m", "softac.peers", "solve", fw, "--env", env_id, "--seed", str(seed),
                                            "--target", str(target), "--max-steps", str(max_steps)], timeout)
@@ -182,9 +196,12 @@ def run_bench(frameworks: list[str], env_id: str, warmup: int, steps: int, repea
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env", default="InvertedPendulum-v5")
+    p.add_argument("--algorithm", choices=list(ALGORITHMS), default="sac",
+                   help="sac: softac's sb3 preset beside SB3's and SBX's SAC at their defaults; crossq: softac's "
+                        "crossq preset beside SBX's CrossQ at the same settings and at its defaults")
     p.add_argument("--frameworks", default=None,
-                   help="comma list of softac,softac-bf16,sb3,sbx (default: all; softac-bf16 where the CPU has "
-                        "AVX-512 BF16 or AMX)")
+                   help=f"comma list of {','.join(FRAMEWORKS)} (default: softac, softac-bf16 where the CPU has "
+                        "AVX-512 BF16 or AMX, and the algorithm's peers)")
     p.add_argument("--steps", type=int, default=2000, help="timed training steps per throughput run")
     p.add_argument("--warmup", type=int, default=500, help="untimed steps first (compile, learning_starts)")
     p.add_argument("--repeats", type=int, default=3, help="throughput runs per framework (median reported)")
@@ -200,16 +217,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main_from_args(args: argparse.Namespace) -> int:
     requested = ([f.strip() for f in args.frameworks.split(",") if f.strip()] if args.frameworks is not None
-                 else default_frameworks())
+                 else default_frameworks(args.algorithm))
     unknown = [f for f in requested if f not in FRAMEWORKS]
     if unknown or not requested:
         raise SoftacError(f"--frameworks takes a comma list of {', '.join(FRAMEWORKS)}; got {args.frameworks!r}")
+    unlike = [f for f in requested if f in PEERS and f not in ALGORITHMS[args.algorithm][1]]
+    if unlike:  # like with like: a peer runs the algorithm softac runs
+        raise SoftacError(f"{', '.join(unlike)} run(s) another algorithm than --algorithm {args.algorithm} "
+                          f"(its peers: {', '.join(ALGORITHMS[args.algorithm][1])})")
     for name in ("steps", "repeats"):
         if getattr(args, name) < 1:
             raise SoftacError(f"--{name} must be positive")
     if args.warmup < MIN_WARMUP:  # the timed steps must all learn, and every peer's clock starts at `warmup`
-        raise SoftacError(f"--warmup must be >= {MIN_WARMUP} (every framework starts learning at step 100: softac's "
-                          f"sb3 preset, SB3's and SBX's learning_starts), got {args.warmup}")
+        raise SoftacError(f"--warmup must be >= {MIN_WARMUP} (every framework starts learning at step 100 in a "
+                          f"throughput run), got {args.warmup}")
     missing = peers.missing_peers(requested)
     if missing:
         raise SoftacError(f"{', '.join(missing)} not installed: `make bench` installs the [bench] extra "
@@ -222,10 +243,11 @@ def main_from_args(args: argparse.Namespace) -> int:
     if overrides:
         from softac.config import SACConfig
 
-        SACConfig.preset("sb3").with_overrides(overrides)  # bad keys fail here, before minutes of benchmarking
+        # bad keys fail here, before minutes of benchmarking
+        SACConfig.preset(ALGORITHMS[args.algorithm][0]).with_overrides(overrides)
     result = run_bench(requested, args.env, args.warmup, args.steps, args.repeats,
                        args.solve_seeds if args.solve else [], args.target, args.max_steps, args.timeout, overrides,
-                       log=log)
+                       log=log, algorithm=args.algorithm)
     if args.json:
         print(json.dumps(result))
     return 0

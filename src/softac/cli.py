@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
+from softac.peers import PEERS
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_RUN_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
@@ -111,8 +112,9 @@ def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
     sw.add_argument("--gpus-per-trial", type=float, default=0.0,
                     help="GPUs Ray reserves for each trial (with --set device=gpu; fractions share a GPU)")
     sw.add_argument("--max-concurrent", type=_positive_int, help="at most this many trials at once")
-    sw.add_argument("--framework", choices=["softac", "sb3", "sbx"], default="softac",
-                    help="sb3/sbx: their SAC at their defaults, evaluated like softac (needs the [bench] extra)")
+    sw.add_argument("--framework", choices=["softac", *PEERS], default="softac",
+                    help="a peer instead of softac, evaluated like softac (needs the [bench] extra): "
+                         + "; ".join(f"{name}: {peer.about}" for name, peer in PEERS.items()))
     sw.add_argument("--search", choices=["random", "optuna"], help="sample configurations instead of a grid")
     sw.add_argument("--samples", type=_positive_int, default=8, help="configurations a search tries (default 8)")
     sw.add_argument("--space", metavar="FILE", help="YAML search space (default: the documented SAC space)")

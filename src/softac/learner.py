@@ -2,9 +2,10 @@
 
 It holds the networks, their optimisers and alpha (`sac.SACState`), the running observation statistics
 (obs_norm) and the action scaling, and the jitted functions `sac.build` made for them. It acts on
-observations (`act` while training, `predict` (deterministic; what evaluation runs) and `sample` for users), learns from a batch
-(`update`), and gives and takes its arrays for checkpoints. It knows no env, buffer, run directory or
-agent: the training loop hands it observations and batches, and `softac.SAC` builds it.
+observations (`act` while training; `predict`, the deterministic policy that evaluation runs, and
+`sample` for users), learns from a batch (`update`), and gives and takes its arrays for checkpoints. It
+knows no env, buffer, run directory or agent: the training loop hands it observations and batches, and
+`softac.SAC` builds it.
 """
 
 from __future__ import annotations

@@ -1,12 +1,14 @@
-"""The peers softac is compared with, Stable-Baselines3's SAC and SBX's, at their defaults: how to make
-them, and three ways to run them (a throughput probe, a run to a target return, and a whole run that
-writes a softac-style run directory, evaluated exactly as softac evaluates). `softac bench` and
-`softac sweep --framework sb3|sbx` run each in its own process through this module's entry point:
+"""The peers softac is compared with: how to make them, and three ways to run them (a throughput probe,
+a run to a target return, and a whole run that writes a softac-style run directory, evaluated exactly as
+softac evaluates). `softac bench` and `softac sweep --framework PEER` run each in its own process through
+this module's entry point:
 
-    python -m softac.peers run|throughput|solve sb3|sbx --env ENV [...]
+    python -m softac.peers run|throughput|solve PEER --env ENV [...]
 
-which prints one JSON line (`python -m softac.bench ...`, the older form, still works). Needs the `[bench]`
-extra."""
+which prints one JSON line (`python -m softac.bench ...`, the older form, still works). PEER is one of
+`PEERS`: Stable-Baselines3's SAC and SBX's SAC at their defaults, SBX's CrossQ at its defaults, and SBX's
+CrossQ at the settings of softac's `crossq` preset (like for like with the suite's presets). Needs the
+`[bench]` extra."""
 
 from __future__ import annotations
 
@@ -16,43 +18,99 @@ import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-PEER_MODULES = {"sb3": "stable_baselines3", "sbx": "sbx"}
+if TYPE_CHECKING:
+    from softac.config import SACConfig
+
+
+@dataclass(frozen=True)
+class Peer:
+    package: str  # the module to import (the [bench] extra installs it)
+    distribution: str  # its name on PyPI, for the version in config.yaml
+    algorithm: str  # the class trained: SAC or CrossQ
+    settings: str  # "defaults" (the peer's own), or the softac preset whose settings it runs at
+    about: str
+
+
+PEERS = {
+    "sb3": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults", "Stable-Baselines3's SAC at its defaults"),
+    "sbx": Peer("sbx", "sbx-rl", "SAC", "defaults", "SBX's SAC at its defaults"),
+    "sbx-crossq": Peer("sbx", "sbx-rl", "CrossQ", "defaults",
+                       "SBX's CrossQ at its defaults (256x256 actor, 1024x1024 critics, batch 256)"),
+    "sbx-crossq-softac": Peer("sbx", "sbx-rl", "CrossQ", "crossq",
+                              "SBX's CrossQ at softac's crossq preset settings (256x256, batch 128, learning_starts "
+                              "5000, lr 1e-3, Adam b1 0.5, policy delay 3)"),
+}
+PEER_MODULES = {name: peer.package for name, peer in PEERS.items()}
+THROUGHPUT_LEARNING_STARTS = 100
 
 
 def missing_peers(names: list[str]) -> list[str]:
     """The peers among `names` whose package is not installed (the [bench] extra)."""
-    return [name for name in names if name in PEER_MODULES and importlib.util.find_spec(PEER_MODULES[name]) is None]
+    return [name for name in names if name in PEERS and importlib.util.find_spec(PEERS[name].package) is None]
 
 
-def peer_sac(framework: str):
-    if framework == "sb3":
+def crossq_settings(c: SACConfig) -> dict[str, Any]:
+    """A softac config's settings in SBX's CrossQ keywords. Every setting that changes what is computed is
+    carried over or checked to be SBX's own already (ReLU, autotuned alpha from 1.0, target entropy -act_dim,
+    one update per env step, one env); one that SBX cannot take is refused, so "same settings" stays true
+    when the preset changes."""
+    untranslatable = {"actor_lr != alpha_lr": c.actor_lr != c.alpha_lr, "obs_norm": c.obs_norm,
+                      "n_step": c.n_step != 1, "critic_layer_norm": c.critic_layer_norm, "not crossq": not c.crossq,
+                      "policy_frequency": c.policy_frequency != 1, "reset_interval": c.reset_interval > 0,
+                      "activation": c.activation != "relu", "fixed alpha": not c.autotune_alpha,
+                      "gradient_steps": c.gradient_steps != 1, "n_envs": c.n_envs != 1,
+                      "target_entropy": c.target_entropy != "auto", "initial alpha": c.alpha != 1.0}
+    bad = [name for name, differs in untranslatable.items() if differs]
+    if bad:
+        raise ValueError(f"settings SBX's CrossQ cannot take: {', '.join(bad)}")
+    return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
+            "learning_starts": c.learning_starts, "batch_size": c.batch_size, "gamma": c.gamma,
+            "policy_delay": c.policy_delay,
+            "policy_kwargs": {"net_arch": {"pi": list(c.hidden_sizes), "qf": list(c.hidden_sizes)},
+                              "n_critics": c.n_critics, "batch_norm_momentum": c.batch_norm_momentum,
+                              "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1}}}
+
+
+def peer_model(framework: str, env_id: str, seed: int, **overrides: Any):
+    """The peer's model on a fresh env, at its settings (`overrides`, e.g. learning_starts for a throughput
+    probe, replace them)."""
+    import gymnasium as gym
+
+    peer = PEERS[framework]
+    kwargs: dict[str, Any] = {}
+    if peer.package == "stable_baselines3":
         import torch
-        from stable_baselines3 import SAC
+        from stable_baselines3 import SAC as algorithm
 
         torch.set_num_threads(int(os.environ.get("SOFTAC_THREADS", 0)) or os.cpu_count() or 1)
-        return SAC, {"device": "cpu"}
-    from sbx import SAC
+        kwargs["device"] = "cpu"
+    else:
+        import sbx
 
-    return SAC, {}
+        algorithm = getattr(sbx, peer.algorithm)
+    if peer.settings != "defaults":
+        from softac.config import SACConfig
+
+        kwargs.update(crossq_settings(SACConfig.preset(peer.settings)))
+    kwargs.update(overrides)
+    return algorithm("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
 
 
 def peer_version(framework: str) -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return version({"sb3": "stable-baselines3", "sbx": "sbx-rl"}[framework])
+        return version(PEERS[framework].distribution)
     except PackageNotFoundError:
         return "unknown"
 
 
 def peer_throughput(framework: str, env_id: str, warmup: int, steps: int, seed: int) -> dict[str, Any]:
-    import gymnasium as gym
     from stable_baselines3.common.callbacks import BaseCallback
-
-    SAC, kwargs = peer_sac(framework)
 
     class Clock(BaseCallback):
         def __init__(self) -> None:
@@ -65,7 +123,8 @@ def peer_throughput(framework: str, env_id: str, warmup: int, steps: int, seed: 
             return True
 
     clock = Clock()
-    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+    # every framework learns from step 100 in a throughput probe, so the timed steps all learn
+    model = peer_model(framework, env_id, seed, learning_starts=THROUGHPUT_LEARNING_STARTS)
     model.learn(warmup + steps, callback=clock)
     elapsed = time.perf_counter() - clock.t_start
     return {"steps_per_s": steps / elapsed}
@@ -74,8 +133,6 @@ def peer_throughput(framework: str, env_id: str, warmup: int, steps: int, seed: 
 def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps: int) -> dict[str, Any]:
     import gymnasium as gym
     from stable_baselines3.common.callbacks import EvalCallback, StopTrainingOnRewardThreshold
-
-    SAC, kwargs = peer_sac(framework)
 
     class TimedEval(EvalCallback):
         eval_s = 0.0
@@ -89,7 +146,7 @@ def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps:
     stop = StopTrainingOnRewardThreshold(reward_threshold=target, verbose=0)
     evaluator = TimedEval(gym.make(env_id), eval_freq=1000, n_eval_episodes=10, deterministic=True,
                           callback_on_new_best=stop, verbose=0)
-    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+    model = peer_model(framework, env_id, seed)
     t0 = time.perf_counter()
     model.learn(max_steps, callback=evaluator)
     total = time.perf_counter() - t0
@@ -119,14 +176,16 @@ def _peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eva
     from softac.logs import TrainRows
     from softac.rundir import write_config, write_summary
 
-    SAC, kwargs = peer_sac(framework)
-    model = SAC("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
-    hyper = {k: getattr(model, k) for k in ("learning_rate", "buffer_size", "batch_size", "learning_starts", "tau",
-                                            "gamma", "train_freq", "gradient_steps", "ent_coef", "target_entropy")
+    model = peer_model(framework, env_id, seed)
+    hyper = {k: getattr(model, k) for k in ("learning_rate", "qf_learning_rate", "buffer_size", "batch_size",
+                                            "learning_starts", "tau", "gamma", "train_freq", "gradient_steps",
+                                            "policy_delay", "ent_coef", "target_entropy")
              if hasattr(model, k)}
     if "train_freq" in hyper:
         hyper["train_freq"] = f"{hyper['train_freq'].frequency} {hyper['train_freq'].unit.value}"
-    config = {"framework": framework, "env_id": env_id, "seed": seed, "total_steps": steps,
+    peer = PEERS[framework]
+    config = {"framework": framework, "algorithm": peer.algorithm, "settings": peer.settings, "about": peer.about,
+              "env_id": env_id, "seed": seed, "total_steps": steps,
               "eval_interval": eval_interval, "eval_episodes": eval_episodes,
               **{k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in hyper.items()},
               "policy_kwargs": str(model.policy_kwargs)}
@@ -179,9 +238,9 @@ def _peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eva
 # ---- the entry point of a peer's process ------------------------------------------------------------
 
 def arguments() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m softac.peers", description="run a peer's SAC; prints one JSON line")
+    p = argparse.ArgumentParser(prog="python -m softac.peers", description="run a peer; prints one JSON line")
     p.add_argument("kind", choices=["throughput", "solve", "run"])
-    p.add_argument("framework", choices=list(PEER_MODULES))
+    p.add_argument("framework", choices=list(PEERS))
     p.add_argument("--env", default="InvertedPendulum-v5")
     p.add_argument("--warmup", type=int, default=500, help="throughput: untimed steps first")
     p.add_argument("--steps", type=int, default=2000, help="throughput: timed steps; run: steps to train")

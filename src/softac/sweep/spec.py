@@ -13,6 +13,7 @@ import yaml
 
 from softac.config import ConfigError, SACConfig, override_key
 from softac.errors import SoftacError
+from softac.peers import PEERS
 
 
 SPEC_FILE = "sweep.json"
@@ -27,7 +28,7 @@ LOG_DIR = "_logs"
 PLOT_DIR = "plots"
 
 
-FRAMEWORKS = ("softac", "sb3", "sbx")
+FRAMEWORKS = ("softac", *PEERS)
 
 
 SEARCHES = ("random", "optuna")
@@ -229,9 +230,9 @@ def validate(spec: SweepSpec) -> SACConfig:
         allowed = {"eval_interval", "eval_episodes", "log_interval"}
         own = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in allowed]
         if spec.grid or spec.search or spec.preset or own:
-            raise SoftacError(f"--framework {spec.framework} runs its SAC at its own defaults; --grid, --search, "
-                              f"--preset and --set (other than eval_interval/eval_episodes/log_interval) "
-                              f"are for softac")
+            raise SoftacError(f"--framework {spec.framework} runs {PEERS[spec.framework].about}, not softac's "
+                              "settings: --grid, --search, --preset and --set (other than eval_interval/"
+                              "eval_episodes/log_interval) are for softac")
         from softac.peers import missing_peers
 
         if missing_peers([spec.framework]):
@@ -257,7 +258,11 @@ def validate(spec: SweepSpec) -> SACConfig:
 
 
 def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
-    """A new sweep takes an empty or missing DIR; an existing sweep continues only with the same spec."""
+    """A new sweep takes an empty or missing DIR; an existing sweep continues only with the same spec, or,
+    for a grid, with more seeds (the finished trials are kept: `--seeds 5` after `--seeds 3` runs seeds 3
+    and 4)."""
+    from softac.rundir import LOCK, write_atomic
+
     spec_path = out / SPEC_FILE
     if spec_path.exists():
         try:
@@ -266,11 +271,16 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
             raise SoftacError(f"cannot read {spec_path}: {exc}") from None
         mine = spec.to_dict()
         differs = sorted(k for k in set(stored) | set(mine) if stored.get(k) != mine.get(k))
-        if differs:
-            raise SoftacError(f"{out} holds a different sweep (differs in {', '.join(differs)}); continue it with "
-                              f"`softac sweep --resume {out}` or pick another --out")
+        if differs == ["seeds"] and not spec.search and set(stored["seeds"]) < set(mine["seeds"]):
+            try:  # the sweep grows: its spec now names every seed, so --resume and the summaries see them all
+                write_atomic(spec_path, (json.dumps(mine, indent=1) + "\n").encode())
+            except OSError as exc:
+                raise SoftacError(f"cannot update {spec_path}: {exc.strerror or exc}") from None
+        elif differs:
+            grow = " (a grid may only gain seeds)" if differs == ["seeds"] and not spec.search else ""
+            raise SoftacError(f"{out} holds a different sweep (differs in {', '.join(differs)}{grow}); continue it "
+                              f"with `softac sweep --resume {out}` or pick another --out")
         return
-    from softac.rundir import LOCK, write_atomic
 
     if out.exists() and (not out.is_dir() or any(p.name != LOCK for p in out.iterdir())):
         raise SoftacError(f"{out} exists and is not a sweep directory; pick another --out")

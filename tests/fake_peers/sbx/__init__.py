@@ -42,3 +42,14 @@ class SAC:
             if callback._on_step() is False:
                 break
         return self
+
+
+class CrossQ(SAC):
+    """A stand-in for sbx.CrossQ: SBX's defaults, replaced by the keywords it is given (kept to be read back)."""
+
+    def __init__(self, policy, env, seed=None, verbose=0, **kwargs):
+        super().__init__(policy, env, seed, verbose)
+        self.learning_rate, self.qf_learning_rate, self.batch_size, self.learning_starts = 1e-3, None, 256, 100
+        self.policy_delay, self.buffer_size = 3, 1_000_000
+        for key, value in kwargs.items():
+            setattr(self, key, value)
