@@ -2,14 +2,17 @@
 # Regenerates the sweeps behind docs/results.md, one trial per CPU (each trial pinned), same evaluation for
 # every framework (10 deterministic episodes every eval_interval steps).
 #   classic: InvertedPendulum-v5/v4 and Pusher-v5, softac's presets on 5 seeds, Stable-Baselines3 on 3
-#   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets (CrossQ) on 3
-#            seeds, SBX's SAC at its defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
+#   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets (CrossQ) on 5
+#            seeds; SBX's CrossQ at the same settings (sbx-crossq-softac: the crossq preset's) on 2; SBX's SAC at its
+#            defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
+#   crossq-defaults: SBX's CrossQ at its own defaults (1024-wide critics, batch 256), 2 seeds, on Hopper-v5 and
+#            Walker2d-v5 (about 2 hours a trial on one CPU; crossq-defaults:ENV for one env)
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -34,8 +37,13 @@ classic() {
 }
 
 mujoco() {
-  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --out $SWEEPS/$1-softac
+  $SOFTAC sweep --env $1 --seeds 5 --steps 100000 --out $SWEEPS/$1-softac
+  $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-crossq-softac --set eval_interval=5000 --out $SWEEPS/$1-sbx-crossq-softac
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
+}
+
+crossq_defaults() {
+  $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-crossq --set eval_interval=5000 --out $SWEEPS/$1-sbx-crossq
 }
 
 options() {
@@ -56,6 +64,8 @@ for target in $targets; do
     mujoco) for env in $MUJOCO; do mujoco $env; done ;;
     options) for env in $MUJOCO; do options $env; done ;;
     options:*) options ${target#options:} ;;
+    crossq-defaults) for env in Hopper-v5 Walker2d-v5; do crossq_defaults $env; done ;;
+    crossq-defaults:*) crossq_defaults ${target#crossq-defaults:} ;;
     fallback) for env in $FALLBACK; do fallback $env; done ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
        elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
