@@ -37,7 +37,8 @@ classic() {
 }
 
 mujoco() {
-  $SOFTAC sweep --env $1 --seeds 5 --steps 100000 --out $SWEEPS/$1-softac
+  # the env presets are the crossq preset (extends: crossq, nothing else); the sweeps began as --preset crossq
+  $SOFTAC sweep --env $1 --seeds 5 --steps 100000 --preset crossq --out $SWEEPS/$1-softac
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-crossq-softac --set eval_interval=5000 --out $SWEEPS/$1-sbx-crossq-softac
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
 }
