@@ -2,10 +2,13 @@
 
     python benchmarks/results_doc.py sweeps        # SWEEPS directory of results.sh
 
-Each env has a sweep directory per framework, ENV-softac, ENV-sbx and/or ENV-sb3; the threshold of each is the
-one given to its sweep command (kept in results.sh). Tables and figures come from the trial run directories
-alone. An env none of whose sweeps is in SWEEPS keeps its section of the current docs/results.md, so the
-classic and the MuJoCo sets can be regenerated apart.
+Each env has a sweep directory per configuration: ENV-softac (softac's preset), ENV-softac-NAME (another preset or
+options), ENV-PEER (a peer of softac.peers.PEERS: ENV-sbx, ENV-sb3, ENV-sbx-crossq, ENV-sbx-crossq-softac); the
+threshold of each is the one given to its sweep command (kept in results.sh). Tables and figures come from the
+trial run directories alone, and name each configuration by its preset and framework. The MuJoCo suite also gets
+one aggregate over its five envs: the interquartile mean of normalised final scores with stratified-bootstrap 95%
+intervals (rliable's). An env none of whose sweeps is in SWEEPS keeps its section of the current
+docs/results.md (the aggregate too), so the classic and the MuJoCo sets can be regenerated apart.
 """
 
 from __future__ import annotations
@@ -15,16 +18,22 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from softac.cpus import machine_description
-from softac.plots import plot_comparison
-from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
+from softac.peers import PEERS
+from softac.plots import plot_aggregate, plot_comparison
+from softac.stats import stratified_bootstrap_iqm
+from softac.sweep import SweepSpec, aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
 # env -> the threshold its sweeps were given (None: no threshold columns)
 ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
                                  "Humanoid-v5": None, "Swimmer-v5": None, "Reacher-v5": None,
                                  "InvertedDoublePendulum-v5": None}
-FRAMEWORKS = ("softac", "sbx", "sb3")
+SUITE = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
+AGGREGATE = "MuJoCo suite: one aggregate"
+OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
 # ENV-softac-NAME: another preset or options on the env (benchmarks/results.sh's `options` and `fallback`, #18)
 
 INTRO = """# Results: softac beside SBX and Stable-Baselines3 on the same machine
@@ -69,14 +78,15 @@ The sweep commands, from `benchmarks/results.sh` ($1 is the env id):
 
 
 def kept_sections(results_md: Path) -> dict[str, list[str]]:
-    """The `## ENV` sections of an existing results.md, by env."""
+    """The `## ENV` sections (and the aggregate's) of an existing results.md, by heading."""
     if not results_md.exists():
         return {}
     sections: dict[str, list[str]] = {}
     current: str | None = None
     for line in results_md.read_text().splitlines():
         if line.startswith("## "):
-            current = line[3:].strip() if line[3:].strip() in ENVS else None
+            heading = line[3:].strip()
+            current = heading if heading in ENVS or heading == AGGREGATE else None
             if current:
                 sections[current] = []
         if current:
@@ -84,18 +94,20 @@ def kept_sections(results_md: Path) -> dict[str, list[str]]:
     return sections
 
 
+def configuration_name(suffix: str, spec: SweepSpec) -> str:
+    """A configuration by its framework and preset: "softac, crossq preset", "softac, env preset +
+    obs_norm=true", "SBX CrossQ, its defaults"."""
+    if spec.framework in PEERS:
+        return PEERS[spec.framework].label
+    name = f"softac, {spec.preset or 'env'} preset"
+    return f"{name} + {' '.join(spec.overrides)}" if spec.overrides else name
+
+
 def env_sweeps(env: str, sweeps: Path) -> dict[str, Path]:
-    """The env's sweep directories by table name: softac's preset, its option variants, then the peers."""
+    """The env's sweep directories by configuration name: softac's preset, its variants, then the peers."""
     found = {d.name[len(env) + 1:]: d for d in sweeps.glob(f"{env}-*") if (d / "sweep.json").exists()}
-    variants = sorted(name for name in found if name.startswith("softac-"))
-    order = ["softac", *variants, "sbx", "sb3"]
-    named = {}
-    for name in order:
-        if name in found:
-            spec = load_spec(found[name])
-            options = ([f"preset={spec.preset}"] if spec.preset else []) + list(spec.overrides)
-            named[" ".join(["softac", *options]) if name in variants and options else name] = found[name]
-    return named
+    order = ["softac", *sorted(n for n in found if n.startswith("softac-")), *PEERS]
+    return {configuration_name(suffix, load_spec(found[suffix])): found[suffix] for suffix in order if suffix in found}
 
 
 def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
@@ -103,18 +115,87 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
     present = env_sweeps(env, sweeps)
     if not present:
         return kept.get(env) or [f"## {env}", "", "Not run yet.", ""]
-    rows, runs, steps = [], [], set()
+    rows, names, steps = [], {}, set()
     for name, d in present.items():
         spec = load_spec(d)
         steps.add(spec.steps)
-        table = aggregate(trial_rows(d, spec, threshold), [], threshold, name=name)
-        rows.extend(table)
-        runs.extend(trial_dirs(d))
+        rows.extend(aggregate(trial_rows(d, spec, threshold), [], threshold, name=name))
+        names.update({run: name for run in trial_dirs(d)})
     figure = figures / f"{env}.png"
-    plot_comparison(runs, figure)
+    plot_comparison(list(names), figure, names=names)
     budget = ", ".join(f"{s:,}" for s in sorted(steps))
-    return [f"## {env}", "", f"{budget} env steps per trial, on {machines_of(runs)}. ![{env}](results/{figure.name})", "",
-            markdown_table(rows, threshold), ""]
+    return [f"## {env}", "", f"{budget} env steps per trial, on {machines_of(list(names))}. "
+            f"![{env}](results/{figure.name})", "", markdown_table(rows, threshold), ""]
+
+
+def finished_trials(d: Path) -> list[dict]:
+    spec = load_spec(d)
+    return [r for r in trial_rows(d, spec) if r["status"] == "done" and r["final_eval_mean"] is not None]
+
+
+def random_returns(envs: list[str]) -> dict[str, float]:
+    """The uniform random policy's mean return over the 10 evaluation episodes (seed 0's), per env."""
+    from softac.baselines import run_baselines
+
+    return {env: run_baselines(env, episodes=10, seed=0)["baselines"]["random"]["mean_return"] for env in envs}
+
+
+def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
+                    random: dict[str, float] | None = None) -> list[str]:
+    """One IQM per configuration over the suite's envs (final evaluations, normalised per env between the
+    random policy and the best final evaluation of any trial shown on that env), with its stratified-bootstrap
+    95% interval, as a table and a figure; and the wall time of each configuration relative to softac's preset."""
+    finals: dict[str, dict[str, list[dict]]] = {}
+    for env in SUITE:
+        for name, d in env_sweeps(env, sweeps).items():
+            rows = finished_trials(d)
+            if rows:
+                finals.setdefault(name, {})[env] = rows
+    if not finals:
+        return kept.get(AGGREGATE, [])
+    random = random if random is not None else random_returns(SUITE)
+    best = {env: max(r["final_eval_mean"] for envs in finals.values() for r in envs.get(env, [])) for env in SUITE
+            if any(env in envs for envs in finals.values())}
+    ours = OURS if OURS in finals else next((name for name in finals if name.startswith("softac")), None)
+    lines = [f"## {AGGREGATE}", "",
+             "The interquartile mean (IQM) of normalised final scores over every trial of every env, with a "
+             "stratified-bootstrap 95% interval (runs resampled within each env, 20,000 resamples: rliable's "
+             "method, Agarwal et al. 2021). Normalised score = (final eval - random policy's return) / (best final "
+             "eval of any trial shown on the env - random policy's return): 0 is the random policy, 1 the best "
+             "run seen here. Wall time: each env's median trial time over softac's, then the geometric mean over "
+             "the envs (and the range). A configuration with trials on only some envs is aggregated over those "
+             "(its envs column says which) beside softac's preset over the same envs.", "",
+             "| env | random policy | best final eval | by |", "|---|---|---|---|"]
+    for env in best:
+        who = max(((name, r["final_eval_mean"]) for name, envs in finals.items() for r in envs.get(env, [])),
+                  key=lambda pair: pair[1])[0]
+        lines.append(f"| {env} | {random[env]:.1f} | {best[env]:.1f} | {who} |")
+    lines += ["", "| configuration | envs | trials | IQM of normalised score [95% CI] | wall time / softac's "
+              "(geometric mean, range) |", "|---|---|---|---|---|"]
+    scores: dict[str, tuple[float, float, float]] = {}
+    for name, envs in finals.items():
+        partial = set(envs) != set(best) and ours is not None and all(e in finals[ours] for e in envs)
+        groups = [name, ours] if partial else [name]  # a partial one beside softac's preset on its envs
+        for who in groups:
+            used = [env for env in best if env in envs]
+            label = who if set(used) == set(best) else f"{who} ({', '.join(e.split('-')[0] for e in used)})"
+            if label in scores:
+                continue
+            normalised = [[(r["final_eval_mean"] - random[e]) / (best[e] - random[e]) for r in finals[who][e]]
+                          for e in used]
+            scores[label] = stratified_bootstrap_iqm(normalised)
+            ratios = [float(np.median([r["wall_s"] for r in finals[who][e]]) /
+                            np.median([r["wall_s"] for r in finals[ours][e]])) for e in used if ours in finals
+                      and e in finals[ours]]
+            wall = (f"{np.exp(np.mean(np.log(ratios))):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
+                    if ratios else "-")
+            point, low, high = scores[label]
+            lines.append(f"| {label} | {len(used)} | {sum(len(finals[who][e]) for e in used)} | "
+                         f"{point:.2f} [{low:.2f}, {high:.2f}] | {wall} |")
+    figure = figures / "suite-aggregate.png"
+    plot_aggregate(scores, figure, "MuJoCo suite at 100k steps: IQM of normalised final scores",
+                   "normalised score (0: random policy, 1: best run seen); bars: stratified-bootstrap 95% CI")
+    return lines + ["", f"![aggregate](results/{figure.name})", ""]
 
 
 def machines_of(runs: list[Path]) -> str:
@@ -142,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     kept = kept_sections(a.docs / "results.md")
     text = [INTRO.format(machine=machine_description(), commands=commands)]
     for env, threshold in ENVS.items():
+        if env == SUITE[0]:
+            text.extend(suite_aggregate(a.sweeps, figures, kept))
         text.extend(section(env, threshold, a.sweeps, figures, kept))
     notes = a.docs / "results-notes.md"
     if notes.exists():

@@ -83,6 +83,34 @@ def test_confidence_band_maths():
     assert aligned_eval_curves([])[0].size == 0
 
 
+def test_stratified_bootstrap_of_the_iqm_resamples_runs_within_each_env():
+    from softac.stats import interquartile_mean, iqm_band, stratified_bootstrap_iqm
+
+    # enumerable: env A's runs {0, 1} resampled give (0,0), (0,1), (1,0), (1,1) with probability 1/4 each,
+    # env B's one run is always 10; the IQM of 3 values trims none, so the resampled IQMs are 10/3, 11/3
+    # (half the time) and 12/3, and the 2.5th and 97.5th percentiles are the extremes
+    point, low, high = stratified_bootstrap_iqm([[0.0, 1.0], [10.0]])
+    assert point == pytest.approx(11 / 3)
+    assert (low, high) == (pytest.approx(10 / 3), pytest.approx(12 / 3))
+    # pooled over envs, a quarter cut from each end; an env of identical runs adds no width
+    assert stratified_bootstrap_iqm([[5.0, 5.0], [7.0, 7.0]]) == (6.0, 6.0, 6.0)
+    rng = np.random.default_rng(1)
+    envs = [rng.normal(m, 1.0, size=n) for m, n in ((0.2, 5), (0.5, 5), (0.9, 3))]  # ragged is fine
+    point, low, high = stratified_bootstrap_iqm(envs)
+    pooled = np.concatenate(envs)
+    assert point == pytest.approx(interquartile_mean(pooled))
+    assert pooled.min() <= low < point < high <= pooled.max()
+    assert stratified_bootstrap_iqm(envs) == (point, low, high)  # seeded: the same tables every time
+    with pytest.raises(ValueError):
+        stratified_bootstrap_iqm([[1.0], []])
+    # per step of a curve: the seeds present there; one seed is its own band
+    values = np.array([[1.0, 2.0, np.nan], [3.0, 4.0, 5.0]])
+    iqm, low, high = iqm_band(values)
+    np.testing.assert_allclose(iqm, [2.0, 3.0, 5.0])
+    assert (low[2], high[2]) == (5.0, 5.0)
+    assert 1.0 <= low[0] <= 2.0 <= high[0] <= 3.0 and 2.0 <= low[1] <= 3.0 <= high[1] <= 4.0
+
+
 def test_baselines_json_and_heuristics():
     r = run_cli("baselines", "--env", "InvertedPendulum-v5", "--episodes", "3", "--json")
     assert r.returncode == 0, r.stderr
@@ -229,3 +257,17 @@ def test_a_run_made_before_a_config_key_existed_groups_with_new_runs_at_its_defa
     labels, groups = group_runs(runs)
     assert [[r.name for r in g] for g in groups] == [["old", "new"], ["reset"], ["sbx"]]
     assert labels == ["softac, reset_interval=0", "softac, reset_interval=5000", "sbx"]
+    # named configurations (the results page names them by preset and framework): grouped by name
+    names = {runs[0]: "softac crossq preset", runs[1]: "softac crossq preset", runs[2]: "softac crossq preset",
+             runs[3]: "SBX SAC, its defaults"}
+    labels, groups = group_runs(runs, names)
+    assert labels == ["softac crossq preset", "SBX SAC, its defaults"]
+    assert [[r.name for r in g] for g in groups] == [["old", "new", "reset"], ["sbx"]]
+
+
+def test_the_aggregate_figure_draws_one_bar_per_configuration(tmp_path):
+    from softac.plots import plot_aggregate
+
+    out = plot_aggregate({"softac crossq preset": (0.8, 0.6, 0.9), "SBX CrossQ, same settings": (0.5, 0.2, 0.7)},
+                         tmp_path / "aggregate.png", "IQM of normalised scores", "normalised score")
+    assert out.stat().st_size > 10_000

@@ -52,6 +52,41 @@ def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_ot
     hopper = text.split("## Hopper-v5")[1].split("\n## ")[0]
     assert "Example CPU (AVX2), 2 cores and " in hopper or " and Example CPU (AVX2), 2 cores" in hopper
     rows = {line.split("|")[1].strip(): line for line in hopper.splitlines() if line.startswith("| ")}
-    assert {"softac", "softac obs_norm=true critic_layer_norm=true", "softac preset=default", "sbx"} <= set(rows)
-    assert rows["softac"].split("|")[2].strip() == "3" and rows["sbx"].split("|")[2].strip() == "2"
+    # configurations named by framework and preset, not by the keys that differ
+    assert {"softac, crossq preset", "softac, env preset + obs_norm=true critic_layer_norm=true",
+            "softac, default preset", "SBX SAC, its defaults"} <= set(rows)
+    assert rows["softac, crossq preset"].split("|")[2].strip() == "3"
+    assert rows["SBX SAC, its defaults"].split("|")[2].strip() == "2"
     assert (docs / "results" / "Hopper-v5.png").stat().st_size > 10_000
+
+
+@pytest.mark.skipif(not all((KEPT / f"{env}-softac" / "sweep.json").exists() for env in
+                            ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5")),
+                    reason="kept suite sweeps not present")
+def test_the_suite_aggregate_is_an_iqm_of_normalised_scores_with_a_bootstrap_interval(tmp_path):
+    """One row and one bar per configuration; a configuration on fewer envs is shown beside softac's preset on
+    the same envs; normalised between the random policy (0) and the best final eval shown (1)."""
+    from softac.stats import stratified_bootstrap_iqm
+    from softac.sweep import load_spec, trial_rows
+
+    results_doc = load_results_doc()
+    sweeps = tmp_path / "sweeps"
+    envs = results_doc.SUITE
+    for env in envs:
+        shutil.copytree(KEPT / f"{env}-softac", sweeps / f"{env}-softac")
+    shutil.copytree(KEPT / "Hopper-v5-sbx", sweeps / "Hopper-v5-sbx")  # a peer on one env only
+    random = {env: -10.0 * (i + 1) for i, env in enumerate(envs)}  # stand-ins: the real ones take a minute
+    lines = results_doc.suite_aggregate(sweeps, tmp_path, {}, random=random)
+    table = {line.split("|")[1].strip(): line.split("|") for line in lines if line.startswith("| ")}
+    finals = {env: [r["final_eval_mean"] for r in trial_rows(sweeps / f"{env}-softac",
+                                                             load_spec(sweeps / f"{env}-softac"))] for env in envs}
+    hopper_sbx = [r["final_eval_mean"] for r in trial_rows(sweeps / "Hopper-v5-sbx", load_spec(sweeps / "Hopper-v5-sbx"))]
+    best = {env: max(finals[env] + (hopper_sbx if env == "Hopper-v5" else [])) for env in envs}
+    expected = stratified_bootstrap_iqm([[(v - random[e]) / (best[e] - random[e]) for v in finals[e]] for e in envs])
+    assert table["softac, crossq preset"][2:5] == [" 5 ", " 15 ", f" {expected[0]:.2f} [{expected[1]:.2f}, "
+                                                                   f"{expected[2]:.2f}] "]
+    assert table["softac, crossq preset"][5].strip() == "1.00 (1.00-1.00)"
+    assert {"SBX SAC, its defaults (Hopper)", "softac, crossq preset (Hopper)"} <= set(table)
+    assert table["SBX SAC, its defaults (Hopper)"][2:4] == [" 1 ", " 2 "]
+    assert float(table["SBX SAC, its defaults (Hopper)"][5].split()[0]) > 1  # SBX took longer here
+    assert (tmp_path / "suite-aggregate.png").stat().st_size > 10_000

@@ -33,16 +33,20 @@ class Peer:
     algorithm: str  # the class trained: SAC or CrossQ
     settings: str  # "defaults" (the peer's own), or the softac preset whose settings it runs at
     about: str
+    label: str  # the configuration's name in tables and legends
 
 
 PEERS = {
-    "sb3": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults", "Stable-Baselines3's SAC at its defaults"),
-    "sbx": Peer("sbx", "sbx-rl", "SAC", "defaults", "SBX's SAC at its defaults"),
+    "sb3": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults", "Stable-Baselines3's SAC at its defaults",
+                "SB3 SAC, its defaults"),
+    "sbx": Peer("sbx", "sbx-rl", "SAC", "defaults", "SBX's SAC at its defaults", "SBX SAC, its defaults"),
     "sbx-crossq": Peer("sbx", "sbx-rl", "CrossQ", "defaults",
-                       "SBX's CrossQ at its defaults (256x256 actor, 1024x1024 critics, batch 256)"),
+                       "SBX's CrossQ at its defaults (256x256 actor, 1024x1024 critics, batch 256)",
+                       "SBX CrossQ, its defaults"),
     "sbx-crossq-softac": Peer("sbx", "sbx-rl", "CrossQ", "crossq",
                               "SBX's CrossQ at softac's crossq preset settings (256x256, batch 128, learning_starts "
-                              "5000, lr 1e-3, Adam b1 0.5, policy delay 3)"),
+                              "5000, lr 1e-3, Adam b1 0.5, policy delay 3)",
+                              "SBX CrossQ, crossq preset's settings"),
 }
 PEER_MODULES = {name: peer.package for name, peer in PEERS.items()}
 THROUGHPUT_LEARNING_STARTS = 100

@@ -17,7 +17,7 @@ import yaml
 from softac.config import RECORD_ONLY_KEYS
 from softac.errors import SoftacError
 from softac.logs import read_csv
-from softac.stats import mean_and_ci
+from softac.stats import interquartile_mean, iqm_band
 
 METRIC_GRID = [  # (column, title), the notebooks' 2x3 grid
     ("critic_loss", "critic loss"),
@@ -178,8 +178,14 @@ def _with_defaults(config: dict[str, Any]) -> dict[str, Any]:
     return {**SACConfig().to_dict(), **config}
 
 
-def group_runs(runs: list[Path]) -> tuple[list[str], list[list[Path]]]:
-    """Runs grouped by configuration (all but the seed), with a label for each group."""
+def group_runs(runs: list[Path], names: dict[Path, str] | None = None) -> tuple[list[str], list[list[Path]]]:
+    """Runs grouped by configuration (all but the seed), with a label for each group; with `names` (run ->
+    the configuration's name, e.g. "softac crossq preset"), grouped and labelled by those names."""
+    if names is not None:
+        named: dict[str, list[Path]] = {}
+        for run in runs:
+            named.setdefault(names[run], []).append(run)
+        return list(named), list(named.values())
     configs = [_with_defaults(load_run_config(r)) for r in runs]
     groups: dict[str, list[int]] = {}
     for i, c in enumerate(configs):
@@ -205,10 +211,13 @@ def aligned_eval_curves(runs: list[Path]) -> tuple[np.ndarray, np.ndarray]:
     return grid, values
 
 
-def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | None = None) -> Path:
-    """Mean and 95% CI across seeds, one colour per configuration."""
+def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | None = None,
+                    names: dict[Path, str] | None = None) -> Path:
+    """One colour per configuration: each seed's curve faintly, the IQM across seeds, and its 95%
+    percentile-bootstrap band (which stays within the seeds' values, where a t-interval of 2-3 seeds
+    spans the axis). `names`: see group_runs."""
     plt = _pyplot()
-    labels, groups = group_runs(runs)
+    labels, groups = group_runs(runs, names)
     fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
     observed: list[float] = []
     for colour, (label, members) in enumerate(zip(labels, groups)):
@@ -216,19 +225,21 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
         if len(grid) == 0:
             continue
         observed.extend(values[~np.isnan(values)].tolist())
-        mean, half, n = mean_and_ci(values)
+        for seed_curve in values:
+            ax.plot(grid, seed_curve, color=f"C{colour}", lw=0.8, alpha=0.3)
+        iqm, low, high = iqm_band(values)
         seeds = f"{len(members)} seed{'s' if len(members) > 1 else ''}"
-        ax.plot(grid, mean, color=f"C{colour}", lw=2, label=f"{label} ({seeds})")
+        ax.plot(grid, iqm, color=f"C{colour}", lw=2, label=f"{label} ({seeds})")
         if len(members) > 1:
-            ax.fill_between(grid, mean - half, mean + half, color=f"C{colour}", alpha=0.2)
+            ax.fill_between(grid, low, high, color=f"C{colour}", alpha=0.18, lw=0)
     _draw_baselines(ax, baselines)
     observed.extend(b["mean_return"] for b in (baselines or {}).values())
-    if observed:  # few seeds give wide t-intervals: keep the axes on what was observed
+    if observed:
         lo, hi = min(observed), max(observed)
         pad = 0.08 * (hi - lo or abs(hi) or 1.0)
         ax.set_ylim(lo - pad, hi + pad)
     return _finish_curve(plt, fig, ax, out, "deterministic eval return",
-                         "Evaluation return: mean and 95% confidence band across seeds")
+                         "Evaluation return: IQM across seeds, 95% bootstrap band, each seed faint")
 
 
 def _finish_curve(plt, fig, ax, out: Path, ylabel: str, title: str) -> Path:
@@ -248,10 +259,10 @@ def _finish_curve(plt, fig, ax, out: Path, ylabel: str, title: str) -> Path:
     return out
 
 
-def plot_final_returns(runs: list[Path], out: Path) -> Path:
-    """Each configuration's final eval return: one dot per seed, the mean with its 95% CI."""
+def plot_final_returns(runs: list[Path], out: Path, names: dict[Path, str] | None = None) -> Path:
+    """Each configuration's final eval return: one dot per seed, the IQM with its 95% bootstrap interval."""
     plt = _pyplot()
-    labels, groups = group_runs(runs)
+    labels, groups = group_runs(runs, names)
     finals = []
     for members in groups:
         values = []
@@ -260,19 +271,42 @@ def plot_final_returns(runs: list[Path], out: Path) -> Path:
             if rows:
                 values.append(_floats(rows[-1:], "mean_return")[0])
         finals.append(np.asarray(values, float))
-    order = sorted(range(len(groups)), key=lambda i: np.nanmean(finals[i]) if len(finals[i]) else -np.inf)
+    order = sorted(range(len(groups)), key=lambda i: interquartile_mean(finals[i]) if len(finals[i]) else -np.inf)
     fig, ax = plt.subplots(figsize=(9, max(2.5, 0.45 * len(groups) + 1.5)), constrained_layout=True)
     for row, i in enumerate(order):
         values = finals[i]
         if len(values) == 0:
             continue
         ax.scatter(values, np.full(len(values), row), color=f"C{i % 10}", alpha=0.6, s=25, zorder=3)
-        mean, half, _ = mean_and_ci(values[:, None])
-        ax.errorbar(mean, [row], xerr=half, fmt="D", color="black", ms=6, capsize=4, zorder=4)
+        iqm, low, high = (float(v[0]) for v in iqm_band(values[:, None]))
+        ax.errorbar(iqm, [row], xerr=[[iqm - low], [high - iqm]], fmt="D", color="black", ms=6, capsize=4,
+                    zorder=4)
     ax.set_yticks(range(len(order)), [f"{labels[i]} ({len(groups[i])})" for i in order], fontsize=8)
-    ax.set_xlabel("final deterministic eval return (dots: seeds; diamond and bar: mean and 95% CI)")
+    ax.set_xlabel("final deterministic eval return (dots: seeds; diamond and bar: IQM and 95% bootstrap interval)")
     ax.set_title("Final evaluation return per configuration")
     ax.grid(alpha=0.3, axis="x")
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, title: str, xlabel: str) -> Path:
+    """One bar per configuration: a point estimate with its interval, e.g. the IQM of normalised scores
+    across envs with its stratified-bootstrap 95% interval ({name: (value, low, high)})."""
+    plt = _pyplot()
+    names = list(scores)
+    fig, ax = plt.subplots(figsize=(8, max(2.2, 0.55 * len(names) + 1.3)), constrained_layout=True)
+    for row, name in enumerate(names):
+        value, low, high = scores[name]
+        ax.barh(row, value, color=f"C{row % 10}", alpha=0.75)
+        ax.errorbar(value, row, xerr=[[value - low], [high - value]], fmt="none", ecolor="black", capsize=5)
+        ax.text(high, row, f"  {value:.2f} [{low:.2f}, {high:.2f}]", va="center", fontsize=8)
+    ax.set_yticks(range(len(names)), names, fontsize=9)
+    ax.invert_yaxis()
+    ax.set_xlabel(xlabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3, axis="x")
+    ax.set_xlim(min(0.0, *(low for _, low, _ in scores.values())), max(high for _, _, high in scores.values()) * 1.35)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
