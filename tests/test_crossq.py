@@ -178,3 +178,65 @@ def test_crossq_with_layer_norm_critics_is_refused_in_one_line(tmp_path):
     assert not (tmp_path / "run").exists()
     r = run_cli("train", "--steps", "10", "--out", str(tmp_path / "run"), "--set", "adam_b1=1")
     assert_clean_error(r, "adam_b1")
+    r = run_cli("train", "--steps", "10", "--out", str(tmp_path / "run"), "--set", "weight_norm=true")
+    assert_clean_error(r, "weight_norm", "needs crossq")
+    assert not (tmp_path / "run").exists()
+
+
+def _hidden_unit_norms(layers):
+    """The length of each hidden unit's (weights, bias) vector, per hidden layer."""
+    return [np.sqrt(np.sum(np.square(np.asarray(layer["w"], np.float64)), axis=-2) +
+                    np.square(np.asarray(layer["b"], np.float64))) for layer in layers[:-1]]
+
+
+def test_weight_norm_keeps_every_hidden_unit_on_the_unit_sphere_and_the_output_layers_free():
+    """CrossQ+WN (Palenicek et al. 2025): after init and after every optimiser step of the critics and of the
+    actor, each hidden unit's incoming (weights, bias) has length 1; the output layers are left as they are."""
+    cfg = SACConfig().replace(crossq=True, weight_norm=True, hidden_sizes=[16, 16], batch_size=8, policy_delay=1)
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(0)
+    plain = sac.build(cfg.replace(weight_norm=False), 3, 2).init(0)
+    for before in (state.actor, state.critic):
+        for norms in _hidden_unit_norms(before):
+            np.testing.assert_allclose(norms, 1.0, rtol=1e-6)  # float32 division: a few ulps
+    # the same draws as without weight_norm, scaled; the output layers untouched
+    np.testing.assert_array_equal(state.critic[-1]["w"], plain.critic[-1]["w"])
+    w, w0 = np.asarray(state.actor[0]["w"]), np.asarray(plain.actor[0]["w"])
+    np.testing.assert_allclose(w / np.linalg.norm(w, axis=0), w0 / np.linalg.norm(w0, axis=0), rtol=1e-5)
+    for seed in range(3):
+        new, metrics = fns.update(state, _batches(np.random.default_rng(seed), 2, 8))
+        assert all(np.isfinite(float(v)) for v in metrics.values())
+        for networks in ((new.actor, state.actor), (new.critic, state.critic)):
+            for norms in _hidden_unit_norms(networks[0]):
+                np.testing.assert_allclose(norms, 1.0, rtol=1e-6)
+            assert not np.array_equal(networks[0][0]["w"], networks[1][0]["w"])  # they learn, on the sphere
+        output = new.critic[-1]
+        output_norms = np.sqrt(np.sum(np.square(output["w"]), axis=-2) + np.square(output["b"]))
+        assert np.all(np.abs(output_norms - 1.0) > 1e-3)  # the output layer keeps its own scale
+        state = new
+
+
+def test_weight_norm_changes_nothing_for_a_network_whose_units_are_already_unit_length():
+    from softac.networks import unit_norm_hidden_units
+
+    rng = np.random.default_rng(0)
+    layers = [{"w": rng.normal(size=(2, 4, 5)), "b": rng.normal(size=(2, 5))} for _ in range(2)]
+    once = unit_norm_hidden_units(layers, np)
+    twice = unit_norm_hidden_units(once, np)
+    np.testing.assert_allclose(twice[0]["w"], once[0]["w"], rtol=1e-12)
+    assert once[1] is layers[1]  # the output layer is the same object
+    # a stacked ensemble: each critic's units normalised on their own
+    np.testing.assert_allclose(_hidden_unit_norms(once)[0], np.ones((2, 5)), rtol=1e-12)
+    ratio = once[0]["w"] / layers[0]["w"]
+    np.testing.assert_allclose(ratio, np.broadcast_to(ratio[:, :1, :], ratio.shape), rtol=1e-12)  # one scale per unit
+
+
+def test_a_crossq_wn_agent_resumes_exactly(tiny, tmp_path):
+    agent = SAC(tiny(crossq=True, weight_norm=True, eval_interval=300))
+    agent.learn(300, run_dir=tmp_path / "run", progress=False)
+    resumed = SAC.load(tmp_path / "run", which="last")
+    agent.learn(200, progress=False)
+    resumed.learn(200, progress=False)
+    for a, b in zip(jax.tree_util.tree_leaves(agent.learner.state), jax.tree_util.tree_leaves(resumed.learner.state),
+                    strict=True):
+        np.testing.assert_array_equal(a, b)

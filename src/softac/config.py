@@ -63,6 +63,7 @@ class SACConfig:
     crossq: bool = _f(False, "CrossQ (Bhatt et al. 2024): no target critics (tau unused); batch renormalisation in actor and critics, the critics seeing (s, a) and (s', a') as one batch")
     batch_norm_momentum: float = _f(0.99, "with crossq: momentum of the running mean and variance")
     batch_renorm_warmup: int = _f(100_000, "with crossq: gradient steps of plain batch normalisation before batch renormalisation's corrections (Ioffe 2017)")
+    weight_norm: bool = _f(False, "with crossq: each hidden unit's weights and bias kept at unit norm after every optimiser step (CrossQ+WN, Palenicek et al. 2025): batch renormalisation makes the next layer blind to their scale, whose growth would shrink the effective learning rate")
     adam_b1: float = _f(0.9, "Adam's first-moment decay, for actor, critics and alpha (CrossQ uses 0.5)")
     hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
     activation: str = _f("relu", "hidden activation: relu, tanh, elu or gelu")
@@ -185,6 +186,8 @@ class SACConfig:
         need(not (self.crossq and self.critic_layer_norm), "critic_layer_norm",
              "cannot be combined with crossq, which normalises with batch renormalisation")
         need(not self.crossq or self.batch_size >= 2, "batch_size", "must be >= 2 with crossq (batch statistics)")
+        need(self.crossq or not self.weight_norm, "weight_norm",
+             "needs crossq (its batch renormalisation is what makes the weights' scale free)")
         need(0.0 < self.batch_norm_momentum < 1.0, "batch_norm_momentum", "must be in (0, 1)")
         need(self.batch_renorm_warmup >= 0, "batch_renorm_warmup", "must be >= 0")
         need(0.0 <= self.adam_b1 < 1.0, "adam_b1", "must be in [0, 1)")
@@ -214,7 +217,7 @@ class SACConfig:
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
-GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "sac-100k")
+GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-wn", "sac-100k")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
                     "buffer_bytes_per_transition", "cpus", "machine", "segments")

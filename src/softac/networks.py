@@ -60,6 +60,19 @@ def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: fl
     return layers
 
 
+def unit_norm_hidden_units(params: Params, xp: Any = jnp) -> Params:
+    """Each hidden unit's incoming weights and bias, as one vector, scaled to unit length; the output layer
+    as it is (CrossQ+WN, Palenicek et al. 2025). With batch renormalisation after the activation, a ReLU
+    unit's output scales with that vector and the next normalisation divides the scale out, so the network
+    computes the same function while the effective learning rate stays put. Works on one MLP or a stacked
+    ensemble (leading critic axis), in NumPy (`xp=np`, at init) or JAX."""
+    def project(layer: dict) -> dict:
+        norm = xp.sqrt(xp.sum(xp.square(layer["w"]), axis=-2) + xp.square(layer["b"]))
+        return {**layer, "w": layer["w"] / norm[..., None, :], "b": layer["b"] / norm}
+
+    return [project(layer) for layer in params[:-1]] + [params[-1]]
+
+
 def init_norm_stats(sizes: list[int]) -> Params:
     """Running mean and variance of each layer's input (mean 0, variance 1 to start)."""
     return [{"mean": np.zeros(n, np.float32), "var": np.ones(n, np.float32)} for n in sizes[:-1]]

@@ -23,7 +23,7 @@ from softac.cpus import cpu_has_bf16
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
-                             stack)
+                             stack, unit_norm_hidden_units)
 from softac.policy import (ActionScaler, Policy, bound_log_std, log_one_minus_tanh_sq,  # noqa: F401
                            squashed_gaussian_log_prob)
 
@@ -60,6 +60,7 @@ class UpdateSettings:
     autotune_alpha: bool
     alpha: float
     batch_renorm_warmup: int
+    weight_norm: bool
 
     @property
     def has_targets(self) -> bool:
@@ -87,8 +88,10 @@ def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings
         state.critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
         batch, key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s))
     updates, critic_opt = s.critic_tx.update(grads, state.critic_opt, state.critic)
-    return state._replace(critic=optax.apply_updates(state.critic, updates), critic_opt=critic_opt,
-                          critic_stats=critic_stats), metrics
+    critic = optax.apply_updates(state.critic, updates)
+    if s.weight_norm:
+        critic = unit_norm_hidden_units(critic)
+    return state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats), metrics
 
 
 def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: UpdateSettings) -> tuple[SACState, dict]:
@@ -96,8 +99,10 @@ def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: Upd
         state.actor, state.actor_stats, state.critic, state.critic_stats, alpha_of(state, s), obs, key, s.policy,
         s.critics, renorm_active(state, s))
     updates, actor_opt = s.actor_tx.update(grads, state.actor_opt, state.actor)
-    state = state._replace(actor=optax.apply_updates(state.actor, updates), actor_opt=actor_opt,
-                           actor_stats=actor_stats)
+    actor = optax.apply_updates(state.actor, updates)
+    if s.weight_norm:
+        actor = unit_norm_hidden_units(actor)
+    state = state._replace(actor=actor, actor_opt=actor_opt, actor_stats=actor_stats)
     if s.autotune_alpha:
         a_loss, grad = jax.value_and_grad(alpha_loss)(state.log_alpha, log_prob, s.target_entropy)
         updates, alpha_opt = s.alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
@@ -171,6 +176,8 @@ def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random
     c, norm = config, config.crossq
     actor = init_actor(rng, obs_dim, act_dim, c.hidden_sizes, c.init, norm=norm)
     critic = init_critics(rng, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics, norm=norm)
+    if c.weight_norm:  # on the sphere from the start, so the running statistics see one scale throughout
+        actor, critic = unit_norm_hidden_units(actor, np), unit_norm_hidden_units(critic, np)
     if not norm:
         return actor, critic, (), ()
     return (actor, critic, init_norm_stats(actor_sizes(obs_dim, act_dim, c.hidden_sizes)),
@@ -210,7 +217,7 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> Updat
         target_entropy=-float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy),
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
-        alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup)
+        alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm)
 
 
 class SACFunctions(NamedTuple):
