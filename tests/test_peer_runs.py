@@ -4,6 +4,7 @@ the last 20 training episodes (the peers used 100), `fps` is env steps per secon
 (the peers gave the cumulative rate), `time_s` the run's seconds so far. The peer is a stand-in
 (tests/fake_peers) driven through softac's real adapter (softac.peers.peer_run)."""
 
+import json
 import subprocess
 import sys
 
@@ -101,3 +102,59 @@ def test_the_crossq_settings_carry_every_setting_or_refuse():
                    {"activation": "tanh"}, {"alpha_lr": 3e-4}, {"gradient_steps": 2}):
         with pytest.raises(ValueError, match=next(iter(change)).split("_")[0]):
             crossq_settings(preset.replace(**change))
+
+
+def _peer_command(run, steps="1200", seed="0"):
+    return [sys.executable, "-m", "softac.peers", "run", "sbx-crossq", "--env", DRIFT, "--seed", seed, "--steps", steps,
+            "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2", "--log-interval", "100",
+            "--checkpoint-interval", "200"]
+
+
+def test_a_peer_run_stopped_by_a_signal_continues_from_its_checkpoint(tmp_path):
+    """SIGTERM (what the sweep sends when it is stopped) makes the peer write its checkpoint and exit 130; the
+    same command then continues from it, the replay buffer refilled (the stand-in checks it), the logs cut
+    back to the checkpoint's step, the seconds of both segments counted, and a run of another seed refused."""
+    import signal
+    import time
+
+    import yaml
+
+    run = tmp_path / "peer"
+    proc = subprocess.Popen(_peer_command(run), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=child_env(FAKE_PEERS))
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and len(read_csv(run / "eval.csv")) < 3:  # past the checkpoint at step 400
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "run the same command again to continue" in stderr.strip().splitlines()[-1]
+    assert not (run / "summary.json").exists()
+    stopped_at = int(stderr.split("interrupted at step ")[1].split(";")[0])
+    assert 600 <= stopped_at < 1200
+
+    other = subprocess.run(_peer_command(run, seed="1"), capture_output=True, text=True, timeout=300,
+                           env=child_env(FAKE_PEERS))
+    assert other.returncode == 2 and "another run" in other.stderr and "Traceback" not in other.stderr, other.stderr
+
+    resumed = subprocess.run(_peer_command(run), capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+    assert resumed.returncode == 0, resumed.stderr
+    evals = [int(row["step"]) for row in read_csv(run / "eval.csv")]
+    assert evals == list(range(200, 1201, 200))  # each step once: rows past the checkpoint were dropped
+    rows = read_csv(run / "progress.csv")
+    assert [int(r["step"]) for r in rows] == list(range(100, 1201, 100))
+    times = [float(r["time_s"]) for r in rows]
+    assert times == sorted(times)  # time_s goes on from the first segment's seconds
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["steps"] == 1200 and summary["train_time_s"] >= times[-1]
+    assert summary["episodes"] == len(read_csv(run / "episodes.csv"))
+    segments = yaml.safe_load((run / "config.yaml").read_text())["segments"]
+    assert [s["start_step"] for s in segments] == [0, stopped_at]
+    # softac cannot load a peer's checkpoint as an agent: one line, exit 2
+    ev = run_cli("eval", str(run), "--episodes", "1")
+    assert ev.returncode == 2 and "peer's run" in ev.stderr and "Traceback" not in ev.stderr, ev.stderr

@@ -73,6 +73,17 @@ def test_trial_command_passes_grid_values_and_resumes_partial_runs(tmp_path):
     assert resume[3:5] == ["train", "--resume"]
 
 
+def test_a_peer_trial_checkpoints_at_the_sweeps_interval_and_continues_with_the_same_command(tmp_path):
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], framework="sbx-crossq",
+                           overrides=["eval_interval=100"])
+    trial, run = sweep.grid_trials(spec)[0], tmp_path / "seed=0"
+    cmd = sweep.trial_command(spec, spec.base_config(), trial, run)
+    assert cmd[1:5] == ["-m", "softac.peers", "run", "sbx-crossq"]
+    assert cmd[cmd.index("--checkpoint-interval") + 1] == str(spec.base_config().checkpoint_interval)
+    (run / "checkpoints" / "last").mkdir(parents=True)  # partial: `python -m softac.peers run` continues it
+    assert sweep.trial_state(run) == "partial" and sweep.trial_command(spec, spec.base_config(), trial, run) == cmd
+
+
 def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
     """summary.md's "check it on more seeds" line must train the best trial's configuration: the search's
     --preset and --set, with the sampled values in place of an override of the same key."""

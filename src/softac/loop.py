@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -29,6 +27,7 @@ from softac.learner import Learner
 from softac.rundir import checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.runstate import RunState
 from softac.snapshot import checkpoint_parts
+from softac.stopsignal import StopSignal
 
 
 SHOW_EVERY = 100  # env steps between progress-bar refreshes
@@ -37,29 +36,6 @@ SHOW_EVERY = 100  # env steps between progress-bar refreshes
 def crossed(before: int, after: int, interval: int) -> bool:
     """Did the step counter pass a multiple of `interval` going from `before` to `after`?"""
     return interval > 0 and before // interval != after // interval
-
-
-class StopSignal:
-    """SIGINT/SIGTERM set a flag the loop checks; a second Ctrl-C stops at once."""
-
-    def __init__(self) -> None:
-        self.requested = False
-        self.previous: dict[int, Any] = {}
-
-    def __enter__(self) -> "StopSignal":
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self.previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.requested and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.requested = True
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
 
 
 def _check_finite(metrics: dict[str, float], step: int) -> None:

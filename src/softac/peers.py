@@ -79,29 +79,82 @@ def crossq_settings(c: SACConfig) -> dict[str, Any]:
                               "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1}}}
 
 
+def _peer_algorithm(framework: str) -> tuple[Any, dict[str, Any]]:
+    """The peer's algorithm class, and the keywords both making and loading it take."""
+    peer = PEERS[framework]
+    if peer.package == "stable_baselines3":
+        import torch
+        from stable_baselines3 import SAC
+
+        torch.set_num_threads(int(os.environ.get("SOFTAC_THREADS", 0)) or os.cpu_count() or 1)
+        return SAC, {"device": "cpu"}
+    import sbx
+
+    return getattr(sbx, peer.algorithm), {}
+
+
 def peer_model(framework: str, env_id: str, seed: int, **overrides: Any):
     """The peer's model on a fresh env, at its settings (`overrides`, e.g. learning_starts for a throughput
     probe, replace them)."""
     import gymnasium as gym
 
-    peer = PEERS[framework]
-    kwargs: dict[str, Any] = {}
-    if peer.package == "stable_baselines3":
-        import torch
-        from stable_baselines3 import SAC as algorithm
-
-        torch.set_num_threads(int(os.environ.get("SOFTAC_THREADS", 0)) or os.cpu_count() or 1)
-        kwargs["device"] = "cpu"
-    else:
-        import sbx
-
-        algorithm = getattr(sbx, peer.algorithm)
-    if peer.settings != "defaults":
+    algorithm, kwargs = _peer_algorithm(framework)
+    settings = PEERS[framework].settings
+    if settings != "defaults":
         from softac.config import SACConfig
 
-        kwargs.update(crossq_settings(SACConfig.preset(peer.settings)))
+        kwargs.update(crossq_settings(SACConfig.preset(settings)))
     kwargs.update(overrides)
     return algorithm("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+
+
+# the replay buffer's arrays (SB3's ReplayBuffer, which SBX uses too)
+BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+def save_peer_checkpoint(model: Any, directory: Path, meta: dict[str, Any]) -> None:
+    """The peer's model in its own library's format (its `save()` zip, kept as bytes), the filled rows of its
+    replay buffer, and the run's bookkeeping (`meta`), written as softac writes its checkpoints: atomically,
+    checksummed, no pickle of ours (SB3's zip holds its own pickled settings, read only by SB3 on resume)."""
+    import io
+
+    import numpy as np
+
+    from softac import checkpoint as ckpt
+
+    zipped = io.BytesIO()
+    model.save(zipped)
+    buffer = model.replay_buffer
+    filled = buffer.buffer_size if buffer.full else buffer.pos
+    arrays = {"model_zip": np.frombuffer(zipped.getvalue(), np.uint8)}
+    arrays.update({f"buffer_{name}": getattr(buffer, name)[:filled] for name in BUFFER_FIELDS})
+    ckpt.save(directory, {**meta, "buffer_pos": int(buffer.pos), "buffer_full": bool(buffer.full)}, arrays)
+
+
+def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
+                         identity: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+    """The model and the bookkeeping `save_peer_checkpoint` wrote, the replay buffer refilled (SB3's `load()`
+    alone leaves it empty, and SBX's CrossQ then learns from one row and diverges to NaN). A checkpoint of
+    another run (`identity`: framework, env, seed, steps) is refused."""
+    import io
+
+    import gymnasium as gym
+
+    from softac import checkpoint as ckpt
+    from softac.errors import SoftacError
+
+    meta, arrays = ckpt.load(directory)
+    if meta.get("peer") != identity:
+        raise SoftacError(f"{directory} holds the checkpoint of another run ({meta.get('peer') or 'softac'}), not "
+                          f"of {identity}; pick another --out")
+    algorithm, kwargs = _peer_algorithm(framework)
+    model = algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=gym.make(env_id), **kwargs)
+    buffer = model.replay_buffer
+    for name in BUFFER_FIELDS:
+        rows = arrays[f"buffer_{name}"]
+        getattr(buffer, name)[:len(rows)] = rows
+    buffer.pos, buffer.full = int(meta["buffer_pos"]), bool(meta["buffer_full"])
+    return model, meta
 
 
 def peer_version(framework: str) -> str:
@@ -159,84 +212,146 @@ def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps:
 
 
 def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
-             eval_episodes: int, log_interval: int) -> dict[str, Any]:
-    """Train a peer's SAC at its defaults and write a softac-style run directory (config.yaml, progress.csv,
-    episodes.csv, eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions,
-    episode i of every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what
-    softac's mean (softac.logs.TrainRows). The run directory is locked as softac's are (one writer)."""
+             eval_episodes: int, log_interval: int, checkpoint_interval: int = 0) -> dict[str, Any]:
+    """Train a peer and write a softac-style run directory (config.yaml, progress.csv, episodes.csv,
+    eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions, episode i of
+    every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what softac's mean
+    (softac.logs.TrainRows). The run directory is locked as softac's are (one writer). Every
+    `checkpoint_interval` steps, and when Ctrl-C or SIGTERM stops it (TrainingInterrupted, exit 130), the run
+    saves checkpoints/last; the same call on the same directory continues from there, so a peer's run that
+    takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes."""
     from softac.rundir import run_lock
 
     with run_lock(out):
-        return _peer_run(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval)
+        return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
+                       checkpoint_interval).run()
 
 
-def _peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
-              eval_episodes: int, log_interval: int) -> dict[str, Any]:
-    import gymnasium as gym
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
-    from softac.loggers import CsvLogger
-    from softac.logs import TrainRows
-    from softac.rundir import write_config, write_summary
-
-    model = peer_model(framework, env_id, seed)
+def _hyperparameters(model: Any) -> dict[str, Any]:
+    """What config.yaml records of a peer's model: its settings as it holds them."""
     hyper = {k: getattr(model, k) for k in ("learning_rate", "qf_learning_rate", "buffer_size", "batch_size",
                                             "learning_starts", "tau", "gamma", "train_freq", "gradient_steps",
-                                            "policy_delay", "ent_coef", "target_entropy")
-             if hasattr(model, k)}
+                                            "policy_delay", "ent_coef", "target_entropy") if hasattr(model, k)}
     if "train_freq" in hyper:
         hyper["train_freq"] = f"{hyper['train_freq'].frequency} {hyper['train_freq'].unit.value}"
-    peer = PEERS[framework]
-    config = {"framework": framework, "algorithm": peer.algorithm, "settings": peer.settings, "about": peer.about,
-              "env_id": env_id, "seed": seed, "total_steps": steps,
-              "eval_interval": eval_interval, "eval_episodes": eval_episodes,
-              **{k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in hyper.items()},
-              "policy_kwargs": str(model.policy_kwargs)}
-    write_config(out, config, {"versions": {framework: peer_version(framework)}})
-    logs = CsvLogger(out)  # the same files as a softac run: plots, reports and sweep tables read both
-    eval_envs = [gym.make(env_id) for _ in range(min(eval_episodes, MAX_PARALLEL))]
-    t0 = time.perf_counter()
-    rows = TrainRows(0)
-    state: dict[str, Any] = {"best": None, "best_step": None, "last": None, "episodes": 0}
+    return {**{k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in hyper.items()},
+            "policy_kwargs": str(model.policy_kwargs)}
 
-    def evaluate(step: int) -> None:
-        stats = run_episodes(lambda obs: model.predict(obs, deterministic=True)[0], lambda: gym.make(env_id),
-                             eval_episodes, seed + EVAL_SEED_OFFSET, envs=eval_envs)
-        logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
-                          "episodes": stats["episodes"]}, step)
-        state["last"] = stats["mean_return"]
-        if state["best"] is None or stats["mean_return"] > state["best"]:
-            state["best"], state["best_step"] = stats["mean_return"], step
 
-    class LogAndEvaluate(BaseCallback):
-        def _on_step(self) -> bool:
-            step = self.num_timesteps
-            for info in self.locals.get("infos", []):
-                if "episode" in info:
-                    state["episodes"] += 1
-                    rows.episode_finished(float(info["episode"]["r"]))
-                    logs.log("rollout", {"return": float(info["episode"]["r"]), "length": int(info["episode"]["l"])},
-                             step)
-            if step % log_interval == 0:
-                row = rows.row(step, time.perf_counter() - t0, state["episodes"])
-                logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
-            if eval_interval > 0 and step % eval_interval == 0:
-                evaluate(step)
-            return True
+class PeerRun:
+    """One peer run into a run directory: a fresh model, or the one its last checkpoint holds with the
+    run's bookkeeping (step, episodes, evaluations so far, seconds so far, recent returns). A resumed run
+    starts a new training episode where the checkpoint was written (the env's state mid-episode is not
+    saved) and draws other random numbers than an unbroken run would: it is the same experiment, not the
+    same numbers, unlike softac's exact resume."""
 
-    model.learn(steps, callback=LogAndEvaluate())
-    if eval_interval > 0 and steps % eval_interval != 0:
-        evaluate(steps)
-    logs.close()
-    for env in eval_envs:
-        env.close()
-    summary = {"steps": int(model.num_timesteps), "episodes": state["episodes"],
-               "train_time_s": time.perf_counter() - t0, "wall_s": time.perf_counter() - t0,
-               "last_eval": state["last"], "best_eval": state["best"], "stopped_early": False,
-               "best_step": state["best_step"], "total_steps": steps, "framework": framework}
-    write_summary(out, summary)
-    return summary
+    def __init__(self, framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
+                 eval_episodes: int, log_interval: int, checkpoint_interval: int):
+        from softac import checkpoint as ckpt
+        from softac.rundir import checkpoint_path
+
+        self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
+        self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
+        self.checkpoint_interval = checkpoint_interval
+        self.checkpoint = checkpoint_path(out, "last")
+        self.identity = {"framework": framework, "env_id": env_id, "seed": seed, "total_steps": steps}
+        self.resumed = ckpt.is_checkpoint(self.checkpoint)
+        if self.resumed:
+            self.model, meta = load_peer_checkpoint(framework, env_id, self.checkpoint, self.identity)
+            self.record = meta["record"]
+        else:
+            self.model = peer_model(framework, env_id, seed)
+            self.record = {"step": 0, "episodes": 0, "best": None, "best_step": None, "last": None,
+                           "elapsed_s": 0.0, "recent_returns": []}
+
+    def run(self) -> dict[str, Any]:
+        import gymnasium as gym
+        from stable_baselines3.common.callbacks import BaseCallback
+
+        from softac.errors import TrainingInterrupted
+        from softac.evaluation import MAX_PARALLEL
+        from softac.loggers import CsvLogger
+        from softac.logs import TrainRows
+        from softac.rundir import write_config, write_summary
+        from softac.stopsignal import StopSignal
+
+        peer, start = PEERS[self.framework], self.record["step"]
+        config = {**self.identity, "algorithm": peer.algorithm, "settings": peer.settings, "about": peer.about,
+                  "eval_interval": self.eval_interval, "eval_episodes": self.eval_episodes,
+                  **_hyperparameters(self.model)}
+        write_config(self.out, config, {"versions": {self.framework: peer_version(self.framework)}},
+                     start_step=start, continuing=self.resumed)
+        # the same files as a softac run (plots, reports and sweep tables read both); on resume, rows past the
+        # checkpoint's step are dropped
+        self.logs = CsvLogger(self.out, start if self.resumed else None)
+        self.eval_envs = [gym.make(self.env_id) for _ in range(min(self.eval_episodes, MAX_PARALLEL))]
+        self.t0 = time.perf_counter() - self.record["elapsed_s"]  # time_s counts every segment's seconds
+        self.rows = TrainRows(start, self.record["recent_returns"])
+        run = self
+
+        class Hooks(BaseCallback):
+            def _on_step(self) -> bool:
+                return run.on_step(self.num_timesteps, self.locals.get("infos", []))
+
+        try:
+            with StopSignal() as self.stop:
+                self.model.learn(self.steps - start, callback=Hooks(), reset_num_timesteps=not self.resumed)
+            if self.stop.requested:
+                raise TrainingInterrupted(int(self.model.num_timesteps), str(self.checkpoint))
+            if self.eval_interval > 0 and self.steps % self.eval_interval != 0:
+                self.evaluate(self.steps)
+        finally:
+            self.logs.close()
+            for env in self.eval_envs:
+                env.close()
+        elapsed = time.perf_counter() - self.t0
+        summary = {"steps": int(self.model.num_timesteps), "episodes": self.record["episodes"],
+                   "train_time_s": elapsed, "wall_s": elapsed, "last_eval": self.record["last"],
+                   "best_eval": self.record["best"], "stopped_early": False, "best_step": self.record["best_step"],
+                   "total_steps": self.steps, "framework": self.framework}
+        write_summary(self.out, summary)
+        return summary
+
+    def on_step(self, step: int, infos: list[dict[str, Any]]) -> bool:
+        """Episodes, log rows, evaluations and checkpoints due at this step; False stops training (a signal,
+        after the checkpoint is written)."""
+        for info in infos:
+            if "episode" in info:
+                self.record["episodes"] += 1
+                self.rows.episode_finished(float(info["episode"]["r"]))
+                self.logs.log("rollout", {"return": float(info["episode"]["r"]), "length": int(info["episode"]["l"])},
+                              step)
+        if step % self.log_interval == 0:
+            row = self.rows.row(step, time.perf_counter() - self.t0, self.record["episodes"])
+            self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
+        if self.eval_interval > 0 and step % self.eval_interval == 0:
+            self.evaluate(step)
+        if self.stop.requested or (self.checkpoint_interval > 0 and step % self.checkpoint_interval == 0):
+            self.save(step)
+        return not self.stop.requested
+
+    def evaluate(self, step: int) -> None:
+        import gymnasium as gym
+
+        from softac.evaluation import EVAL_SEED_OFFSET, run_episodes
+
+        stats = run_episodes(lambda obs: self.model.predict(obs, deterministic=True)[0], lambda: gym.make(self.env_id),
+                             self.eval_episodes, self.seed + EVAL_SEED_OFFSET, envs=self.eval_envs)
+        self.logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
+                               "episodes": stats["episodes"]}, step)
+        self.record["last"] = stats["mean_return"]
+        if self.record["best"] is None or stats["mean_return"] > self.record["best"]:
+            self.record["best"], self.record["best_step"] = stats["mean_return"], step
+
+    def save(self, step: int) -> None:
+        from softac.errors import RunFailed
+
+        self.record.update(step=step, elapsed_s=time.perf_counter() - self.t0, recent_returns=list(self.rows.recent))
+        try:
+            save_peer_checkpoint(self.model, self.checkpoint, {"peer": self.identity, "record": self.record})
+        except OSError as exc:
+            raise RunFailed(f"could not write checkpoint {self.checkpoint}: {exc.strerror or exc}; "
+                            "the previous checkpoint is kept") from None
 
 
 # ---- the entry point of a peer's process ------------------------------------------------------------
@@ -255,21 +370,32 @@ def arguments() -> argparse.ArgumentParser:
     p.add_argument("--eval-interval", type=int, default=1000)
     p.add_argument("--eval-episodes", type=int, default=10)
     p.add_argument("--log-interval", type=int, default=1000)
+    p.add_argument("--checkpoint-interval", type=int, default=0,
+                   help="run: steps between checkpoints (0: only when stopped by a signal); run again to continue")
     return p
 
 
 def main(argv: list[str]) -> None:
+    from softac.errors import RunFailed, SoftacError, TrainingInterrupted
+
     parser = arguments()
     a = parser.parse_args(argv)
-    if a.kind == "run":
-        if not a.out:
-            parser.error("run needs --out")
-        out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
-                       a.log_interval)
-    elif a.kind == "throughput":
-        out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
-    else:
-        out = peer_solve(a.framework, a.env, a.seed, a.target, a.max_steps)
+    try:
+        if a.kind == "run":
+            if not a.out:
+                parser.error("run needs --out")
+            out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
+                           a.log_interval, a.checkpoint_interval)
+        elif a.kind == "throughput":
+            out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
+        else:
+            out = peer_solve(a.framework, a.env, a.seed, a.target, a.max_steps)
+    except TrainingInterrupted as exc:
+        print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr)
+        sys.exit(130)
+    except SoftacError as exc:
+        print(f"python -m softac.peers: {exc}", file=sys.stderr)
+        sys.exit(3 if isinstance(exc, RunFailed) else 2)
     print(json.dumps(out), flush=True)
 
 

@@ -50,6 +50,11 @@ def checkpoint_parts(learner: Learner, run: RunState, collector: Collector | Non
 def saved_config(meta: dict[str, Any], where: Path | str, **overrides: Any) -> SACConfig:
     """The config a checkpoint was trained with; `overrides` (None values skipped) replace settings that do
     not change what the agent computes (device, env_workers, loggers)."""
+    if "peer" in meta:  # softac.peers writes its peers' checkpoints in softac's format, to resume their runs
+        raise ckpt.CheckpointError(f"{where} is the checkpoint of a peer's run ({meta['peer'].get('framework')}): "
+                                   "it resumes that run, but softac cannot load it as an agent")
+    if not isinstance(meta.get("config"), dict):
+        raise ckpt.CheckpointError(f"corrupt checkpoint {where}: it names no config")
     try:
         config = SACConfig().replace(**meta["config"])
     except SoftacError as exc:

@@ -32,10 +32,11 @@ def trial_state(run: Path) -> str:
 
 def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: Path) -> list[str]:
     if spec.framework != "softac":
+        # the same command continues a peer's run from its last checkpoint
         return [sys.executable, "-m", "softac.peers", "run", spec.framework, "--env", spec.env_id,
                 "--seed", str(trial["seed"]), "--steps", str(spec.steps), "--out", str(run),
                 "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
-                "--log-interval", str(base.log_interval)]
+                "--log-interval", str(base.log_interval), "--checkpoint-interval", str(base.checkpoint_interval)]
     if trial_state(run) == "partial":
         return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--no-progress"]
     pairs = list(spec.overrides) + [f"{k}={value_text(v)}" for k, v in trial["values"].items()]
@@ -93,7 +94,8 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     run = root / trial["name"]
     if trial_state(run) == "done":
         return
-    if sweep.framework != "softac" and run.exists():  # peers cannot resume: keep the partial run aside
+    if sweep.framework != "softac" and run.exists() and trial_state(run) == "new":
+        # a peer's run stopped before its first checkpoint cannot continue: keep it aside, start again
         n = 1
         while run.with_name(f"{run.name}.incomplete-{n}").exists():
             n += 1

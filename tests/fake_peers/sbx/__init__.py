@@ -1,5 +1,7 @@
-"""A stand-in for sbx.SAC (see tests/fake_peers/README.md): random actions, SB3's callback protocol."""
+"""A stand-in for sbx.SAC (see tests/fake_peers/README.md): random actions, SB3's callback protocol, SB3's
+save/load and replay buffer layout (so that a peer's checkpoint and resume are tested)."""
 
+import json
 import time
 
 import numpy as np
@@ -9,13 +11,46 @@ STEP_S = 0.001  # each env step, and predict() for each observation, take at lea
                 # evaluation are markedly slower (tests/test_peer_runs.py)
 
 
+class ReplayBuffer:
+    """SB3's ReplayBuffer layout: preallocated [size, n_envs, ...] arrays, a write position, a full flag."""
+
+    def __init__(self, size, env):
+        self.buffer_size, self.pos, self.full = size, 0, False
+        obs, act = env.observation_space.shape, env.action_space.shape
+        self.observations = np.zeros((size, 1, *obs))
+        self.next_observations = np.zeros((size, 1, *obs))
+        self.actions = np.zeros((size, 1, *act), np.float32)
+        self.rewards, self.dones, self.timeouts = (np.zeros((size, 1), np.float32) for _ in range(3))
+
+    def add(self, obs, next_obs, action, reward, done):
+        self.observations[self.pos, 0], self.next_observations[self.pos, 0] = obs, next_obs
+        self.actions[self.pos, 0], self.rewards[self.pos, 0], self.dones[self.pos, 0] = action, reward, done
+        self.pos = (self.pos + 1) % self.buffer_size
+        self.full = self.full or self.pos == 0
+
+
 class SAC:
+    BUFFER = 500  # rows: small, so that the tests' runs fill it and wrap around
+
     def __init__(self, policy, env, seed=None, verbose=0, **kwargs):
         self.env, self.seed = env, seed
         self.learning_rate, self.batch_size, self.gamma = 3e-4, 256, 0.99
         self.policy_kwargs = {}
         self.num_timesteps = 0
         self.rng = np.random.default_rng(seed)
+        self.replay_buffer = ReplayBuffer(self.BUFFER, env)
+
+    def save(self, file):
+        file.write(json.dumps({"num_timesteps": self.num_timesteps, "seed": self.seed,
+                               "settings": {k: v for k, v in vars(self).items() if isinstance(v, (int, float))}}).encode())
+
+    @classmethod
+    def load(cls, file, env, **kwargs):
+        data = json.loads(file.read())
+        model = cls("MlpPolicy", env, seed=data["seed"])
+        for key, value in data["settings"].items():
+            setattr(model, key, value)
+        return model  # like SB3's load(): the replay buffer comes back empty
 
     def predict(self, obs, deterministic=True):
         obs = np.asarray(obs)
@@ -23,24 +58,33 @@ class SAC:
         shape = (obs.shape[0], *self.env.action_space.shape) if obs.ndim > 1 else self.env.action_space.shape
         return np.zeros(shape, np.float32), None
 
-    def learn(self, total_timesteps, callback):
+    def learn(self, total_timesteps, callback, reset_num_timesteps=True):
+        if reset_num_timesteps:
+            self.num_timesteps = 0
+        # a resumed model must have its replay buffer back: every step so far is in it but the last one, which
+        # SB3 stores after the callback that saved the checkpoint
+        expected = min(self.num_timesteps, self.BUFFER)
+        filled = self.BUFFER if self.replay_buffer.full else self.replay_buffer.pos
+        if not expected - 1 <= filled <= expected or (self.num_timesteps and not self.replay_buffer.observations.any()):
+            raise RuntimeError(f"replay buffer holds {filled} rows after {self.num_timesteps} steps")
         callback.model = self
         space = self.env.action_space
-        self.env.reset(seed=self.seed)
+        obs, _ = self.env.reset(seed=self.seed)
         episode_return, length = 0.0, 0
         for _ in range(total_timesteps):
             time.sleep(STEP_S)
             action = self.rng.uniform(space.low, space.high).astype(np.float32)
-            _, reward, terminated, truncated, info = self.env.step(action)
+            next_obs, reward, terminated, truncated, info = self.env.step(action)
             episode_return, length = episode_return + float(reward), length + 1
             self.num_timesteps += 1
             if terminated or truncated:  # SB3's Monitor wrapper puts the finished episode in info
                 info = {**info, "episode": {"r": episode_return, "l": length}}
                 episode_return, length = 0.0, 0
-                self.env.reset()
             callback.locals = {"infos": [info]}
-            if callback._on_step() is False:
+            if callback._on_step() is False:  # as SB3: the callback first, then the transition is stored
                 break
+            self.replay_buffer.add(obs, next_obs, action, reward, terminated)
+            obs = self.env.reset()[0] if terminated or truncated else next_obs
         return self
 
 
