@@ -45,12 +45,20 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
 
 - Classic set (InvertedPendulum-v5/v4, Pusher-v5): softac's env presets on 5 seeds, Stable-Baselines3's
   SAC at its defaults on 3 seeds (`softac sweep --framework sb3`), the same step budget.
-- MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps; softac's env
-  presets (CrossQ) on 3 seeds, SBX's SAC at its defaults on 2 seeds (`softac sweep --framework sbx`;
-  Stable-Baselines3 trains ~3x slower than SBX and is left out of this budget).
-- Other rows, on the same seeds and budget: `softac preset=NAME` is another preset on the env (`results.sh
+- MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps. "softac, crossq
+  preset" is softac's env preset (each extends `crossq` and changes nothing else), on 5 seeds; beside it,
+  like for like, "SBX CrossQ, crossq preset's settings" (`softac sweep --framework sbx-crossq-softac`: SBX's
+  CrossQ at the same settings, 2 seeds); "SBX CrossQ, its defaults" (`--framework sbx-crossq`: 1024-wide
+  critics, batch 256; hours a run on one CPU, so only where finished); "SBX SAC, its defaults" (2 seeds).
+  softac multiplies in bf16 where the CPU has it (`matmul_dtype: auto`), SBX in float32. Stable-Baselines3
+  trains ~3x slower than SBX and is left out of this budget. The aggregate section puts the five envs
+  together.
+- Other rows, on the same seeds and budget: "softac, NAME preset" is another preset on the env (`results.sh
   options`: plain SAC, `sac-100k`, beside the CrossQ presets; `results.sh fallback`: `default` and
-  `crossq` on envs with no preset of their own), `softac KEY=VALUE ...` the env's preset with options.
+  `crossq` on envs with no preset of their own); "... + KEY=VALUE" adds options to it.
+- Wall times are comparable between trials run at the same time on the same machine (its speed drifts by
+  up to 2x between days): each trial's `config.yaml` records when it started (`segments`), and the notes
+  below say which trials ran side by side.
 
 Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
@@ -129,8 +137,28 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
 
 
 def finished_trials(d: Path) -> list[dict]:
+    """The sweep's finished trials' rows, each with the day it started (None for runs from before
+    config.yaml recorded it)."""
+    import yaml
+
     spec = load_spec(d)
-    return [r for r in trial_rows(d, spec) if r["status"] == "done" and r["final_eval_mean"] is not None]
+    rows = [r for r in trial_rows(d, spec) if r["status"] == "done" and r["final_eval_mean"] is not None]
+    for row in rows:
+        config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
+        started = str((config.get("segments") or [{}])[0].get("started") or "")
+        row["day"] = started[:10] or None
+    return rows
+
+
+def wall_ratio(theirs: list[dict], ours: list[dict]) -> tuple[float, float, float, bool]:
+    """Median wall time of `theirs` over that of `ours`, from the trials of `ours` that ran on the days
+    `theirs` ran (side by side: the machine's speed drifts by up to 2x between days) when there are any;
+    returns (ratio, their median, our median, side by side)."""
+    days = {r["day"] for r in theirs}  # None: before config.yaml recorded it (those sweeps ran side by side too)
+    beside = [r for r in ours if r["day"] in days]
+    used = beside or ours
+    theirs_s, ours_s = float(np.median([r["wall_s"] for r in theirs])), float(np.median([r["wall_s"] for r in used]))
+    return theirs_s / ours_s, theirs_s, ours_s, bool(beside)
 
 
 def random_returns(envs: list[str]) -> dict[str, float]:
@@ -162,8 +190,10 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
              "stratified-bootstrap 95% interval (runs resampled within each env, 20,000 resamples: rliable's "
              "method, Agarwal et al. 2021). Normalised score = (final eval - random policy's return) / (best final "
              "eval of any trial shown on the env - random policy's return): 0 is the random policy, 1 the best "
-             "run seen here. Wall time: each env's median trial time over softac's, then the geometric mean over "
-             "the envs (and the range). A configuration with trials on only some envs is aggregated over those "
+             "run seen here. Wall time: each env's median trial time over softac's preset's (from the trials that ran "
+             "on the same days: the machine's speed drifts by up to 2x between days; trials from before config.yaml "
+             "recorded the day count as one day), then the geometric mean over the envs (and "
+             "the range). A configuration with trials on only some envs is aggregated over those "
              "(its envs column says which) beside softac's preset over the same envs.", "",
              "| env | random policy | best final eval | by |", "|---|---|---|---|"]
     for env in best:
@@ -173,6 +203,7 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
     lines += ["", "| configuration | envs | trials | IQM of normalised score [95% CI] | wall time / softac's "
               "(geometric mean, range) |", "|---|---|---|---|---|"]
     scores: dict[str, tuple[float, float, float]] = {}
+    beside: list[tuple[str, str, tuple[float, float, float, bool]]] = []
     for name, envs in finals.items():
         partial = set(envs) != set(best) and ours is not None and all(e in finals[ours] for e in envs)
         groups = [name, ours] if partial else [name]  # a partial one beside softac's preset on its envs
@@ -184,14 +215,22 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
             normalised = [[(r["final_eval_mean"] - random[e]) / (best[e] - random[e]) for r in finals[who][e]]
                           for e in used]
             scores[label] = stratified_bootstrap_iqm(normalised)
-            ratios = [float(np.median([r["wall_s"] for r in finals[who][e]]) /
-                            np.median([r["wall_s"] for r in finals[ours][e]])) for e in used if ours in finals
-                      and e in finals[ours]]
+            pairs = ([(1.0, 0.0, 0.0, True)] * len(used) if who == ours else
+                     [wall_ratio(finals[who][e], finals[ours][e]) for e in used if ours in finals and e in finals[ours]])
+            ratios = [pair[0] for pair in pairs]
             wall = (f"{np.exp(np.mean(np.log(ratios))):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
+                    + ("" if all(pair[3] for pair in pairs) or who == ours else " (not side by side)")
                     if ratios else "-")
+            if who != ours:
+                beside.extend((who, e, pair) for e, pair in zip(used, pairs) if pair[3])
             point, low, high = scores[label]
             lines.append(f"| {label} | {len(used)} | {sum(len(finals[who][e]) for e in used)} | "
                          f"{point:.2f} [{low:.2f}, {high:.2f}] | {wall} |")
+    if beside:
+        lines += ["", f"Side by side: each peer's trials and {ours}'s trials that ran on the same days (one pinned "
+                  "CPU each, two trials at a time), median wall seconds per 100k-step trial, evaluations included:",
+                  "", "| env | configuration | its median s | softac's median s | ratio |", "|---|---|---|---|---|"]
+        lines += [f"| {env} | {who} | {pair[1]:.0f} | {pair[2]:.0f} | {pair[0]:.2f} |" for who, env, pair in beside]
     figure = figures / "suite-aggregate.png"
     plot_aggregate(scores, figure, "MuJoCo suite at 100k steps: IQM of normalised final scores",
                    "normalised score (0: random policy, 1: best run seen); bars: stratified-bootstrap 95% CI")

@@ -90,3 +90,17 @@ def test_the_suite_aggregate_is_an_iqm_of_normalised_scores_with_a_bootstrap_int
     assert table["SBX SAC, its defaults (Hopper)"][2:4] == [" 1 ", " 2 "]
     assert float(table["SBX SAC, its defaults (Hopper)"][5].split()[0]) > 1  # SBX took longer here
     assert (tmp_path / "suite-aggregate.png").stat().st_size > 10_000
+
+
+def test_wall_time_ratios_compare_trials_that_ran_on_the_same_days():
+    """The machine's speed drifts by up to 2x between days: a peer's trials are timed against softac's trials
+    of the same days; trials from before the day was recorded form one day of their own."""
+    wall_ratio = load_results_doc().wall_ratio
+    ours = [{"day": None, "wall_s": 200.0}, {"day": None, "wall_s": 210.0}, {"day": None, "wall_s": 190.0},
+            {"day": "2026-11-25", "wall_s": 500.0}, {"day": "2026-11-25", "wall_s": 480.0}]
+    today = [{"day": "2026-11-25", "wall_s": 800.0}, {"day": "2026-11-25", "wall_s": 820.0}]
+    assert wall_ratio(today, ours) == (810.0 / 490.0, 810.0, 490.0, True)
+    before = [{"day": None, "wall_s": 400.0}]
+    assert wall_ratio(before, ours) == (2.0, 400.0, 200.0, True)
+    other_day = [{"day": "2026-12-01", "wall_s": 300.0}]
+    assert wall_ratio(other_day, ours) == (300.0 / 210.0, 300.0, 210.0, False)  # none beside it: all of ours, said so
