@@ -1,6 +1,7 @@
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 # JAX on the CPU for the whole session, this process and the CLI subprocesses the tests start (they inherit
@@ -59,6 +60,22 @@ def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra
     env = {**child_env(), **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "softac", *args], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=cwd, **popen)
+
+
+def signal_when(proc: subprocess.Popen, ready, sig: int, within_s: float = 600) -> str:
+    """Wait until `ready()` holds (the process still running: a hang guard, not a timing), send `sig`, and
+    return the process's stderr once it has exited; a process still running when anything fails is killed."""
+    try:
+        deadline = time.monotonic() + within_s
+        while not ready():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, f"not ready within {within_s} s"
+            time.sleep(0.05)
+        proc.send_signal(sig)
+        return proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
 
 
 def assert_clean_error(result: subprocess.CompletedProcess, *fragments: str) -> None:

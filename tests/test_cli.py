@@ -7,12 +7,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 
-from conftest import assert_clean_error, child_env, run_cli
+from conftest import assert_clean_error, child_env, run_cli, signal_when
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "buffer_size=5000",
              "log_interval=100", "eval_episodes=2"]
@@ -88,12 +87,8 @@ def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):
                              "--steps", "1000000", "--out", str(run), "--no-progress", *TINY_SETS,
                              "eval_interval=0", "checkpoint_interval=0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    deadline = time.monotonic() + 600  # a hang guard only
-    while not (run / "progress.csv").exists() or len((run / "progress.csv").read_text().splitlines()) < 4:
-        assert time.monotonic() < deadline and proc.poll() is None
-        time.sleep(0.2)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
+    progress = run / "progress.csv"
+    err = signal_when(proc, lambda: progress.exists() and len(progress.read_text().splitlines()) >= 4, sig)
     assert proc.returncode == 130, err
     assert "interrupted at step" in err and "Traceback" not in err
     r = run_cli("train", "--resume", str(run), "--steps", "100", "--no-progress")

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import TESTS, child_env, run_cli
+from conftest import TESTS, child_env, run_cli, signal_when
 from softac.logs import RECENT_EPISODES, read_csv
 
 DRIFT = "softac_test_envs:Drift-v0"  # 25-step episodes
@@ -115,23 +115,14 @@ def test_a_peer_run_stopped_by_a_signal_continues_from_its_checkpoint(tmp_path):
     same command then continues from it, the replay buffer refilled (the stand-in checks it), the logs cut
     back to the checkpoint's step, the seconds of both segments counted, and a run of another seed refused."""
     import signal
-    import time
 
     import yaml
 
     run = tmp_path / "peer"
     proc = subprocess.Popen(_peer_command(run), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=child_env(FAKE_PEERS))
-    try:
-        deadline = time.time() + 240
-        while time.time() < deadline and len(read_csv(run / "eval.csv")) < 3:  # past the checkpoint at step 400
-            assert proc.poll() is None, proc.communicate()
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    # stopped past the checkpoint at step 400
+    stderr = signal_when(proc, lambda: len(read_csv(run / "eval.csv")) >= 3, signal.SIGTERM)
     assert proc.returncode == 130, stderr
     assert "run the same command again to continue" in stderr.strip().splitlines()[-1]
     assert not (run / "summary.json").exists()

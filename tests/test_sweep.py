@@ -7,14 +7,13 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from conftest import TESTS, assert_clean_error, child_env, run_cli
+from conftest import TESTS, assert_clean_error, child_env, run_cli, signal_when
 from softac import sweep
 from softac.errors import SoftacError
 
@@ -315,22 +314,13 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
             "--out", str(out), *TINY_SET]
     driver = subprocess.Popen([sys.executable, "-m", "softac", *args], env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
-    try:  # interrupt once the first trial is done and the second has a checkpoint past step 0
-        deadline = time.time() + 600
-        while time.time() < deadline:
-            done = [sweep.trial_state(out / f"seed={s}") == "done" for s in range(3)]
-            second = out / "seed=1" / "eval.csv"
-            if done[0] and second.exists() and len(second.read_text().splitlines()) >= 3 and not done[1]:
-                break
-            assert driver.poll() is None, driver.communicate()
-            time.sleep(0.2)
-        else:
-            pytest.fail("the sweep never had its first trial done and the second one under way (600 s)")
-        driver.send_signal(signal.SIGINT)
-        _, stderr = driver.communicate(timeout=120)
-    finally:
-        if driver.poll() is None:
-            driver.kill()
+
+    def first_done_second_under_way() -> bool:  # the second trial with a checkpoint past step 0
+        done = [sweep.trial_state(out / f"seed={s}") == "done" for s in range(3)]
+        second = out / "seed=1" / "eval.csv"
+        return done[0] and second.exists() and len(second.read_text().splitlines()) >= 3 and not done[1]
+
+    stderr = signal_when(driver, first_done_second_under_way, signal.SIGINT)
     assert driver.returncode == 130, stderr
     assert "--resume" in stderr.splitlines()[-1]
     assert sweep.trial_state(out / "seed=1") == "partial"  # the trial saved a checkpoint when it was stopped
