@@ -24,7 +24,7 @@ from softac.cpus import machine_description
 from softac.peers import PEERS
 from softac.plots import plot_aggregate, plot_comparison
 from softac.stats import stratified_bootstrap_iqm
-from softac.sweep import SweepSpec, aggregate, load_spec, markdown_table, trial_dirs, trial_rows
+from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
 # env -> the threshold its sweeps were given (None: no threshold columns)
 ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
@@ -102,20 +102,11 @@ def kept_sections(results_md: Path) -> dict[str, list[str]]:
     return sections
 
 
-def configuration_name(suffix: str, spec: SweepSpec) -> str:
-    """A configuration by its framework and preset: "softac, crossq preset", "softac, env preset +
-    obs_norm=true", "SBX CrossQ, its defaults"."""
-    if spec.framework in PEERS:
-        return PEERS[spec.framework].label
-    name = f"softac, {spec.preset or 'env'} preset"
-    return f"{name} + {' '.join(spec.overrides)}" if spec.overrides else name
-
-
 def env_sweeps(env: str, sweeps: Path) -> dict[str, Path]:
     """The env's sweep directories by configuration name: softac's preset, its variants, then the peers."""
     found = {d.name[len(env) + 1:]: d for d in sweeps.glob(f"{env}-*") if (d / "sweep.json").exists()}
     order = ["softac", *sorted(n for n in found if n.startswith("softac-")), *PEERS]
-    return {configuration_name(suffix, load_spec(found[suffix])): found[suffix] for suffix in order if suffix in found}
+    return {load_spec(found[suffix]).describe(): found[suffix] for suffix in order if suffix in found}
 
 
 def section(env: str, threshold: float | None, sweeps: Path, figures: Path,

@@ -366,13 +366,29 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from softac.plots import plot_runs
     from softac.sweep import SPEC_FILE, trial_dirs
 
-    runs = []
+    runs, named = [], {}
     for given in map(Path, args.runs):  # a sweep directory stands for all its trials
-        runs.extend(trial_dirs(given) if (given / SPEC_FILE).exists() else [given])
-    written = plot_runs(runs, Path(args.out) if args.out else None)
+        if (given / SPEC_FILE).exists():
+            trials = trial_dirs(given)
+            runs.extend(trials)
+            named.update({trial: _sweep_configuration(given, trial) for trial in trials})
+        else:
+            runs.append(given)
+    # several sweeps: configurations named by framework and preset (and grid values), not by differing keys
+    several = len({name.parent for name in named}) > 1 and len(named) == len(runs)
+    written = plot_runs(runs, Path(args.out) if args.out else None, names=named if several else None)
     for path in written:
         print(path)
     return EXIT_OK
+
+
+def _sweep_configuration(sweep_dir: Path, trial: Path) -> str:
+    """A trial's configuration in a comparison of sweeps: the sweep's framework and preset, then the trial's
+    grid values (its name without the seed)."""
+    from softac.sweep import load_spec
+
+    grid = ",".join(part for part in trial.name.split(",") if not part.startswith("seed="))
+    return load_spec(sweep_dir).describe() + (f", {grid}" if grid else "")
 
 
 def cmd_report(args: argparse.Namespace) -> int:

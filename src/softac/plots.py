@@ -312,8 +312,8 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     return out
 
 
-def plot_runs(runs: list[Path], out_dir: Path | None = None) -> list[Path]:
-    """All figures for one or more runs; returns the files written."""
+def plot_runs(runs: list[Path], out_dir: Path | None = None, names: dict[Path, str] | None = None) -> list[Path]:
+    """All figures for one or more runs; returns the files written. `names`: see group_runs."""
     for run in runs:
         if not run.is_dir():
             raise SoftacError(f"no such run directory: {run}")
@@ -331,7 +331,7 @@ def plot_runs(runs: list[Path], out_dir: Path | None = None) -> list[Path]:
             raise SoftacError("plotting several runs needs --out DIR")
         out_dir.mkdir(parents=True, exist_ok=True)
         known = [b for b in (load_baselines(r) for r in runs) if b]
-        written.append(plot_comparison(runs, out_dir / "comparison.png", known[0] if known else None))
+        written.append(plot_comparison(runs, out_dir / "comparison.png", known[0] if known else None, names))
         for run in runs:
             sub = out_dir / run.name
             sub.mkdir(exist_ok=True)

@@ -81,6 +81,14 @@ class SweepSpec:
     def base_config(self) -> SACConfig:
         return self.preset_config().replace(total_steps=self.steps)
 
+    def describe(self) -> str:
+        """The configuration by framework and preset, for tables and legends: "softac, crossq preset",
+        "softac, env preset + obs_norm=true", "SBX CrossQ, its defaults" (a peer's own settings are fixed)."""
+        if self.framework in PEERS:
+            return PEERS[self.framework].label
+        name = f"softac, {self.preset or 'env'} preset"
+        return f"{name} + {' '.join(self.overrides)}" if self.overrides else name
+
     def swept_keys(self) -> list[str]:
         return list(self.space or {}) if self.search else list(self.grid)
 
