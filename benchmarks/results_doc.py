@@ -223,8 +223,8 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
                   "", "| env | configuration | its median s | softac's median s | ratio |", "|---|---|---|---|---|"]
         lines += [f"| {env} | {who} | {pair[1]:.0f} | {pair[2]:.0f} | {pair[0]:.2f} |" for who, env, pair in beside]
     figure = figures / "suite-aggregate.png"
-    plot_aggregate(scores, figure, "MuJoCo suite at 100k steps: IQM of normalised final scores",
-                   "normalised score (0: random policy, 1: best run seen); bars: stratified-bootstrap 95% CI")
+    plot_aggregate(scores, figure, "MuJoCo suite, 100k steps: IQM of normalised final scores",
+                   "normalised score (0: random policy, 1: best run seen here)\nerror bar: 95% stratified-bootstrap interval")
     return lines + ["", f"![aggregate](results/{figure.name})", ""]
 
 

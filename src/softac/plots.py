@@ -295,7 +295,7 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     across envs with its stratified-bootstrap 95% interval ({name: (value, low, high)})."""
     plt = _pyplot()
     names = list(scores)
-    fig, ax = plt.subplots(figsize=(8, max(2.2, 0.55 * len(names) + 1.3)), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(11, max(2.2, 0.55 * len(names) + 1.5)), constrained_layout=True)
     for row, name in enumerate(names):
         value, low, high = scores[name]
         ax.barh(row, value, color=f"C{row % 10}", alpha=0.75)
@@ -306,7 +306,7 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     ax.set_xlabel(xlabel)
     ax.set_title(title)
     ax.grid(alpha=0.3, axis="x")
-    ax.set_xlim(min(0.0, *(low for _, low, _ in scores.values())), max(high for _, _, high in scores.values()) * 1.35)
+    ax.set_xlim(min(0.0, *(low for _, low, _ in scores.values())), max(high for _, _, high in scores.values()) * 1.45)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
