@@ -206,11 +206,10 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
             normalised = [[(r["final_eval_mean"] - random[e]) / (best[e] - random[e]) for r in finals[who][e]]
                           for e in used]
             scores[label] = stratified_bootstrap_iqm(normalised)
-            pairs = ([(1.0, 0.0, 0.0, True)] * len(used) if who == ours else
-                     [wall_ratio(finals[who][e], finals[ours][e]) for e in used if ours in finals and e in finals[ours]])
+            pairs = [wall_ratio(finals[who][e], finals[ours][e]) for e in used if ours in finals and e in finals[ours]]
             ratios = [pair[0] for pair in pairs]
             wall = (f"{np.exp(np.mean(np.log(ratios))):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
-                    + ("" if all(pair[3] for pair in pairs) or who == ours else " (not side by side)")
+                    + ("" if all(pair[3] for pair in pairs) else " (not side by side)")
                     if ratios else "-")
             if who != ours:
                 beside.extend((who, e, pair) for e, pair in zip(used, pairs) if pair[3])

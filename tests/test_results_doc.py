@@ -111,13 +111,14 @@ def test_wall_time_ratios_compare_trials_that_ran_on_the_same_days():
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
 def test_plotting_several_sweeps_names_each_by_framework_and_preset(tmp_path):
     from conftest import run_cli
-    from softac.cli import _sweep_configuration
+    from softac.cli import _trial_configuration
     from softac.sweep import load_spec
 
-    assert load_spec(KEPT / "Hopper-v5-softac").describe() == "softac, crossq preset"
+    sweep = load_spec(KEPT / "Hopper-v5-softac").describe()
+    assert sweep == "softac, crossq preset"
     assert load_spec(KEPT / "Hopper-v5-sbx").describe() == "SBX SAC, its defaults"
-    assert _sweep_configuration(KEPT / "Hopper-v5-softac", KEPT / "Hopper-v5-softac" / "seed=1") == "softac, crossq preset"
-    assert _sweep_configuration(KEPT / "Hopper-v5-softac", tmp_path / "tau=0.1,seed=1") == "softac, crossq preset, tau=0.1"
+    assert _trial_configuration(sweep, KEPT / "Hopper-v5-softac" / "seed=1") == "softac, crossq preset"
+    assert _trial_configuration(sweep, tmp_path / "tau=0.1,seed=1") == "softac, crossq preset, tau=0.1"
     r = run_cli("plot", str(KEPT / "Hopper-v5-softac"), str(KEPT / "Hopper-v5-sbx"), "--out", str(tmp_path / "figs"))
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "figs" / "comparison.png").stat().st_size > 10_000

@@ -364,14 +364,14 @@ def cmd_video(args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     from softac.plots import plot_runs
-    from softac.sweep import SPEC_FILE, trial_dirs
+    from softac.sweep import SPEC_FILE, load_spec, trial_dirs
 
     runs, named = [], {}
     for given in map(Path, args.runs):  # a sweep directory stands for all its trials
         if (given / SPEC_FILE).exists():
-            trials = trial_dirs(given)
+            trials, sweep = trial_dirs(given), load_spec(given).describe()
             runs.extend(trials)
-            named.update({trial: _sweep_configuration(given, trial) for trial in trials})
+            named.update({trial: _trial_configuration(sweep, trial) for trial in trials})
         else:
             runs.append(given)
     # several sweeps: configurations named by framework and preset (and grid values), not by differing keys
@@ -382,13 +382,11 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _sweep_configuration(sweep_dir: Path, trial: Path) -> str:
-    """A trial's configuration in a comparison of sweeps: the sweep's framework and preset, then the trial's
-    grid values (its name without the seed)."""
-    from softac.sweep import load_spec
-
+def _trial_configuration(sweep: str, trial: Path) -> str:
+    """A trial's configuration in a comparison of sweeps: its sweep's (framework and preset), then the
+    trial's grid values (its name without the seed)."""
     grid = ",".join(part for part in trial.name.split(",") if not part.startswith("seed="))
-    return load_spec(sweep_dir).describe() + (f", {grid}" if grid else "")
+    return sweep + (f", {grid}" if grid else "")
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -48,7 +48,6 @@ PEERS = {
                               "5000, lr 1e-3, Adam b1 0.5, policy delay 3)",
                               "SBX CrossQ, crossq preset's settings"),
 }
-PEER_MODULES = {name: peer.package for name, peer in PEERS.items()}
 THROUGHPUT_LEARNING_STARTS = 100
 
 

@@ -17,7 +17,7 @@ import yaml
 from softac.config import RECORD_ONLY_KEYS
 from softac.errors import SoftacError
 from softac.logs import read_csv
-from softac.stats import interquartile_mean, iqm_band
+from softac.stats import interquartile_mean, iqm_band, stratified_bootstrap_iqm
 
 METRIC_GRID = [  # (column, title), the notebooks' 2x3 grid
     ("critic_loss", "critic loss"),
@@ -278,7 +278,7 @@ def plot_final_returns(runs: list[Path], out: Path, names: dict[Path, str] | Non
         if len(values) == 0:
             continue
         ax.scatter(values, np.full(len(values), row), color=f"C{i % 10}", alpha=0.6, s=25, zorder=3)
-        iqm, low, high = (float(v[0]) for v in iqm_band(values[:, None]))
+        iqm, low, high = stratified_bootstrap_iqm([values], reps=2_000)
         ax.errorbar(iqm, [row], xerr=[[iqm - low], [high - iqm]], fmt="D", color="black", ms=6, capsize=4,
                     zorder=4)
     ax.set_yticks(range(len(order)), [f"{labels[i]} ({len(groups[i])})" for i in order], fontsize=8)

@@ -26,9 +26,7 @@ def t_critical_95(n: int) -> float:
 def interquartile_mean(values: Iterable[float]) -> float:
     """Mean of the middle half: a quarter of the values cut from each end (none of 3, one of 4-7 from each
     end, ...), as rliable's IQM; with fewer than 4 values it is the plain mean."""
-    from scipy import stats as scipy_stats
-
-    return float(scipy_stats.trim_mean(np.asarray(list(values), float), 0.25))
+    return float(trimmed_means(np.asarray(list(values), float)[None, :])[0])
 
 
 class SeedSummary(NamedTuple):
@@ -71,6 +69,15 @@ def trimmed_means(samples: np.ndarray) -> np.ndarray:
     return np.asarray(scipy_stats.trim_mean(samples, 0.25, axis=1), float)
 
 
+def _bootstrap_iqm(tasks: list[np.ndarray], reps: int, level: float,
+                   rng: np.random.Generator) -> tuple[float, float, float]:
+    """The pooled IQM of `tasks` (non-empty arrays) and its stratified percentile-bootstrap interval."""
+    point = interquartile_mean(np.concatenate(tasks))
+    resampled = np.concatenate([t[rng.integers(0, t.size, size=(reps, t.size))] for t in tasks], axis=1)
+    low, high = np.percentile(trimmed_means(resampled), [50 * (1 - level), 50 * (1 + level)])
+    return point, float(low), float(high)
+
+
 def stratified_bootstrap_iqm(runs_per_task: list[Iterable[float]], reps: int = 20_000, level: float = 0.95,
                              seed: int = 0) -> tuple[float, float, float]:
     """The IQM over every run of every task (one final score per run; tasks may have different numbers of
@@ -79,26 +86,19 @@ def stratified_bootstrap_iqm(runs_per_task: list[Iterable[float]], reps: int = 2
     tasks = [np.asarray(list(runs), float) for runs in runs_per_task]
     if not tasks or any(t.size == 0 for t in tasks):
         raise ValueError("every task needs at least one run")
-    point = interquartile_mean(np.concatenate(tasks))
-    rng = np.random.default_rng(seed)
-    resampled = np.concatenate([t[rng.integers(0, t.size, size=(reps, t.size))] for t in tasks], axis=1)
-    low, high = np.percentile(trimmed_means(resampled), [50 * (1 - level), 50 * (1 + level)])
-    return point, float(low), float(high)
+    return _bootstrap_iqm(tasks, reps, level, np.random.default_rng(seed))
 
 
 def iqm_band(values: np.ndarray, reps: int = 2_000, level: float = 0.95,
              seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per column of a [seeds, points] array with NaN for missing points: the IQM over the seeds present
-    and its percentile-bootstrap interval (seeds resampled with replacement). With one seed the band is
-    that seed's value."""
+    and its percentile-bootstrap interval (seeds resampled with replacement; one random stream across the
+    columns). With one seed the band is that seed's value."""
     rng = np.random.default_rng(seed)
     columns = values.shape[1] if values.ndim == 2 else 0
     iqm, low, high = (np.full(columns, np.nan) for _ in range(3))
     for j in range(columns):
         present = values[~np.isnan(values[:, j]), j]
-        if present.size == 0:
-            continue
-        iqm[j] = interquartile_mean(present)
-        boot = trimmed_means(present[rng.integers(0, present.size, size=(reps, present.size))])
-        low[j], high[j] = np.percentile(boot, [50 * (1 - level), 50 * (1 + level)])
+        if present.size:
+            iqm[j], low[j], high[j] = _bootstrap_iqm([present], reps, level, rng)
     return iqm, low, high
