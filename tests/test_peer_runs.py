@@ -40,11 +40,15 @@ def assert_progress_columns_mean_what_softac_means(run, min_interval_s: float = 
 
 
 def test_a_peer_run_writes_the_columns_as_softac_does(tmp_path):
-    run = tmp_path / "peer"
+    run, temp = tmp_path / "peer", tmp_path / "temp"
+    temp.mkdir()
     r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx", "--env", DRIFT, "--seed", "0", "--steps",
                         "700", "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2", "--log-interval",
-                        "100"], capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+                        "100"], capture_output=True, text=True, timeout=300,
+                       env=child_env(FAKE_PEERS, TMPDIR=str(temp)))
     assert r.returncode == 0, r.stderr
+    # SB3's learn() leaves an empty SB3-<time> directory in the temp dir unless given a logger (the stand-in does too)
+    assert not [p.name for p in temp.iterdir() if p.name.startswith("SB3-")]
     # each 100-step interval takes >= 0.1 s in the stand-in, and those with an evaluation >= 0.05 s more: a
     # cumulative rate (what the peers wrote before) is off from theirs by far more than the rounding allows
     assert_progress_columns_mean_what_softac_means(run, min_interval_s=0.1)

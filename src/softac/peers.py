@@ -104,7 +104,16 @@ def peer_model(framework: str, env_id: str, seed: int, **overrides: Any):
 
         kwargs.update(crossq_settings(SACConfig.preset(settings)))
     kwargs.update(overrides)
-    return algorithm("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+    return without_log_dir(algorithm("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs))
+
+
+def without_log_dir(model):
+    """SB3's learn() otherwise configures a logger that makes an empty SB3-<time> directory in the temp dir
+    on every call, even at verbose=0; softac writes the run's logs itself."""
+    from stable_baselines3.common.logger import Logger
+
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
 
 
 # the replay buffer's arrays (SB3's ReplayBuffer, which SBX uses too)
@@ -147,7 +156,7 @@ def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
         raise SoftacError(f"{directory} holds the checkpoint of another run ({meta.get('peer') or 'softac'}), not "
                           f"of {identity}; pick another --out")
     algorithm, kwargs = _peer_algorithm(framework)
-    model = algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=gym.make(env_id), **kwargs)
+    model = without_log_dir(algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=gym.make(env_id), **kwargs))
     buffer = model.replay_buffer
     for name in BUFFER_FIELDS:
         rows = arrays[f"buffer_{name}"]

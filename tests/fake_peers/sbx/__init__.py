@@ -1,7 +1,10 @@
 """A stand-in for sbx.SAC (see tests/fake_peers/README.md): random actions, SB3's callback protocol, SB3's
 save/load and replay buffer layout (so that a peer's checkpoint and resume are tested)."""
 
+import datetime
 import json
+import os
+import tempfile
 import time
 
 import numpy as np
@@ -39,6 +42,10 @@ class SAC:
         self.num_timesteps = 0
         self.rng = np.random.default_rng(seed)
         self.replay_buffer = ReplayBuffer(self.BUFFER, env)
+        self._custom_logger = False
+
+    def set_logger(self, logger):
+        self._logger, self._custom_logger = logger, True
 
     def save(self, file):
         file.write(json.dumps({"num_timesteps": self.num_timesteps, "seed": self.seed,
@@ -61,6 +68,9 @@ class SAC:
     def learn(self, total_timesteps, callback, reset_num_timesteps=True):
         if reset_num_timesteps:
             self.num_timesteps = 0
+        if not self._custom_logger:  # as SB3's configure_logger(): a directory per learn(), also at verbose=0
+            stamp = datetime.datetime.now().strftime("SB3-%Y-%m-%d-%H-%M-%S-%f")
+            os.makedirs(os.path.join(tempfile.gettempdir(), stamp), exist_ok=True)
         # a resumed model must have its replay buffer back: every step so far is in it but the last one, which
         # SB3 stores after the callback that saved the checkpoint
         expected = min(self.num_timesteps, self.BUFFER)
