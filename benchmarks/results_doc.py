@@ -127,9 +127,20 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
             f"![{env}](results/{figure.name})", "", markdown_table(rows, threshold), ""]
 
 
-def finished_trials(d: Path) -> list[dict]:
+# trials whose wall time is not comparable (their returns are): sweep/trial -> why, kept beside the sweeps
+TIMING_EXCLUDED = "timing-excluded.yaml"
+
+
+def timing_excluded(sweeps: Path) -> dict[str, str]:
+    import yaml
+
+    path = sweeps / TIMING_EXCLUDED
+    return (yaml.safe_load(path.read_text()) or {}) if path.exists() else {}
+
+
+def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dict]:
     """The sweep's finished trials' rows, each with the day it started (None for runs from before
-    config.yaml recorded it)."""
+    config.yaml recorded it) and `timed`: False for a trial in `excluded` (sweep/trial -> why)."""
     import yaml
 
     spec = load_spec(d)
@@ -138,16 +149,21 @@ def finished_trials(d: Path) -> list[dict]:
         config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
         started = str((config.get("segments") or [{}])[0].get("started") or "")
         row["day"] = started[:10] or None
+        row["timed"] = f"{d.name}/{row['trial']}" not in (excluded or {})
     return rows
 
 
-def wall_ratio(theirs: list[dict], ours: list[dict]) -> tuple[float, float, float, bool]:
+def wall_ratio(theirs: list[dict], ours: list[dict]) -> tuple[float, float, float, bool] | None:
     """Median wall time of `theirs` over that of `ours`, from the trials of `ours` that ran on the days
     `theirs` ran (side by side: the machine's speed drifts by up to 2x between days) when there are any;
-    returns (ratio, their median, our median, side by side)."""
+    returns (ratio, their median, our median, side by side), or None without timed trials on either side.
+    Trials with `timed` False are left out."""
+    theirs, ours = [r for r in theirs if r.get("timed", True)], [r for r in ours if r.get("timed", True)]
     days = {r["day"] for r in theirs}  # None: before config.yaml recorded it (those sweeps ran side by side too)
     beside = [r for r in ours if r["day"] in days]
     used = beside or ours
+    if not theirs or not used:
+        return None
     theirs_s, ours_s = float(np.median([r["wall_s"] for r in theirs])), float(np.median([r["wall_s"] for r in used]))
     return theirs_s / ours_s, theirs_s, ours_s, bool(beside)
 
@@ -165,9 +181,10 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
     random policy and the best final evaluation of any trial shown on that env), with its stratified-bootstrap
     95% interval, as a table and a figure; and the wall time of each configuration relative to softac's preset."""
     finals: dict[str, dict[str, list[dict]]] = {}
+    excluded = timing_excluded(sweeps)
     for env in SUITE:
         for name, d in env_sweeps(env, sweeps).items():
-            rows = finished_trials(d)
+            rows = finished_trials(d, excluded)
             if rows:
                 finals.setdefault(name, {})[env] = rows
     if not finals:
@@ -206,13 +223,14 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
             normalised = [[(r["final_eval_mean"] - random[e]) / (best[e] - random[e]) for r in finals[who][e]]
                           for e in used]
             scores[label] = stratified_bootstrap_iqm(normalised)
-            pairs = [wall_ratio(finals[who][e], finals[ours][e]) for e in used if ours in finals and e in finals[ours]]
-            ratios = [pair[0] for pair in pairs]
+            pairs = {e: wall_ratio(finals[who][e], finals[ours][e]) for e in used if ours in finals and e in finals[ours]}
+            pairs = {e: pair for e, pair in pairs.items() if pair is not None}
+            ratios = [pair[0] for pair in pairs.values()]
             wall = (f"{np.exp(np.mean(np.log(ratios))):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
-                    + ("" if all(pair[3] for pair in pairs) else " (not side by side)")
+                    + ("" if all(pair[3] for pair in pairs.values()) else " (not side by side)")
                     if ratios else "-")
             if who != ours:
-                beside.extend((who, e, pair) for e, pair in zip(used, pairs) if pair[3])
+                beside.extend((who, e, pair) for e, pair in pairs.items() if pair[3])
             point, low, high = scores[label]
             lines.append(f"| {label} | {len(used)} | {sum(len(finals[who][e]) for e in used)} | "
                          f"{point:.2f} [{low:.2f}, {high:.2f}] | {wall} |")
@@ -221,6 +239,9 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
                   "CPU each, two trials at a time), median wall seconds per 100k-step trial, evaluations included:",
                   "", "| env | configuration | its median s | softac's median s | ratio |", "|---|---|---|---|---|"]
         lines += [f"| {env} | {who} | {pair[1]:.0f} | {pair[2]:.0f} | {pair[0]:.2f} |" for who, env, pair in beside]
+    if excluded:
+        lines += ["", f"Wall times left out of these ratios (their returns count; benchmarks/sweeps/{TIMING_EXCLUDED}):", ""]
+        lines += [f"- {trial}: {why}" for trial, why in sorted(excluded.items())]
     figure = figures / "suite-aggregate.png"
     plot_aggregate(scores, figure, "MuJoCo suite, 100k steps: IQM of normalised final scores",
                    "normalised score (0: random policy, 1: best run seen here)\nerror bar: 95% stratified-bootstrap interval")

@@ -106,6 +106,10 @@ def test_wall_time_ratios_compare_trials_that_ran_on_the_same_days():
     assert wall_ratio(before, ours) == (2.0, 400.0, 200.0, True)
     other_day = [{"day": "2026-12-01", "wall_s": 300.0}]
     assert wall_ratio(other_day, ours) == (300.0 / 210.0, 300.0, 210.0, False)  # none beside it: all of ours, said so
+    # a trial whose wall time is not comparable (e.g. the test suite ran beside it) is left out of the ratio
+    disturbed = today + [{"day": "2026-11-25", "wall_s": 2200.0, "timed": False}]
+    assert wall_ratio(disturbed, ours) == (810.0 / 490.0, 810.0, 490.0, True)
+    assert wall_ratio([{"day": "2026-11-25", "wall_s": 2200.0, "timed": False}], ours) is None
 
 
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
