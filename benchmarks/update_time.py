@@ -2,10 +2,13 @@
 
     taskset -c 0 python benchmarks/update_time.py --preset HalfCheetah-v5 --obs 17 --act 6
     taskset -c 0 python benchmarks/update_time.py --preset sac-100k --set matmul_dtype=bfloat16
+    taskset -c 0 python benchmarks/update_time.py --peer sbx-crossq-softac --env Hopper-v5   # needs [bench]
 
 Isolates the jitted update from the env and the loop (docs/performance.md, "The MuJoCo presets' update"):
 warm-up updates first (compilation), then rounds of updates each timed to completion; prints the median
 and every round. Compare configurations by alternating runs of this script; the machine drifts.
+`--peer` times a peer's own gradient step instead (`model.train(gradient_steps=1)` after a 2,000-step random
+buffer on `--env`: its replay sampling and host bookkeeping included, as they are in its training loop).
 """
 
 from __future__ import annotations
@@ -24,7 +27,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--act", type=int, default=6, help="action size (HalfCheetah-v5: 6)")
     p.add_argument("--rounds", type=int, default=7)
     p.add_argument("--updates", type=int, default=100, help="updates per round")
+    p.add_argument("--peer", default=None, help="a peer (softac.peers.PEERS) to time instead of softac")
+    p.add_argument("--env", default="Hopper-v5", help="the peer's env")
     a = p.parse_args(argv)
+    if a.peer:
+        return peer_update_time(a)
 
     import jax
     import numpy as np
@@ -57,6 +64,24 @@ def main(argv: list[str] | None = None) -> int:
         jax.block_until_ready(state)
         rounds.append((time.perf_counter() - start) / a.updates * 1e3)
     print(f"{a.preset} {' '.join(a.set)} ({fns.matmul_dtype}): {statistics.median(rounds):.2f} ms per update call "
+          f"(rounds: {' '.join(f'{r:.2f}' for r in rounds)})")
+    return 0
+
+
+def peer_update_time(a: argparse.Namespace) -> int:
+    from softac.peers import peer_model
+
+    model = peer_model(a.peer, a.env, 0, learning_starts=2000)
+    model.learn(2000)  # fills the replay buffer; no gradient step yet
+    for _ in range(20):
+        model.train(gradient_steps=1, batch_size=model.batch_size)
+    rounds = []
+    for _ in range(a.rounds):
+        start = time.perf_counter()
+        for _ in range(a.updates):
+            model.train(gradient_steps=1, batch_size=model.batch_size)
+        rounds.append((time.perf_counter() - start) / a.updates * 1e3)  # train() reads its losses back: synced
+    print(f"{a.peer} on {a.env}: {statistics.median(rounds):.2f} ms per train(gradient_steps=1) "
           f"(rounds: {' '.join(f'{r:.2f}' for r in rounds)})")
     return 0
 

@@ -60,6 +60,24 @@ def test_update_time_script_times_a_preset_with_overrides():
                         r"update call \(rounds: [0-9.]+ [0-9.]+\)\n", r.stdout), r.stdout
 
 
+def test_update_time_script_times_a_peers_gradient_step():
+    """`update_time.py --peer` times a peer's train(gradient_steps=1) after filling its buffer (the stand-in
+    SBX: tests/fake_peers; it refuses a train() on a buffer smaller than a batch)."""
+    import re
+    import subprocess
+    import sys
+
+    from conftest import TESTS, child_env
+
+    script = TESTS.parent / "benchmarks" / "update_time.py"
+    r = subprocess.run([sys.executable, str(script), "--peer", "sbx-crossq-softac", "--env", "softac_test_envs:Drift-v0",
+                        "--rounds", "2", "--updates", "3"], capture_output=True, text=True, timeout=300,
+                       env=child_env(TESTS / "fake_peers"))
+    assert r.returncode == 0, r.stderr
+    assert re.fullmatch(r"sbx-crossq-softac on softac_test_envs:Drift-v0: [0-9.]+ ms per train\(gradient_steps=1\) "
+                        r"\(rounds: [0-9.]+ [0-9.]+\)\n", r.stdout), r.stdout
+
+
 def test_env_workers_script_reports_every_setting():
     """benchmarks/env_workers.py (docs/performance.md, "Env worker processes"): one JSON row per env and
     env_workers setting; the figures themselves are not checked."""

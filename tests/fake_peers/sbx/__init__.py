@@ -32,6 +32,11 @@ class ReplayBuffer:
         self.full = self.full or self.pos == 0
 
 
+class _NoCallback:
+    def _on_step(self):
+        return True
+
+
 class SAC:
     BUFFER = 500  # rows: small, so that the tests' runs fill it and wrap around
 
@@ -59,13 +64,21 @@ class SAC:
             setattr(model, key, value)
         return model  # like SB3's load(): the replay buffer comes back empty
 
+    def train(self, gradient_steps, batch_size):
+        """SB3's off-policy train(): here it only checks that the buffer can give a batch."""
+        filled = self.BUFFER if self.replay_buffer.full else self.replay_buffer.pos
+        if filled < batch_size or gradient_steps < 1:
+            raise RuntimeError(f"train() with {filled} rows, batch {batch_size}, {gradient_steps} steps")
+        self.gradient_steps_taken = getattr(self, "gradient_steps_taken", 0) + gradient_steps
+
     def predict(self, obs, deterministic=True):
         obs = np.asarray(obs)
         time.sleep(STEP_S * (obs.shape[0] if obs.ndim > 1 else 1))
         shape = (obs.shape[0], *self.env.action_space.shape) if obs.ndim > 1 else self.env.action_space.shape
         return np.zeros(shape, np.float32), None
 
-    def learn(self, total_timesteps, callback, reset_num_timesteps=True):
+    def learn(self, total_timesteps, callback=None, reset_num_timesteps=True):
+        callback = callback if callback is not None else _NoCallback()
         if reset_num_timesteps:
             self.num_timesteps = 0
         if not self._custom_logger:  # as SB3's configure_logger(): a directory per learn(), also at verbose=0
