@@ -7,12 +7,14 @@
 #            defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
 #   crossq-defaults: SBX's CrossQ at its own defaults (1024-wide critics, batch 256), 2 seeds, on Hopper-v5 and
 #            Walker2d-v5 (about 2 hours a trial on one CPU; crossq-defaults:ENV for one env)
+#   crossq-wn: issue 30's step past CrossQ, CrossQ with weight normalisation (`--preset crossq-wn`, Palenicek et
+#            al. 2025) on 5 seeds per suite env, the crossq preset's budget (crossq-wn:ENV for one env)
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -47,6 +49,10 @@ crossq_defaults() {
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-crossq --set eval_interval=5000 --out $SWEEPS/$1-sbx-crossq
 }
 
+crossq_wn() {
+  $SOFTAC sweep --env $1 --seeds 5 --steps 100000 --preset crossq-wn --out $SWEEPS/$1-softac-crossq-wn
+}
+
 options() {
   # plain SAC, the env presets' settings before CrossQ
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset sac-100k --out $SWEEPS/$1-softac-sac-100k
@@ -67,6 +73,8 @@ for target in $targets; do
     options:*) options ${target#options:} ;;
     crossq-defaults) for env in Hopper-v5 Walker2d-v5; do crossq_defaults $env; done ;;
     crossq-defaults:*) crossq_defaults ${target#crossq-defaults:} ;;
+    crossq-wn) for env in $MUJOCO; do crossq_wn $env; done ;;
+    crossq-wn:*) crossq_wn ${target#crossq-wn:} ;;
     fallback) for env in $FALLBACK; do fallback $env; done ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
        elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
