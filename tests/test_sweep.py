@@ -336,6 +336,31 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
 
 
 @pytest.mark.ray
+@pytest.mark.parametrize("framework", ["softac", "sbx-crossq"])
+def test_a_stopped_sweep_lets_its_running_trial_write_its_checkpoint(tmp_path, framework):
+    """Ctrl-C or SIGTERM on the driver alone: Ray ends the trial's worker, the trial gets SIGTERM, writes its
+    checkpoint where it stands and exits, and the driver waits for it. Ray's workers SIGKILLed their child
+    processes on exit, which cut a peer's checkpoint short (a .tmp file left, the last steps lost). No periodic
+    checkpoint falls within these runs, so the checkpoint there is the one written when stopped."""
+    out = tmp_path / "sweep"
+    settings = (["--set", "hidden_sizes=[16,16]", "batch_size=32", "learning_starts=100", "eval_interval=200",
+                 "eval_episodes=2", "checkpoint_interval=100000"] if framework == "softac"
+                else ["--framework", framework, "--set", "eval_interval=200"])
+    driver = subprocess.Popen([sys.executable, "-m", "softac", "sweep", "--env", DRIFT, "--seeds", "1", "--steps",
+                               "50000", "--max-concurrent", "1", "--out", str(out), *settings],
+                              env=child_env(TESTS / "fake_peers"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    evals = out / "seed=0" / "eval.csv"
+    stderr = signal_when(driver, lambda: evals.exists() and len(evals.read_text().splitlines()) >= 3, signal.SIGTERM)
+    assert driver.returncode in (130, 143), stderr
+    log = (out / "_logs" / "seed=0.log").read_text()
+    assert "interrupted at step " in log, log
+    last = out / "seed=0" / "checkpoints" / "last"
+    assert (last / "meta.json").exists() and not [p.name for p in last.iterdir() if p.name.endswith(".tmp")]
+    assert sweep.trial_state(out / "seed=0") == "partial"
+
+
+@pytest.mark.ray
 @pytest.mark.parametrize("search, asha", [("optuna", True), ("random", False)])
 def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
     space = tmp_path / "space.yaml"

@@ -241,6 +241,31 @@ def run_lock(directory: str | Path, what: str = "run") -> Iterator[Path]:
             os.close(fd)  # releases the lock
 
 
+def wait_released(directory: Path, timeout_s: float) -> bool:
+    """Wait until no process holds DIRECTORY's lock (True), or `timeout_s` passed (False). A directory without
+    a lock file was never locked."""
+    import fcntl
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            fd = os.open(directory / LOCK, os.O_RDWR)
+        except OSError:
+            return True
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return True
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return False
+        except OSError:  # a filesystem without locks: nothing to wait for
+            return True
+        finally:
+            os.close(fd)
+        time.sleep(0.2)
+
+
 def holds_lock(directory: Path) -> bool:
     """Whether this process holds DIRECTORY's lock."""
     return str(Path(directory).resolve()) in _held

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from softac.errors import SoftacError
-from softac.rundir import run_lock
+from softac.rundir import run_lock, wait_released
 from softac.sweep.results import unfinished_trials, write_summaries
 from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SweepSpec, grid_trials, planned_trials, prepare_out_dir,
                                validate)
@@ -47,6 +48,11 @@ def _start_ray(address: str | None) -> Any:
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
     os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
+    # Ray's workers SIGKILL their child processes when they exit, which cut a stopped trial's checkpoint short
+    # (measured: a peer trial killed while writing it, its last 8k steps lost). Without that, a trial whose worker
+    # ends gets SIGTERM (trial.py's PR_SET_PDEATHSIG), checkpoints and exits, and the driver waits for it
+    # (_wait_for_trials). The workers of a local Ray inherit this; a cluster's take it from where `ray start` ran.
+    os.environ.setdefault("RAY_kill_child_processes_on_worker_exit", "false")
     kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR, "log_to_driver": False}
     try:
         if address:
@@ -58,6 +64,23 @@ def _start_ray(address: str | None) -> Any:
         raise SoftacError(f"cannot start {where}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                           ) from None
     return ray
+
+
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c() -> Iterator[None]:
+    """SIGTERM (a scheduler's stop, `kill`) stops the sweep as Ctrl-C does: Tune stops the trials, they
+    checkpoint, the driver exits 130 with the resume command. Ray's driver otherwise dies on it (exit 1)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: os.kill(os.getpid(), signal.SIGINT))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class _Lines:
@@ -170,9 +193,21 @@ def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path
             param_space={"trial": tune.grid_search(todo)},
             tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, reuse_actors=False),
             run_config=_run_config(out, f"grid-{time.strftime('%Y%m%d-%H%M%S')}", [printer]))
-        return _failures(tuner.fit())
+        with _sigterm_as_ctrl_c():
+            return _failures(tuner.fit())
     finally:
         ray.shutdown()
+        _wait_for_trials([out / t["name"] for t in todo], log)
+
+
+def _wait_for_trials(runs: list[Path], log, timeout_s: float = 300.0) -> None:
+    """After Ray has stopped: wait while a stopped trial's process still writes its checkpoint (it holds its
+    run's lock until it exits), so that the driver ends after its trials and a resume finds their checkpoints."""
+    deadline = time.monotonic() + timeout_s
+    for run in runs:
+        if not wait_released(run, max(deadline - time.monotonic(), 0.0)):
+            log(f"softac: {run} is still being written by its trial's process after {timeout_s:.0f} s; "
+                "leaving it to finish")
 
 
 def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict[str, float],
@@ -216,9 +251,11 @@ def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict
                                             search_alg=search_alg, scheduler=scheduler,
                                             max_concurrent_trials=max_concurrent, reuse_actors=False),
                 run_config=_run_config(out, "search", [printer]))
-        return _failures(tuner.fit())
+        with _sigterm_as_ctrl_c():
+            return _failures(tuner.fit())
     finally:
         ray.shutdown()
+        _wait_for_trials(sorted(p.parent for p in out.glob("*/config.yaml")), log)
 
 
 def _tune_space(space: dict[str, dict[str, list[Any]]]) -> dict[str, Any]:
