@@ -130,17 +130,43 @@ def test_concurrent_processes_claim_different_cpus(tmp_path, monkeypatch):
 
     monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
     allowed = sorted(os.sched_getaffinity(0))
-    first, first_locks = cpus.claim_cpus(1)
-    assert first == allowed[:1] and len(first_locks) == 1
-    second, second_locks = cpus.claim_cpus(1)  # another process while the first runs
+    first = cpus.claim_cpus(1)
+    assert first.cpus == allowed[:1] and len(first.locks) == 1 and not first.shared
+    second = cpus.claim_cpus(1)  # another process while the first runs
     if len(allowed) > 1:
-        assert second == allowed[1:2] and len(second_locks) == 1
+        assert second.cpus == allowed[1:2] and len(second.locks) == 1 and not second.shared
     else:  # every CPU held: pinned all the same (as many threads, so the same numbers), shared
-        assert second == allowed and second_locks == []
-    assert cpus.claim_cpus(len(allowed)) == (allowed, [])  # not that many free: all of them, shared
-    for lock in first_locks:
+        assert second.cpus == allowed and second.shared
+    everything = cpus.claim_cpus(len(allowed))  # not that many free: all of them, shared
+    assert everything.cpus == allowed and everything.shared
+    for lock in everything.locks:
+        lock.close()
+    for lock in first.locks:
         lock.close()  # the first process ended
-    assert cpus.claim_cpus(1)[0] == allowed[:1]
+    assert cpus.claim_cpus(1).cpus == allowed[:1]
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_a_claim_passes_over_a_cpu_that_a_sharing_process_still_uses(tmp_path, monkeypatch):
+    """A process that had to share a CPU (none free when it started) keeps running there after the CPUs free
+    up; the next claim takes another CPU, not the one that looks free but is in use."""
+    from softac import cpus
+
+    monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
+    allowed = sorted(os.sched_getaffinity(0))
+    holders = [cpus.claim_cpus(1) for _ in allowed]  # every CPU held
+    sharing = cpus.claim_cpus(1)
+    assert sharing.shared and len(sharing.cpus) == 1
+    for claim in holders:  # the first processes end
+        for lock in claim.locks:
+            lock.close()
+    later = cpus.claim_cpus(1)
+    assert not later.shared and later.cpus != sharing.cpus
+    for lock in sharing.locks:
+        lock.close()  # the sharing process ended: its CPU is free again
+    for lock in later.locks:
+        lock.close()
+    assert cpus.claim_cpus(1).cpus == allowed[:1]
 
 
 def test_cpus_pins_the_run_to_a_cpu_no_other_run_holds(tmp_path):

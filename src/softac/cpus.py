@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 # CPUs held by this user's pinned softac processes: one lock file per CPU (per node on a Ray cluster)
 CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(os, 'getuid') else 0}"
@@ -29,53 +29,77 @@ def usable_cpus() -> list[int]:
         return []
 
 
-def claim_cpus(n: int) -> tuple[list[int], list[Any]]:
-    """n CPUs to pin a process to, and the locks that hold them: CPUs no other pinned softac process
-    on this machine holds (an exclusive lock on a file per CPU, released when the holder exits, even
-    if killed), else any n of them, shared (no locks), so the thread count never depends on what else
-    runs. ([], []) where pinning is not possible."""
+class Claim(NamedTuple):
+    cpus: list[int]  # [] where pinning is not possible
+    locks: list[Any]  # open lock files to keep open while the CPUs are used (closing them releases the claim)
+    shared: bool  # no n CPUs were free: these are shared with another pinned process
+
+
+def _try_lock(path: Path, mode: int) -> Any | None:
+    import fcntl
+
+    try:
+        lock = open(path, "a")
+    except OSError:
+        return None
+    try:
+        fcntl.flock(lock, mode | fcntl.LOCK_NB)
+    except OSError:
+        lock.close()
+        return None
+    return lock
+
+
+def claim_cpus(n: int) -> Claim:
+    """n CPUs to pin a process to, and the locks that hold them: CPUs no other pinned softac process on this
+    machine uses (an exclusive lock on a file per CPU, released when the holder exits, even if killed), else
+    any n of them, shared, so the thread count never depends on what else runs. A process that shares a CPU
+    holds a shared lock on that CPU's second file, so that a later claim passes over that CPU while another is
+    free (without it, a trial that had to share kept its CPU after the other was freed, and the next trial,
+    finding no exclusive lock there, joined it: two trials on one core beside an idle one, measured)."""
     import fcntl
 
     allowed = usable_cpus()
     if not allowed:
-        return [], []
+        return Claim([], [], False)
     try:
         CPU_LOCKS.mkdir(exist_ok=True)
     except OSError:  # no writable temp dir: not pinned
-        return [], []
+        return Claim([], [], False)
     n = min(n, len(allowed))
     cpus: list[int] = []
     locks: list[Any] = []
     for cpu in allowed:
         if len(cpus) == n:
             break
-        try:
-            lock = open(CPU_LOCKS / f"cpu{cpu}.lock", "a")
-        except OSError:
+        lock = _try_lock(CPU_LOCKS / f"cpu{cpu}.lock", fcntl.LOCK_EX)
+        if lock is None:  # another process holds it
             continue
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:  # another process holds it
+        sharers = _try_lock(CPU_LOCKS / f"cpu{cpu}.shared", fcntl.LOCK_EX)
+        if sharers is None:  # a process that had to share runs there
             lock.close()
             continue
+        sharers.close()
         cpus.append(cpu)
         locks.append(lock)
-    if len(cpus) < n:
-        for lock in locks:
-            lock.close()
-        start = os.getpid() % len(allowed)  # spreads the processes that share CPUs
-        return sorted(allowed[(start + i) % len(allowed)] for i in range(n)), []
-    return cpus, locks
+    if len(cpus) == n:
+        return Claim(cpus, locks, False)
+    for lock in locks:
+        lock.close()
+    start = os.getpid() % len(allowed)  # spreads the processes that share CPUs
+    cpus = sorted(allowed[(start + i) % len(allowed)] for i in range(n))
+    held = [_try_lock(CPU_LOCKS / f"cpu{cpu}.shared", fcntl.LOCK_SH) for cpu in cpus]
+    return Claim(cpus, [lock for lock in held if lock is not None], True)
 
 
 def pin_this_process(n: int) -> tuple[list[int], bool]:
     """Pin this process to n claimed CPUs, held until it exits: (the CPUs, whether they are shared with
     another pinned process). Call it before JAX starts its backend, which sizes its thread pool then."""
-    cpus, locks = claim_cpus(n)
-    if cpus:
-        os.sched_setaffinity(0, cpus)
-    _held.extend(locks)
-    return cpus, bool(cpus) and not locks
+    claim = claim_cpus(n)
+    if claim.cpus:
+        os.sched_setaffinity(0, claim.cpus)
+    _held.extend(claim.locks)
+    return claim.cpus, claim.shared
 
 
 def cpu_flags() -> set[str]:

@@ -107,7 +107,7 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     best = max((v for _, v in previous), default=-math.inf)
     cmd = trial_command(sweep, base, trial, run)
     threads = max(1, int(cpus))
-    pinned, locks = claim_cpus(threads)
+    pinned, locks, _ = claim_cpus(threads)
     with open(log_path, "a") as log, contextlib.ExitStack() as held:
         for lock in locks:
             held.callback(lock.close)
