@@ -17,7 +17,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e .
 	@touch $@
 
-# the test extra adds pytest, hypothesis, the [ray] extra (the sweep tests run a local Ray) and [export] (onnx)
+# the test extra adds pytest, hypothesis, the [ray] extra (the sweep tests run a local Ray), [export] (onnx) and
+# [robotics] (Gymnasium-Robotics, with the MuJoCo releases its Fetch envs work with)
 $(TEST_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[test]"
 	@touch $@
@@ -88,10 +89,10 @@ $(MIN_STAMP): pyproject.toml .ci/min-versions.txt
 	@touch $@
 
 test-min: $(MIN_STAMP)
-	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "numerics and not ray"
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "numerics and not ray and not robotics"
 
 test-min-full: $(MIN_STAMP)
-	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "not slow and not faults and not ray and not bench"
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "not slow and not faults and not ray and not bench and not robotics"
 
 # softac vs Stable-Baselines3 vs SBX on this machine; torch 2.13.0 (CPU build) goes in first so that
 # no CUDA packages are pulled. BENCH_ARGS adds options, e.g. BENCH_ARGS="--repeats 5".

@@ -152,7 +152,74 @@ class CrashingEnv(DriftEnv):
         return super().step(action)
 
 
+class PointGoalEnv(gym.Env):
+    """A goal env in Gymnasium-Robotics' shape: a point in the plane moved by the action towards a goal drawn
+    at reset. Observation dict: observation [x, y, t/20], achieved_goal [x, y], desired_goal [gx, gy]; sparse
+    reward -1 until within 0.1 of the goal, 0 there (compute_reward works on batches); info["is_success"].
+    Episodes end by the time limit only. save_state/load_state for exact resume."""
+
+    metadata = {"render_modes": []}
+    THRESHOLD = 0.1
+
+    def __init__(self):
+        box = lambda n: gym.spaces.Box(-2.0, 2.0, (n,), np.float32)  # noqa: E731
+        self.observation_space = gym.spaces.Dict(
+            {"observation": box(3), "achieved_goal": box(2), "desired_goal": box(2)})
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.pos, self.goal, self.t = np.zeros(2), np.zeros(2), 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos = self.np_random.uniform(-0.5, 0.5, 2)
+        self.goal = self.np_random.uniform(-0.8, 0.8, 2)
+        self.t = 0
+        return self._obs(), {}
+
+    def _obs(self):
+        return {"observation": np.array([*self.pos, self.t / 20], np.float32),
+                "achieved_goal": self.pos.astype(np.float32), "desired_goal": self.goal.astype(np.float32)}
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        distance = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
+        return -(distance > self.THRESHOLD).astype(np.float32)
+
+    def step(self, action):
+        self.pos = np.clip(self.pos + 0.15 * np.clip(np.asarray(action, np.float64), -1, 1), -2.0, 2.0)
+        self.t += 1
+        obs = self._obs()
+        reward = float(self.compute_reward(obs["achieved_goal"], obs["desired_goal"], {}))
+        return obs, reward, False, False, {"is_success": np.float32(reward == 0.0)}
+
+    def save_state(self):
+        return np.array([*self.pos, *self.goal, self.t], np.float64)
+
+    def load_state(self, state):
+        self.pos, self.goal, self.t = np.array(state[:2]), np.array(state[2:4]), int(state[4])
+
+
+class OneGoalRewardEnv(PointGoalEnv):
+    """A goal env whose compute_reward takes one goal at a time (HER cannot use it)."""
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        return -float(np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal)) > self.THRESHOLD)
+
+
+class DictObsEnv(DriftEnv):
+    """A dict observation that is not a goal env (no compute_reward): flattened, keys in the space's order."""
+
+    def __init__(self):
+        super().__init__()
+        self.observation_space = gym.spaces.Dict({"velocity": gym.spaces.Box(-np.inf, np.inf, (1,), np.float32),
+                                                  "position": gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)})
+
+    def _obs(self):
+        return {"position": np.array([self.x], np.float32), "velocity": np.array([self.t], np.float32)}
+
+
 gym.register("Drift-v0", entry_point=DriftEnv, max_episode_steps=25)
+gym.register("PointGoal-v0", entry_point=PointGoalEnv, max_episode_steps=20)
+gym.register("OneGoalReward-v0", entry_point=OneGoalRewardEnv, max_episode_steps=20)
+gym.register("DictObs-v0", entry_point=DictObsEnv, max_episode_steps=25)
 gym.register("Unbounded-v0", entry_point=UnboundedEnv, max_episode_steps=25)
 gym.register("BrokenStep-v0", entry_point=BrokenStepEnv, max_episode_steps=100)
 gym.register("NanObs-v0", entry_point=NanObsEnv, max_episode_steps=100)

@@ -33,7 +33,7 @@ def test_train_writes_the_run_directory_and_eval_json(tmp_path):
         assert (run / name).exists(), name
     header = (run / "progress.csv").read_text().splitlines()[0].split(",")
     assert header == ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
-                      "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
+                      "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean", "success_rate"]
     assert [row["step"] for row in _metric_rows(run / "eval.csv")] == ["300", "600"]
     assert "Drift-v0" in (run / "config.yaml").read_text()
 
@@ -42,6 +42,7 @@ def test_train_writes_the_run_directory_and_eval_json(tmp_path):
     out = json.loads(r.stdout)
     assert {"mean_return", "std_return", "episodes", "returns", "lengths"} <= set(out)
     assert out["episodes"] == 3 and len(out["returns"]) == 3
+    assert out["success_rate"] is None and out["successes"] is None  # Drift-v0 reports no success
     r = run_cli("eval", str(run), "--episodes", "2", "--stochastic", "--checkpoint", "last")
     assert r.returncode == 0 and "stochastic" in r.stdout
 

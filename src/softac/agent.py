@@ -25,6 +25,7 @@ from softac.collector import Collector
 from softac.config import SACConfig
 from softac.device import select_device
 from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env
+from softac.her import her_setup
 from softac.learner import Learner
 from softac.runstate import RunState
 
@@ -50,13 +51,14 @@ class SAC:
 
         probe = make_env(env)
         self.spaces = check_spaces(probe)
-        if isinstance(env, str):
+        her = her_setup(config, probe, self.spaces)  # checked now: a goal env's compute_reward must take batches
+        if isinstance(env, str) and her is None:
             probe.close()
-        else:
+        elif not isinstance(env, str):
             self.env_source = probe  # the (possibly flattened) user instance
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
-        self.collector = Collector(config, self.env_source, self.spaces)  # its training envs and replay buffer
+        self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer
         self.run_state = RunState.new(config.seed)  # where its training stands (counters, RNGs, evaluations, its run)
 
     @property
@@ -86,9 +88,9 @@ class SAC:
 
     def learn(self, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,
               progress: bool | None = None, callbacks: list | None = None,
-              loggers: list | None = None) -> dict[str, Any]:
+              loggers: list | None = None, target_success: float | None = None) -> dict[str, Any]:
         """Train for `steps` more environment steps; returns a summary dict (its stop_reason: steps,
-        target_return, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
+        target_return, target_success, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
         softac.loggers.Logger objects that get every metrics record (softac does not close them)."""
         from softac.rundir import run_lock
         from softac.loop import TrainingLoop
@@ -98,7 +100,7 @@ class SAC:
             try:
                 loop = TrainingLoop(self.learner, self.collector, self.run_state, steps, run_dir=run_dir,
                                     target_return=target_return, progress=progress, callbacks=callbacks,
-                                    loggers=loggers, agent=self)
+                                    loggers=loggers, agent=self, target_success=target_success)
                 return loop.run()
             finally:
                 self.collector.close_workers()  # no worker process outlives the call, whatever ended it

@@ -85,6 +85,9 @@ def _train_arguments(t: argparse.ArgumentParser) -> None:
                         "runs stop competing for cores; results match a sweep trial with N CPUs)")
     t.add_argument("--target-return", type=_finite_float, metavar="R",
                    help="stop once the deterministic eval mean reaches R")
+    t.add_argument("--target-success", type=_finite_float, metavar="S",
+                   help="stop once the deterministic eval's success rate reaches S (in (0, 1]; goal envs, and "
+                        "any env that reports info['is_success'])")
     t.add_argument("--video", action="store_true", help="record the final policy to RUN/videos at the end")
     _add_allow_new_bounds(t)
     t.add_argument("--logger", metavar="NAMES",
@@ -230,6 +233,9 @@ def _pin_cpus(n: int | None) -> str | None:
 def cmd_train(args: argparse.Namespace) -> int:
     from softac.rundir import run_lock
 
+    if args.target_success is not None and not 0.0 < args.target_success <= 1.0:
+        raise SoftacError(f"--target-success is a success rate in (0, 1], got {args.target_success}")
+
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
                                           ("--seed", args.seed), ("--n-envs", args.n_envs), ("--out", args.out))
@@ -254,13 +260,16 @@ def cmd_train(args: argparse.Namespace) -> int:
         for line in (pinned, start):  # printed once every input is accepted: a refused one gets one line only
             if line:
                 print(line, file=sys.stderr)
-        summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress)
+        summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress,
+                              target_success=args.target_success)
         if args.video:
             _record_video(run, which=None, out=None, episodes=1, deterministic=True,
                           allow_new_bounds=args.allow_new_bounds)
     last = summary["last_eval"]
-    solved = " (target reached)" if summary["stop_reason"] == "target_return" else ""
+    solved = " (target reached)" if summary["stop_reason"] in ("target_return", "target_success") else ""
     eval_text = f"; last eval mean return {last:.1f}" if last is not None else ""
+    if summary.get("last_success") is not None:
+        eval_text += f", success rate {summary['last_success']:.2f}"
     print(f"done: {summary['steps']} steps in {summary['wall_s']:.1f}s{eval_text}{solved}; run in {run}",
           file=sys.stderr)
     return EXIT_OK
@@ -322,7 +331,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(json.dumps(stats))
     else:
         mode = "stochastic" if args.stochastic else "deterministic"
-        print(f"{stats['env_id']}: mean return {stats['mean_return']:.2f} +- {stats['std_return']:.2f} over "
+        success = f", success rate {stats['success_rate']:.2f}" if stats["success_rate"] is not None else ""
+        print(f"{stats['env_id']}: mean return {stats['mean_return']:.2f} +- {stats['std_return']:.2f}{success} over "
               f"{stats['episodes']} {mode} episodes (mean length {stats['mean_length']:.0f}; "
               f"checkpoint at step {agent.num_steps})")
         if stats["reward_terms"]:

@@ -16,6 +16,7 @@ import numpy as np
 from softac.buffer import ObsOnceReplayBuffer, ReplayBuffer, buffer_bytes_per_transition, make_buffer
 from softac.config import SACConfig
 from softac.envs import EnvFailed, EnvPool, EnvSource, SpaceInfo, StepResult, copy_env, env_name
+from softac.her import HerReplayBuffer, HerSetup
 
 if TYPE_CHECKING:
     import gymnasium as gym
@@ -32,9 +33,9 @@ def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.nda
 class Collector:
     """The env pool and the replay buffer of one training run."""
 
-    def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo):
-        self.config, self.env_source, self.spaces = config, env_source, spaces
-        self.buffer: ReplayBuffer | ObsOnceReplayBuffer | None = None
+    def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, her: HerSetup | None = None):
+        self.config, self.env_source, self.spaces, self.her = config, env_source, spaces, her
+        self.buffer: ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | None = None
         self.pool: EnvPool | WorkerEnvPool | None = None
         self.started = False  # the envs were reset (or restored) once; they go on from where they are
         # the envs' state (the pool's get_state()) while no pool holds it: loaded from a checkpoint, or kept
@@ -43,7 +44,21 @@ class Collector:
 
     @property
     def bytes_per_transition(self) -> float:
+        if self.her is not None:
+            return HerReplayBuffer.bytes_per_transition(self.spaces.obs_dim, self.spaces.act_dim)
         return buffer_bytes_per_transition(self.config, self.spaces.obs_dim, self.spaces.act_dim)
+
+    def _make_buffer(self) -> ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer:
+        cfg, her = self.config, self.her
+        if her is not None:
+            return HerReplayBuffer(cfg.buffer_size, her.layout, self.spaces.act_dim, cfg.n_envs, her.reward_fn,
+                                   her.strategy, her.k, gamma=cfg.gamma)
+        return make_buffer(cfg, self.spaces.obs_dim, self.spaces.act_dim)
+
+    def _envs_reset(self) -> None:
+        """The envs start fresh episodes that the buffer did not see end (HER's episode bookkeeping)."""
+        if isinstance(self.buffer, HerReplayBuffer):
+            self.buffer.start_new_episodes()
 
     def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
         """A fresh copy of the training env (evaluation and videos run on copies)."""
@@ -55,13 +70,14 @@ class Collector:
         """Make the buffer and the env pool if they are not there; envs restored or parked go on from their
         state, new ones are reset with seeds that depend on `num_steps`."""
         if self.buffer is None:
-            self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
+            self.buffer = self._make_buffer()
         if self.pool is None:
             self.pool = self._make_pool()
             if self.parked_envs is not None:
                 self._unpark(*self.parked_envs, num_steps)
         if not self.started:
             self.pool.reset(num_steps)
+            self._envs_reset()
             self.started = True
 
     def _make_pool(self) -> EnvPool | WorkerEnvPool:
@@ -79,6 +95,7 @@ class Collector:
     def _unpark(self, meta: dict, arrays: dict[str, np.ndarray], num_steps: int) -> None:
         self.parked_envs = None
         if not self.pool.set_state(meta, arrays, num_steps):
+            self._envs_reset()
             warnings.warn(f"env {self.pool.name} cannot save its state, so resumed training starts fresh episodes "
                           "(give its class save_state()/load_state() for an exact resume)", stacklevel=4)
 
@@ -147,7 +164,7 @@ class Collector:
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], num_steps: int) -> None:
         """Take the buffer and envs a checkpoint holds (`num_steps`: where its run stands)."""
         if meta.get("has_buffer"):
-            self.buffer = make_buffer(self.config, self.spaces.obs_dim, self.spaces.act_dim)
+            self.buffer = self._make_buffer()
             self.buffer.load_state_dict(_with_prefix(arrays, BUFFER_PREFIX))
         if meta.get("has_envs"):
             self.close_workers()

@@ -49,6 +49,9 @@ class SACConfig:
     obs_norm: bool = _f(False, "normalise observations by a running mean/std (as SB3's VecNormalize); saved in checkpoints")
     obs_norm_clip: float = _f(10.0, "with obs_norm: clip normalised observations to [-clip, clip]")
     learning_starts: int = _f(100, "environment steps of uniform random actions before learning")
+    her: str = _f("auto", "hindsight experience replay (Andrychowicz et al. 2017) for goal envs (dict observation with observation, achieved_goal, desired_goal, and compute_reward): auto (on for goal envs), on, off")
+    her_strategy: str = _f("future", "with HER, where a relabelled goal comes from: future (achieved later in the episode), final (at its end), episode (anywhere in it)")
+    her_k: int = _f(4, "with HER, relabelled goals per real one: her_k/(her_k+1) of each batch gets a hindsight goal")
     # algorithm
     gamma: float = _f(0.99, "discount factor")
     tau: float = _f(0.005, "Polyak coefficient for target critics (1 = hard copy)")
@@ -173,6 +176,9 @@ class SACConfig:
         need(self.batch_size >= 1, "batch_size", "must be >= 1")
         need(self.learning_starts >= 0, "learning_starts", "must be >= 0")
         need(self.obs_norm_clip > 0.0, "obs_norm_clip", "must be > 0")
+        need(self.her in ("auto", "on", "off"), "her", "must be auto, on or off")
+        need(self.her_strategy in ("future", "final", "episode"), "her_strategy", "must be future, final or episode")
+        need(1 <= self.her_k <= 1000, "her_k", "must be between 1 and 1000")
         need(0.0 <= self.gamma <= 1.0, "gamma", "must be in [0, 1]")
         need(0.0 < self.tau <= 1.0, "tau", "must be in (0, 1]")
         need(self.target_update_interval >= 1, "target_update_interval", "must be >= 1")
@@ -252,6 +258,8 @@ def _unknown_key_message(key: str, known: list[str]) -> str:
 def _coerce(key: str, f: dataclasses.Field, value: Any) -> Any:
     default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
     bad = ConfigError(f"{key}={value!r}: expected {_type_name(default)}")
+    if key == "her" and isinstance(value, bool):  # YAML reads on/off/true/false as booleans
+        return "on" if value else "off"
     if key == "target_entropy":
         if isinstance(value, str) and value.strip().lower() == "auto" or value is None:
             return "auto"

@@ -241,8 +241,8 @@ class WorkerEnvPool:
         replies = self._ask_all("step", [(actions[w.start:w.stop], step) for w in self.workers], step)
         results = [result for result, _ in replies]
         self.obs = np.concatenate([obs for _, obs in replies])
-        finished = [(worker.start + i, episode_return, length)
-                    for worker, result in zip(self.workers, results) for i, episode_return, length in result.finished]
+        finished = [episode._replace(env=worker.start + episode.env)
+                    for worker, result in zip(self.workers, results) for episode in result.finished]
         return StepResult(np.concatenate([r.next_obs for r in results]), np.concatenate([r.rewards for r in results]),
                           np.concatenate([r.terminated for r in results]),
                           np.concatenate([r.truncated for r in results]), finished)

@@ -15,16 +15,18 @@ from __future__ import annotations
 import copy
 import difflib
 import importlib
+import importlib.util
 import io
 import contextlib
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.envs.registration import EnvSpec
 
 from softac.errors import RunFailed, SoftacError
+from softac.her import GoalLayout, dict_layout, dict_observation_space, is_goal_env
 
 EnvSource = Any  # a Gymnasium id string or a gym.Env instance
 
@@ -46,8 +48,43 @@ def env_name(source: EnvSource | EnvSpec) -> str:
     return spec.id if spec is not None else type(getattr(source, "unwrapped", source)).__name__
 
 
+# ids Gymnasium-Robotics registers when imported (the `robotics` extra); softac imports it for them
+ROBOTICS_PREFIXES = ("Fetch", "PointMaze", "AntMaze", "HandReach", "HandManipulate", "AdroitHand", "FrankaKitchen")
+# its Fetch envs fail to construct with later MuJoCo releases (AssertionError in mujoco_utils.set_joint_qpos)
+ROBOTICS_MUJOCO = ((3, 8, 1), (3, 12, 0))
+
+
+def _import_robotics(env_id: str) -> None:
+    """Import Gymnasium-Robotics, which registers its envs, when `env_id` is one of them."""
+    if env_id in gym.registry or not env_id.startswith(ROBOTICS_PREFIXES):
+        return
+    if importlib.util.find_spec("gymnasium_robotics") is None:
+        raise EnvError(f"env '{env_id}' comes from Gymnasium-Robotics, which is not installed: "
+                       "pip install 'softac[robotics]'")
+    import warnings
+
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        warnings.simplefilter("ignore")
+        importlib.import_module("gymnasium_robotics")
+
+
+def robotics_mujoco_problem() -> str | None:
+    """Why the installed MuJoCo cannot run Gymnasium-Robotics' envs, or None."""
+    try:
+        import mujoco
+    except ImportError:
+        return None
+    have = tuple(int(p) for p in mujoco.__version__.split(".")[:3] if p.isdigit())
+    low, high = ROBOTICS_MUJOCO
+    if low <= have < high:
+        return None
+    return (f"Gymnasium-Robotics' envs need MuJoCo {'.'.join(map(str, low))} up to (not including) "
+            f"{'.'.join(map(str, high))}, and MuJoCo {mujoco.__version__} is installed: pip install 'softac[robotics]'")
+
+
 def resolve_env_id(env_id: str) -> str:
-    """Check that `env_id` is registered, importing `module` first for `module:EnvId`."""
+    """Check that `env_id` is registered, importing `module` first for `module:EnvId` (and Gymnasium-Robotics
+    for its envs)."""
     env_id = env_id.strip()
     if ":" in env_id:
         module, _, name = env_id.partition(":")
@@ -56,6 +93,7 @@ def resolve_env_id(env_id: str) -> str:
         except Exception as exc:  # any import failure is the user's module, not ours
             raise EnvError(f"cannot import module '{module}' for env '{env_id}': {exc}") from None
         env_id = name
+    _import_robotics(env_id)
     if env_id not in gym.registry:
         close = difflib.get_close_matches(env_id, list(gym.registry.keys()), n=3, cutoff=0.6)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
@@ -76,6 +114,10 @@ def make_env(source: EnvSource | EnvSpec, render_mode: str | None = None, **kwar
         with contextlib.redirect_stderr(io.StringIO()):
             env = gym.make(env_id, **kwargs)
     except Exception as exc:
+        entry = str(getattr(gym.spec(env_id) if isinstance(env_id, str) else env_id, "entry_point", ""))
+        problem = robotics_mujoco_problem() if entry.startswith("gymnasium_robotics") else None
+        if problem:
+            raise EnvError(f"cannot make env '{env_name(env_id)}': {problem}") from None
         raise EnvError(f"cannot make env '{env_name(env_id)}': {type(exc).__name__}: {exc}".splitlines()[0]) from None
     return _flatten_obs_if_needed(env)
 
@@ -116,6 +158,8 @@ class SpaceInfo:
     act_dim: int
     low: np.ndarray
     high: np.ndarray
+    layout: GoalLayout | None = None  # a dict observation's keys in the flat vector (their space's order)
+    goal_env: bool = False  # observation, achieved_goal, desired_goal and compute_reward: HER can train it
 
 
 def check_spaces(env: gym.Env) -> SpaceInfo:
@@ -133,7 +177,10 @@ def check_spaces(env: gym.Env) -> SpaceInfo:
     if np.any(high <= low):
         raise EnvError(f"env {name} has action bounds with high <= low")
     obs_dim = int(np.prod(env.observation_space.shape))
-    return SpaceInfo(obs_dim, int(space.shape[0]), low.astype(np.float32), high.astype(np.float32))
+    dict_space = dict_observation_space(env)
+    layout = dict_layout(dict_space) if dict_space is not None else None
+    return SpaceInfo(obs_dim, int(space.shape[0]), low.astype(np.float32), high.astype(np.float32), layout,
+                     is_goal_env(env))
 
 
 # ---- exact env state, for resume -----------------------------------------------
@@ -176,6 +223,9 @@ def get_env_state(env: gym.Env) -> tuple[dict, np.ndarray | None]:
     elif isinstance(getattr(raw, "state", None), np.ndarray):
         physics = np.array(raw.state)
         meta["kind"] = "state_attr"
+    goal = getattr(raw, "goal", None)
+    if isinstance(goal, np.ndarray):  # a goal env's goal lives beside the physics (Gymnasium-Robotics' envs)
+        meta["goal"] = {"values": goal.tolist(), "dtype": str(goal.dtype)}
     rng = getattr(raw, "_np_random", None)
     meta["np_random"] = rng.bit_generator.state if rng is not None else None
     limit = _time_limit(env)
@@ -196,6 +246,8 @@ def set_env_state(env: gym.Env, meta: dict, physics: np.ndarray | None) -> bool:
         raw.state = np.array(physics)
     else:
         return False
+    if meta.get("goal") is not None:
+        raw.goal = np.array(meta["goal"]["values"], dtype=meta["goal"]["dtype"])
     if meta.get("np_random") is not None and getattr(raw, "_np_random", None) is not None:
         raw._np_random.bit_generator.state = meta["np_random"]
     limit = _time_limit(env)
@@ -206,13 +258,36 @@ def set_env_state(env: gym.Env, meta: dict, physics: np.ndarray | None) -> bool:
 
 # ---- several envs stepped together ---------------------------------------------
 
+class Episode(NamedTuple):
+    """A finished training episode: its env's index, return, length, and success (the env's
+    info["is_success"], or info["success"] as Gymnasium-Robotics' mazes say, at its last step; None when
+    the env reports neither)."""
+    env: int
+    ret: float
+    length: int
+    success: float | None = None
+
+
+def success_of(info: Any) -> float | None:
+    """1.0 or 0.0 from a step's info["is_success"] (or "success"), None when the env reports neither."""
+    if not isinstance(info, dict):
+        return None
+    value = info.get("is_success", info.get("success"))
+    if value is None:
+        return None
+    try:
+        return float(bool(np.asarray(value).reshape(-1)[0]))
+    except (TypeError, ValueError, IndexError):
+        return None
+
+
 @dataclass
 class StepResult:
     next_obs: np.ndarray  # the true next observation (the final one where an episode ended)
     rewards: np.ndarray
     terminated: np.ndarray
     truncated: np.ndarray
-    finished: list[tuple[int, float, int]]  # (env index, episode return, episode length)
+    finished: list[Episode]
 
 
 class EnvPool:
@@ -253,10 +328,10 @@ class EnvPool:
         rewards = np.empty(n, np.float32)
         terminated = np.empty(n, bool)
         truncated = np.empty(n, bool)
-        finished = []
+        finished, infos = [], [None] * n
         for i, env in enumerate(self.envs):
             try:
-                obs, reward, term, trunc, _ = env.step(actions[i])
+                obs, reward, term, trunc, infos[i] = env.step(actions[i])
             except Exception as exc:
                 raise EnvFailed(f"env {self.name} raised in step at step {step}: "
                                f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
@@ -269,7 +344,8 @@ class EnvPool:
             raise EnvFailed(f"env {self.name} returned a non-finite {what} at step {step}")
         self.obs = next_obs.copy()
         for i in np.flatnonzero(terminated | truncated):
-            finished.append((int(i), float(self.episode_return[i]), int(self.episode_length[i])))
+            finished.append(Episode(int(i), float(self.episode_return[i]), int(self.episode_length[i]),
+                                    success_of(infos[i])))
             self._reset_one(int(i), step)
         return StepResult(next_obs, rewards, terminated, truncated, finished)
 

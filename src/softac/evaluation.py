@@ -1,4 +1,5 @@
-"""Evaluate a policy: mean and std of the return over N episodes.
+"""Evaluate a policy: mean and std of the return over N episodes (and the success rate, for envs that report
+success in info["is_success"], as goal envs do).
 
 Episodes run side by side on up to `MAX_PARALLEL` envs with one batched
 policy call per step, which makes long evaluations several times faster than
@@ -14,7 +15,7 @@ from typing import Any, Callable, Protocol
 import gymnasium as gym
 import numpy as np
 
-from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name
+from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name, success_of
 
 
 class Evaluable(Protocol):
@@ -36,6 +37,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
     envs = envs if envs is not None else [make_env() for _ in range(min(episodes, MAX_PARALLEL))]
     returns = np.zeros(episodes)
     lengths = np.zeros(episodes, np.int64)
+    successes = np.full(episodes, np.nan)  # at each episode's last step; nan where the env reports none
     terms: dict[str, np.ndarray] = {}  # per-episode sums of the env's reward terms (info["reward_*"])
     next_episode = 0
     active: dict[int, int] = {}  # env slot -> episode index
@@ -72,10 +74,13 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
             add_reward_terms(terms, info, ep, episodes)
             obs[slot] = np.asarray(o, np.float32).reshape(-1)
             if terminated or truncated:
+                success = success_of(info)
+                if success is not None:
+                    successes[ep] = success
                 del active[slot]
                 if next_episode < episodes:
                     start(slot)
-    return summarize(returns, lengths, terms)
+    return summarize(returns, lengths, terms, successes)
 
 
 def add_reward_terms(terms: dict[str, np.ndarray], info: Any, episode: int, episodes: int) -> None:
@@ -102,9 +107,11 @@ def run_on_copies(policy: Callable[[np.ndarray], np.ndarray], source: EnvSource,
                 env.close()
 
 
-def summarize(returns: np.ndarray, lengths: np.ndarray,
-              terms: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
-    """`reward_terms`: the mean per-episode sum of each reward term the env reports in `info`."""
+def summarize(returns: np.ndarray, lengths: np.ndarray, terms: dict[str, np.ndarray] | None = None,
+              successes: np.ndarray | None = None) -> dict[str, Any]:
+    """`reward_terms`: the mean per-episode sum of each reward term the env reports in `info`;
+    `success_rate`: the share of episodes that ended in success, None when the env reports no success."""
+    reported = successes[np.isfinite(successes)] if successes is not None else np.zeros(0)
     return {
         "mean_return": float(np.mean(returns)),
         "std_return": float(np.std(returns)),
@@ -115,6 +122,8 @@ def summarize(returns: np.ndarray, lengths: np.ndarray,
         "returns": [float(r) for r in returns],
         "lengths": [int(n) for n in lengths],
         "reward_terms": {k: float(np.mean(v)) for k, v in sorted((terms or {}).items())},
+        "success_rate": float(np.mean(reported)) if reported.size else None,
+        "successes": [None if not np.isfinite(s) else bool(s) for s in successes] if reported.size else None,
     }
 
 

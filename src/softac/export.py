@@ -129,6 +129,11 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     arrays["activation"] = np.asarray(learner.config.activation)
     arrays["action_low"] = learner.scaler.low.astype(np.float32)
     arrays["action_high"] = learner.scaler.high.astype(np.float32)
+    layout = learner.spaces.layout
+    if layout is not None:  # a dict-observing env: the policy takes the dict, flattened in this order
+        arrays["obs_keys"] = np.asarray(list(layout.keys))
+        arrays["obs_key_sizes"] = np.asarray([layout.slices[k].stop - layout.slices[k].start for k in layout.keys],
+                                             np.int64)
     arrays["env_id"] = np.asarray(learner.config.env_id)
     arrays["step"] = np.asarray(step, np.int64)
     arrays["softac_version"] = np.asarray(__version__)
@@ -180,10 +185,20 @@ def _onnx_activation(g: _Graph, name: str, x: str) -> str:
 
 
 def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
-    """The graph of export_numpy.policy_forward: input `obs` [batch, obs_dim], output `action` [batch, act_dim]."""
+    """The graph of export_numpy.policy_forward: input `obs` [batch, obs_dim] (for a dict-observing env, one
+    input per key, [batch, size] each, concatenated in the flat observation's order), output `action`
+    [batch, act_dim]."""
     onnx = require_onnx()
     g = _Graph(onnx)
-    x = "obs"
+    obs_dim = arrays["w0"].shape[0]
+    if "obs_keys" in arrays:
+        keys = [str(k) for k in arrays["obs_keys"]]
+        inputs = [onnx.helper.make_tensor_value_info(k, onnx.TensorProto.FLOAT, ["batch", int(n)])
+                  for k, n in zip(keys, arrays["obs_key_sizes"])]
+        x = g.op("Concat", *keys, axis=1)
+    else:
+        inputs = [onnx.helper.make_tensor_value_info("obs", onnx.TensorProto.FLOAT, ["batch", obs_dim])]
+        x = "obs"
     if "obs_mean" in arrays:
         x = g.op("Div", g.op("Sub", x, g.const("obs_mean", arrays["obs_mean"])), g.const("obs_std", arrays["obs_std"]))
         clip = float(arrays["obs_clip"])
@@ -207,10 +222,9 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     # per-dimension bounds: Clip takes only scalar bounds
     g.op("Min", g.op("Max", scaled, g.const("action_low", low)), g.const("action_high", high), output="action")
 
-    obs_dim, act_dim = arrays["w0"].shape[0], len(low)
+    act_dim = len(low)
     graph = onnx.helper.make_graph(
-        g.nodes, "softac_policy",
-        [onnx.helper.make_tensor_value_info("obs", onnx.TensorProto.FLOAT, ["batch", obs_dim])],
+        g.nodes, "softac_policy", inputs,
         [onnx.helper.make_tensor_value_info("action", onnx.TensorProto.FLOAT, ["batch", act_dim])],
         initializer=list(g.constants.values()))
     model = onnx.helper.make_model(graph, opset_imports=[onnx.helper.make_opsetid("", ONNX_OPSET)],

@@ -4,6 +4,7 @@ This module imports nothing but NumPy, so it can be copied into any project:
 
     params = dict(np.load("policy.npz"))
     action = policy_forward(params, obs)   # obs [obs_dim] or [batch, obs_dim]; action in the env's bounds
+                                           # (a dict env's obs: the dict, or a dict of batches)
 
 policy.npz holds
     obs_mean, obs_std, obs_clip   float32: observation normalisation, only when the run had obs_norm
@@ -15,6 +16,8 @@ policy.npz holds
     nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values)
     action_low, action_high       float32: the env's action bounds
     activation                    the hidden activation's name: relu, tanh, elu or gelu
+    obs_keys, obs_key_sizes       only for envs that observe a dict (goal envs): its keys in the order the
+                                  flat observation concatenates them, and each one's size
 and, for the record, env_id, step (the checkpoint's env step) and softac_version.
 """
 
@@ -48,9 +51,20 @@ def round_bf16(x: np.ndarray) -> np.ndarray:
     return ((bits + np.uint32(0x7FFF) + ((bits >> 16) & np.uint32(1))) & np.uint32(0xFFFF0000)).view(np.float32)
 
 
+def flat_observation(params: dict, obs) -> np.ndarray:
+    """A dict observation (or a dict of batches) as the flat vector the actor takes; an array as it is."""
+    if not isinstance(obs, dict):
+        return np.asarray(obs, np.float32)
+    keys, sizes = [str(k) for k in params["obs_keys"]], [int(n) for n in params["obs_key_sizes"]]
+    parts = [np.asarray(obs[k], np.float32) for k in keys]
+    if all(p.size == n for p, n in zip(parts, sizes)):
+        return np.concatenate([p.reshape(-1) for p in parts])
+    return np.concatenate([p.reshape(len(p), n) for p, n in zip(parts, sizes)], axis=1)
+
+
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
-    x = np.asarray(obs, np.float32)
+    x = flat_observation(params, obs)
     if "obs_mean" in params:
         clip = params["obs_clip"]
         x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)

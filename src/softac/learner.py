@@ -84,7 +84,12 @@ class Learner:
         return obs if self.obs_norm is None else self.obs_norm.normalize(obs)
 
     def as_batch(self, obs: Any) -> tuple[np.ndarray, bool]:
-        """One observation or a batch of them as a float32 batch, and whether it was one."""
+        """One observation or a batch of them as a float32 batch, and whether it was one. A dict observation
+        (one, or a dict of batches) is flattened in its space's key order, as the training envs' were."""
+        if isinstance(obs, dict):
+            if self.spaces.layout is None:
+                raise SoftacError(f"this agent's env observes a {self.spaces.obs_dim}-value vector, not a dict")
+            obs = self.spaces.layout.flatten(obs)
         obs = np.asarray(obs, np.float32)
         single = obs.ndim <= 1
         batch = obs.reshape(1, -1) if single else obs.reshape(obs.shape[0], -1)

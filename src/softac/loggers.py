@@ -3,8 +3,8 @@
 The training loop hands every logger the same records, each a dict of numbers at an env step:
 
     "train"    a row every log_interval steps (progress.csv's columns: fps, losses, alpha, ...)
-    "rollout"  a finished training episode (episodes.csv: return, length)
-    "eval"     an evaluation (eval.csv: mean_return, std_return, episodes)
+    "rollout"  a finished training episode (episodes.csv: return, length; success where the env reports it)
+    "eval"     an evaluation (eval.csv: mean_return, std_return, episodes; success_rate where reported)
 
 The CSV files are always written (plots, reports, sweeps and resume read them). TensorBoard (the default),
 Weights & Biases and MLflow are chosen with the `loggers` config key (`--logger tensorboard,wandb`); any
@@ -90,8 +90,8 @@ class CsvLogger(Logger):
 class TensorBoardLogger(Logger):
     """RUN/tb/: train/*, eval/mean_return and eval/std_return, rollout/episode_return and episode_length."""
 
-    TAGS = {"rollout": {"return": "episode_return", "length": "episode_length"},
-            "eval": {"mean_return": "mean_return", "std_return": "std_return"}}
+    TAGS = {"rollout": {"return": "episode_return", "length": "episode_length", "success": "episode_success"},
+            "eval": {"mean_return": "mean_return", "std_return": "std_return", "success_rate": "success_rate"}}
 
     def __init__(self, run_dir: Path):
         from tensorboardX import SummaryWriter

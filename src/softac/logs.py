@@ -15,10 +15,12 @@ import numpy as np
 
 from softac.rundir import write_atomic
 
+# success columns stay empty for envs that report no success (info["is_success"]); a file written before they
+# existed keeps its own header when its run is resumed (CsvLog)
 PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
-                    "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"]
-EPISODE_COLUMNS = ["step", "return", "length"]
-EVAL_COLUMNS = ["step", "mean_return", "std_return", "episodes"]
+                    "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean", "success_rate"]
+EPISODE_COLUMNS = ["step", "return", "length", "success"]
+EVAL_COLUMNS = ["step", "mean_return", "std_return", "episodes", "success_rate"]
 RECENT_EPISODES = 20  # the training episodes behind progress.csv's return_mean and the progress bar
 
 
@@ -26,25 +28,33 @@ class TrainRows:
     """progress.csv's bookkeeping columns, with one meaning for softac and the peers it is compared with:
     `time_s` the run's seconds so far (evaluations included), `fps` env steps per second since the previous
     row, `episodes` the training episodes finished so far, `return_mean` the mean return of the last
-    RECENT_EPISODES of them."""
+    RECENT_EPISODES of them, `success_rate` the share of those that succeeded (envs that report success)."""
 
-    def __init__(self, step: int, recent_returns: list[float] | tuple[float, ...] = ()):
+    def __init__(self, step: int, recent_returns: list[float] | tuple[float, ...] = (),
+                 recent_successes: list[float] | tuple[float, ...] = ()):
         self.recent: collections.deque[float] = collections.deque(recent_returns, maxlen=RECENT_EPISODES)
+        self.successes: collections.deque[float] = collections.deque(recent_successes, maxlen=RECENT_EPISODES)
         self.last_step, self.last_time = step, time.perf_counter()
 
-    def episode_finished(self, episode_return: float) -> None:
+    def episode_finished(self, episode_return: float, success: float | None = None) -> None:
         self.recent.append(episode_return)
+        if success is not None:
+            self.successes.append(float(success))
 
     def recent_mean(self) -> float | None:
         return float(np.mean(self.recent)) if self.recent else None
+
+    def success_rate(self) -> float | None:
+        return float(np.mean(self.successes)) if self.successes else None
 
     def row(self, step: int, time_s: float, episodes: int) -> dict[str, Any]:
         now = time.perf_counter()
         fps = (step - self.last_step) / max(now - self.last_time, 1e-9)
         self.last_step, self.last_time = step, now
-        mean = self.recent_mean()
+        mean, success = self.recent_mean(), self.success_rate()
         return {"step": step, "time_s": round(time_s, 3), "fps": round(fps, 1), "episodes": episodes,
-                "return_mean": float("nan") if mean is None else mean}
+                "return_mean": float("nan") if mean is None else mean,
+                "success_rate": float("nan") if success is None else success}
 
 
 class CsvLog:
@@ -52,7 +62,7 @@ class CsvLog:
 
     def __init__(self, path: Path, columns: list[str], keep_until_step: int | None = None):
         self.path = path
-        self.columns = columns
+        self.columns = _header_of(path) or columns  # a resumed run's file keeps the columns it began with
         if keep_until_step is not None and path.exists():
             self._truncate_after(keep_until_step)
         new = not path.exists() or path.stat().st_size == 0
@@ -82,6 +92,14 @@ class CsvLog:
 
     def close(self) -> None:
         self.file.close()
+
+
+def _header_of(path: Path) -> list[str] | None:
+    try:
+        with open(path, newline="") as f:
+            return next(csv.reader(f), None) or None
+    except OSError:
+        return None
 
 
 def _as_int(text: str) -> int | None:

@@ -80,30 +80,34 @@ class RunWriter:
 
 def train(learner: Learner, collector: Collector, run: RunState, steps: int, run_dir: str | Path | None = None,
           target_return: float | None = None, progress: bool | None = None, callbacks: list | None = None,
-          loggers: list | None = None) -> dict[str, Any]:
+          loggers: list | None = None, target_success: float | None = None) -> dict[str, Any]:
     """Train `learner` for `steps` more env steps on what `collector` gathers, advancing `run`; with
     `run_dir`, write the run directory as it goes. `callbacks` (softac.callbacks.Callback) run at the loop's
     hooks; `loggers` (softac.loggers.Logger) get every metrics record besides the run directory's own logs."""
-    return TrainingLoop(learner, collector, run, steps, run_dir, target_return, progress, callbacks, loggers).run()
+    return TrainingLoop(learner, collector, run, steps, run_dir, target_return, progress, callbacks, loggers,
+                        target_success=target_success).run()
 
 
 class TrainingLoop:
     """One training call: collect, learn, and the work due at each interval (log rows, evaluations,
-    checkpoints, callbacks), until `steps` more env steps, a target return or a stop. Every input is
+    checkpoints, callbacks), until `steps` more env steps, a target return or success rate, or a stop. Every input is
     checked when it is made, before the run directory is written (a refused callback leaves no half-made
     run); `run()` opens the run directory and everything else inside one `try`."""
 
     def __init__(self, learner: Learner, collector: Collector, run_state: RunState, steps: int,
                  run_dir: str | Path | None = None, target_return: float | None = None, progress: bool | None = None,
-                 callbacks: list | None = None, loggers: list | None = None, agent: Any = None):
+                 callbacks: list | None = None, loggers: list | None = None, agent: Any = None,
+                 target_success: float | None = None):
         if steps < 0:
             raise SoftacError(f"steps must be >= 0, got {steps}")
+        if target_success is not None and not 0.0 < target_success <= 1.0:
+            raise SoftacError(f"target success rate must be in (0, 1], got {target_success}")
         self.run_path = Path(run_dir) if run_dir is not None else None
         check_backends_installed(parse_backends(learner.config.loggers) if self.run_path is not None else [])
         self.learner, self.collector, self.run_state, self.config = learner, collector, run_state, learner.config
         self.start_step = self.run_state.num_steps
         self.end_step = self.start_step + steps
-        self.target_return = target_return
+        self.target_return, self.target_success = target_return, target_success
         self.info = TrainingInfo(learner, run_state, self.start_step, self.end_step,
                                  self.run_path.resolve() if self.run_path is not None else None, self.metric_values,
                                  collector.apply, agent=agent)
@@ -119,13 +123,14 @@ class TrainingLoop:
         self.logs: Loggers | None = None
         self.eval_envs: list | None = None
         self.last_metrics: dict[str, Any] | None = None  # the last update's, on the device until read
-        self.stop_reason: str | None = None  # target_return or a callback's reason, once training should stop
+        self.stop_reason: str | None = None  # target_return, target_success or a callback's reason: stop now
         self.logged_at: int | None = None
 
     def run(self) -> dict[str, Any]:
         self.collector.start(self.run_state.num_steps)
         self.wall0, self.time0 = time.perf_counter(), self.run_state.train_time_s
-        self.rows = TrainRows(self.start_step, self.run_state.recent_returns)  # progress.csv's fps and return_mean
+        # progress.csv's fps, return_mean and success_rate
+        self.rows = TrainRows(self.start_step, self.run_state.recent_returns, self.run_state.recent_successes)
         self.show = Progress(self.start_step, self.end_step, enabled=self.progress)
         next_show = self.start_step
         try:
@@ -144,7 +149,8 @@ class TrainingLoop:
                     self.stop_reason = self.on_intervals(before, after)
                     if after >= next_show or self.stop_reason is not None:  # redraw at most every SHOW_EVERY
                         next_show = after + SHOW_EVERY
-                        self.show.update(after, ret=self.rows.recent_mean(), eval=self.run_state.last_eval)
+                        self.show.update(after, ret=self.rows.recent_mean(), eval=self.run_state.last_eval,
+                                         success=self.run_state.last_success)
                 self.finish()
         finally:
             self.close()
@@ -167,6 +173,7 @@ class TrainingLoop:
         self.show.close(self.run_state.num_steps)
         self.run_state.train_time_s = self.elapsed()
         self.run_state.recent_returns = list(self.rows.recent)  # the next learn() (and save()) go on from them
+        self.run_state.recent_successes = list(self.rows.successes)
         if self.writer is not None:
             self.writer.close()
         for env in self.eval_envs or []:
@@ -198,6 +205,8 @@ class TrainingLoop:
             "recent_return_mean": self.rows.recent_mean(), "best_step": rs.best_step,
             "total_steps": self.config.total_steps,
         }
+        if self.collector.spaces.goal_env or rs.last_success is not None or self.rows.successes:
+            summary.update(last_success=rs.last_success, recent_success_rate=self.rows.success_rate())
         if self.writer is not None:
             self.writer.write_summary(summary)
         if self.hooks:
@@ -238,11 +247,14 @@ class TrainingLoop:
                                 "actions; the last good checkpoint is kept")
         result = self.collector.step(obs, actions, env_actions, before)
         rs.num_steps = after = before + cfg.n_envs
-        for _, episode_return, length in result.finished:
+        for episode in result.finished:
             rs.num_episodes += 1
-            self.rows.episode_finished(episode_return)
+            self.rows.episode_finished(episode.ret, episode.success)
             if self.logs is not None:
-                self.logs.log("rollout", {"return": round(episode_return, 6), "length": length}, after)
+                values = {"return": round(episode.ret, 6), "length": episode.length}
+                if episode.success is not None:
+                    values["success"] = episode.success
+                self.logs.log("rollout", values, after)
         return before, after
 
     def learn(self, after: int) -> None:
@@ -254,22 +266,32 @@ class TrainingLoop:
 
     def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training
-        should stop now (target_return or a callback's reason), else None."""
-        cfg, reached = self.config, False
+        should stop now (target_return, target_success or a callback's reason), else None."""
+        cfg, reached = self.config, None
         if crossed(before, after, cfg.log_interval):
             self.log_row(after)
         if crossed(before, after, cfg.eval_interval):
             stats = self.evaluate(after)
-            reached = (stats is not None and self.target_return is not None
-                       and stats["mean_return"] >= self.target_return)
+            reached = self.target_reached(stats)
         if self.hooks:
             self.hooks.call("on_step")
         stopping = reached or self.info.stop_reason is not None
         if crossed(before, after, cfg.checkpoint_interval) and not stopping:  # (saved by finish() when stopping)
             self.save_checkpoint("last")
         if reached:
-            return "target_return"
+            return reached
         return f"callback: {self.info.stop_reason}" if self.info.stop_reason is not None else None
+
+    def target_reached(self, stats: dict[str, Any] | None) -> str | None:
+        """`target_return` or `target_success` when an evaluation reached it (either stops training)."""
+        if stats is None:
+            return None
+        if self.target_return is not None and stats["mean_return"] >= self.target_return:
+            return "target_return"
+        success = stats.get("success_rate")
+        if self.target_success is not None and success is not None and success >= self.target_success:
+            return "target_success"
+        return None
 
     def log_row(self, step: int) -> None:
         self.logged_at = step
@@ -288,10 +310,13 @@ class TrainingLoop:
                              cfg.seed + EVAL_SEED_OFFSET, envs=self.eval_envs, should_stop=lambda: self.stop.requested)
         if self.stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
             return None
-        rs.last_eval, rs.last_eval_step = stats["mean_return"], step
+        rs.last_eval, rs.last_eval_step, rs.last_success = stats["mean_return"], step, stats["success_rate"]
         if self.logs is not None:
-            self.logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
-                                   "episodes": stats["episodes"]}, step)
+            values = {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
+                      "episodes": stats["episodes"]}
+            if stats["success_rate"] is not None:
+                values["success_rate"] = stats["success_rate"]
+            self.logs.log("eval", values, step)
         if rs.best_eval is None or stats["mean_return"] > rs.best_eval:
             rs.best_eval, rs.best_step = stats["mean_return"], step
             self.save_checkpoint("best")
@@ -306,6 +331,7 @@ class TrainingLoop:
         _check_finite(self.metric_values(), self.run_state.num_steps)
         self.run_state.train_time_s = self.elapsed()
         self.run_state.recent_returns = list(self.rows.recent)
+        self.run_state.recent_successes = list(self.rows.successes)
         parts = checkpoint_parts(self.learner, self.run_state, self.collector, include_buffer=name == "last")
         path = self.writer.save_checkpoint(name, *parts)
         if self.hooks:

@@ -33,6 +33,8 @@ class RunState:
     last_eval: float | None = None
     last_eval_step: int | None = None
     recent_returns: list[float] = field(default_factory=list)  # the last episodes' returns (progress bar, logs)
+    recent_successes: list[float] = field(default_factory=list)  # their successes, where the env reports them
+    last_success: float | None = None  # the last evaluation's success rate (envs that report success)
     # the run directory this state is the latest of (loaded from its checkpoints/last, or last trained into):
     # the only run it may go on writing into; any other directory must hold no run (never overwritten)
     run_dir: Path | None = None
@@ -53,7 +55,8 @@ class RunState:
             "train_time_s": self.train_time_s,
             "numpy_rng": self.rng.bit_generator.state,
             "trainer": {"best_eval": self.best_eval, "best_step": self.best_step, "last_eval": self.last_eval,
-                        "last_eval_step": self.last_eval_step, "recent_returns": list(self.recent_returns)},
+                        "last_eval_step": self.last_eval_step, "recent_returns": list(self.recent_returns),
+                        "recent_successes": list(self.recent_successes), "last_success": self.last_success},
         }
         return meta, {"act_key": np.asarray(self.act_key), "predict_key": np.asarray(self.predict_key)}
 
@@ -72,6 +75,8 @@ class RunState:
         self.best_eval, self.best_step = trainer.get("best_eval"), trainer.get("best_step")
         self.last_eval, self.last_eval_step = trainer.get("last_eval"), trainer.get("last_eval_step")
         self.recent_returns = list(trainer.get("recent_returns", []))
+        self.recent_successes = list(trainer.get("recent_successes", []))
+        self.last_success = trainer.get("last_success")
         self.restored_from = Path(where).resolve() if where else None
         self.run_dir = run_of_last_checkpoint(self.restored_from) if self.restored_from else None
 
