@@ -287,3 +287,39 @@ def test_exported_policies_of_a_goal_env_take_the_dict(tiny, tmp_path):
                                            providers=["CPUExecutionProvider"])
     assert [i.name for i in session.get_inputs()] == ["achieved_goal", "desired_goal", "observation"]
     np.testing.assert_allclose(session.run(["action"], batch)[0], expected, atol=1e-5)
+
+
+def test_sweep_summaries_give_success_rates_and_the_steps_to_reach_one(tmp_path):
+    from softac import sweep
+
+    for seed, rates in ((0, ("0.1", "0.95", "0.9")), (1, ("0.0", "0.5", "0.92"))):
+        run = tmp_path / "sweep" / f"seed={seed}"
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text(f"seed: {seed}\n")
+        (run / "eval.csv").write_text("step,mean_return,std_return,episodes,success_rate\n" + "".join(
+            f"{100 * (i + 1)},-{10 - i},0,10,{rate}\n" for i, rate in enumerate(rates)))
+        (run / "progress.csv").write_text("step,time_s\n100,1.0\n300,3.0\n")
+    spec = sweep.SweepSpec(env_id=GOAL_ENV, steps=300, seeds=[0, 1])
+    rows = sweep.trial_rows(tmp_path / "sweep", spec, success_threshold=0.9)
+    assert [(r["final_success"], r["best_success"], r["steps_to_success"], r["seconds_to_success"]) for r in rows] == [
+        (0.9, 0.95, 200, 2.0), (0.92, 0.92, 300, 3.0)]
+    table = sweep.markdown_table(sweep.aggregate(rows, [], None, name="softac"), None, 0.9)
+    assert "| final success rate (mean) | reached success 0.9 | median steps to it |" in table
+    assert "| 0.91 | 2/2 | 250 |" in table
+    files = sweep.write_summaries(tmp_path / "sweep", spec)
+    assert "steps_to_success" in (tmp_path / "sweep" / "summary.csv").read_text().splitlines()[0]
+    assert any(f.name == "success_comparison.png" for f in files)
+
+
+def test_plots_and_the_report_of_a_goal_env_run_show_its_success_rate(tiny, tmp_path):
+    from softac.plots import plot_runs
+    from softac.report import build_report
+
+    runs = []
+    for seed in (0, 1):
+        runs.append(tmp_path / f"run{seed}")
+        SAC(tiny(GOAL_ENV, seed=seed, eval_interval=100, eval_episodes=2)).learn(200, run_dir=runs[-1], progress=False)
+    assert "success.png" in [p.name for p in plot_runs(runs[:1])]
+    assert "success_comparison.png" in [p.name for p in plot_runs(runs, tmp_path / "both")]
+    page = build_report(runs[0]).read_text()
+    assert "last success rate" in page and "<th>success rate</th>" in page and "alt='Success rate'" in page

@@ -124,6 +124,9 @@ def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
     sw.add_argument("--asha", action="store_true", help="with --search: stop poor trials early (ASHA)")
     sw.add_argument("--threshold", type=_finite_float, metavar="R",
                     help="also report steps and seconds until the eval mean first reaches R")
+    sw.add_argument("--success-threshold", type=_finite_float, metavar="S", default=0.9,
+                    help="for envs that report success (goal envs): the summary's steps until the eval success "
+                         "rate first reaches S (default 0.9)")
 
 
 def build_parser() -> _Parser:
@@ -480,11 +483,14 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             raise SoftacError("softac sweep needs --out DIR (or --resume DIR)")
         out = Path(args.out)
         spec = sweep_spec_from_args(args)
+    if not 0.0 < args.success_threshold <= 1.0:
+        raise SoftacError(f"--success-threshold is a success rate in (0, 1], got {args.success_threshold}")
     threshold = args.threshold
     if threshold is None:
         threshold = sweep.default_threshold(spec.env_id)
     result = sweep.run_sweep(spec, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
                              max_concurrent=args.max_concurrent, threshold=threshold,
+                             success_threshold=args.success_threshold,
                              gpus_per_trial=args.gpus_per_trial)
     if result["failed"]:
         print(f"softac: {len(result['failed'])} trial(s) failed, first: {result['failed'][0]}", file=sys.stderr)

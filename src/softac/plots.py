@@ -112,6 +112,30 @@ def plot_learning_curve(run: Path, out: Path, baselines: dict[str, Any] | None =
     return _finish_curve(plt, fig, ax, out, "episode return", f"Learning curve: {run_label(run)}")
 
 
+def reports_success(run: Path) -> bool:
+    """Whether a run's env reports success (goal envs): a value in eval.csv's or episodes.csv's success column."""
+    return (any(r.get("success_rate") for r in read_csv(run / "eval.csv"))
+            or any(r.get("success") for r in read_csv(run / "episodes.csv")))
+
+
+def plot_success_curve(run: Path, out: Path) -> Path:
+    """A goal env's success rate: the training episodes' (moving average) and each evaluation's."""
+    plt = _pyplot()
+    episodes = [r for r in read_csv(run / "episodes.csv") if r.get("success")]
+    evals = [r for r in read_csv(run / "eval.csv") if r.get("success_rate")]
+    fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
+    if episodes:
+        success = _floats(episodes, "success")
+        window = max(1, min(50, len(success) // 10 or 1))
+        ax.plot(_floats(episodes, "step"), moving_average(success, window), color="tab:blue", lw=2,
+                label=f"training episodes (moving average of {window})")
+    if evals:
+        ax.plot(_floats(evals, "step"), _floats(evals, "success_rate"), color="tab:orange", marker="o", ms=4,
+                lw=1.5, label="deterministic evaluation")
+    ax.set_ylim(-0.03, 1.03)
+    return _finish_curve(plt, fig, ax, out, "success rate", f"Success rate: {run_label(run)}")
+
+
 def plot_metric_grid(run: Path, out: Path) -> Path:
     plt = _pyplot()
     rows = [r for r in read_csv(run / "progress.csv") if r.get("critic_loss")]
@@ -194,13 +218,14 @@ def group_runs(runs: list[Path], names: dict[Path, str] | None = None) -> tuple[
     return labels, [[runs[i] for i in members] for members in groups.values()]
 
 
-def aligned_eval_curves(runs: list[Path]) -> tuple[np.ndarray, np.ndarray]:
-    """Eval mean returns of several runs on a common step grid (linear interpolation, no extrapolation)."""
+def aligned_eval_curves(runs: list[Path], column: str = "mean_return") -> tuple[np.ndarray, np.ndarray]:
+    """An eval.csv column (mean returns, or success rates) of several runs on a common step grid (linear
+    interpolation, no extrapolation)."""
     curves = []
     for run in runs:
-        rows = read_csv(run / "eval.csv")
+        rows = [r for r in read_csv(run / "eval.csv") if r.get(column)]
         if rows:
-            curves.append((_floats(rows, "step"), _floats(rows, "mean_return")))
+            curves.append((_floats(rows, "step"), _floats(rows, column)))
     if not curves:
         return np.array([]), np.zeros((0, 0))
     grid = np.unique(np.concatenate([s for s, _ in curves]))
@@ -212,16 +237,19 @@ def aligned_eval_curves(runs: list[Path]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | None = None,
-                    names: dict[Path, str] | None = None) -> Path:
+                    names: dict[Path, str] | None = None, column: str = "mean_return") -> Path:
     """One colour per configuration: each seed's curve faintly, the IQM across seeds, and its 95%
     percentile-bootstrap band (which stays within the seeds' values, where a t-interval of 2-3 seeds
-    spans the axis). `names`: see group_runs."""
+    spans the axis). `names`: see group_runs. `column`: eval.csv's mean_return, or success_rate."""
     plt = _pyplot()
     labels, groups = group_runs(runs, names)
     fig, ax = plt.subplots(figsize=(9, 5), constrained_layout=True)
     observed: list[float] = []
+    success = column == "success_rate"
+    if success:
+        baselines = None
     for colour, (label, members) in enumerate(zip(labels, groups)):
-        grid, values = aligned_eval_curves(members)
+        grid, values = aligned_eval_curves(members, column)
         if len(grid) == 0:
             continue
         observed.extend(values[~np.isnan(values)].tolist())
@@ -234,6 +262,10 @@ def plot_comparison(runs: list[Path], out: Path, baselines: dict[str, Any] | Non
             ax.fill_between(grid, low, high, color=f"C{colour}", alpha=0.18, lw=0)
     _draw_baselines(ax, baselines)
     observed.extend(b["mean_return"] for b in (baselines or {}).values())
+    if success:
+        ax.set_ylim(-0.03, 1.03)
+        return _finish_curve(plt, fig, ax, out, "deterministic eval success rate",
+                             "Evaluation success rate: IQM across seeds, 95% bootstrap band, each seed faint")
     if observed:
         lo, hi = min(observed), max(observed)
         pad = 0.08 * (hi - lo or abs(hi) or 1.0)
@@ -326,12 +358,17 @@ def plot_runs(runs: list[Path], out_dir: Path | None = None, names: dict[Path, s
         baselines = load_baselines(run)
         written.append(plot_learning_curve(run, out / "learning_curve.png", baselines))
         written.append(plot_metric_grid(run, out / "metrics.png"))
+        if reports_success(run):
+            written.append(plot_success_curve(run, out / "success.png"))
     else:
         if out_dir is None:
             raise SoftacError("plotting several runs needs --out DIR")
         out_dir.mkdir(parents=True, exist_ok=True)
         known = [b for b in (load_baselines(r) for r in runs) if b]
         written.append(plot_comparison(runs, out_dir / "comparison.png", known[0] if known else None, names))
+        if any(map(reports_success, runs)):
+            written.append(plot_comparison(runs, out_dir / "success_comparison.png", names=names,
+                                           column="success_rate"))
         for run in runs:
             sub = out_dir / run.name
             sub.mkdir(exist_ok=True)

@@ -85,16 +85,24 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
              ("training time", f"{time_s:.0f} s"), ("episodes", f"{len(episodes):,}"),
              ("best eval return", _fmt(best) if best is not None else "n/a"),
              ("last eval return", _fmt(last) if last is not None else "n/a")]
+    successes = [float(r["success_rate"]) for r in evals if r.get("success_rate")]
+    if successes:  # a goal env
+        cards += [("best success rate", f"{max(successes):.2f}"), ("last success rate", f"{successes[-1]:.2f}")]
     parts = [f"<h1>softac run report</h1><p class='sub'>{html.escape(str(run))} &middot; generated "
              f"{time.strftime('%Y-%m-%d %H:%M')}</p>",
              "<div class='cards'>" + "".join(f"<div class='card'>{html.escape(k)}<b>{html.escape(v)}</b></div>"
                                              for k, v in cards) + "</div>"]
-    captions = {"learning_curve.png": "Learning curve", "metrics.png": "Training metrics"}
+    captions = {"learning_curve.png": "Learning curve", "metrics.png": "Training metrics",
+                "success.png": "Success rate"}
     for fig in figures:
         parts.append(f"<h2>{captions.get(fig.name, fig.stem)}</h2>"
                      f"<img alt='{html.escape(captions.get(fig.name, fig.stem))}' src='{_data_uri(fig, 'image/png')}'>")
     parts.append("<h2>Evaluations</h2>")
-    if evals:
+    if evals and successes:
+        parts.append(_table(["step", "mean return", "std", "episodes", "success rate"],
+                            [[r["step"], _fmt(r["mean_return"]), _fmt(r["std_return"]), r["episodes"],
+                              _fmt(r.get("success_rate") or "")] for r in evals]))
+    elif evals:
         parts.append(_table(["step", "mean return", "std", "episodes"],
                             [[r["step"], _fmt(r["mean_return"]), _fmt(r["std_return"]), r["episodes"]] for r in evals]))
     else:

@@ -11,7 +11,7 @@ from typing import Any, Iterator
 
 from softac.errors import SoftacError
 from softac.rundir import run_lock, wait_released
-from softac.sweep.results import unfinished_trials, write_summaries
+from softac.sweep.results import SUCCESS_THRESHOLD, unfinished_trials, write_summaries
 from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SweepSpec, grid_trials, planned_trials, prepare_out_dir,
                                validate)
 from softac.sweep.trial import run_trial, trial_state
@@ -121,7 +121,7 @@ def _trial_label(trial: Any) -> str:
 
 def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_trial: float = 1.0,
               max_concurrent: int | None = None, threshold: float | None = None, gpus_per_trial: float = 0.0,
-              log=lambda *a: print(*a, file=sys.stderr, flush=True)) -> dict[str, Any]:
+              success_threshold: float = SUCCESS_THRESHOLD, log=lambda *a: print(*a, file=sys.stderr, flush=True)) -> dict[str, Any]:
     """Run (or continue) a sweep; returns {'trials', 'unfinished', 'failed', 'files'}."""
     validate(spec)
     if cpus_per_trial <= 0:
@@ -148,7 +148,7 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
                 f"finished), {spec.framework} on {spec.env_id}, {spec.steps} steps each")
             if todo:
                 failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, log)
-        files = write_summaries(out, spec, threshold)
+        files = write_summaries(out, spec, threshold, success_threshold)
     for path in files:
         log(f"wrote {path}")
     unfinished = unfinished_trials(out, spec)

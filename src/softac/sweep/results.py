@@ -37,7 +37,11 @@ def _threshold_crossing(evals: list[tuple[int, float]], progress: list[dict[str,
     return None, None
 
 
-def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None) -> list[dict[str, Any]]:
+SUCCESS_THRESHOLD = 0.9  # steps to a success rate of at least this, for envs that report success (goal envs)
+
+
+def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None,
+               success_threshold: float = SUCCESS_THRESHOLD) -> list[dict[str, Any]]:
     from softac.logs import read_csv
 
     rows = []
@@ -66,6 +70,13 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None) -> li
             after = [v for st, v in evals if step is not None and st >= step]
             # holding matters as much as reaching (a policy that falls over again is not solved)
             row["held_threshold"] = round(sum(v >= threshold for v in after) / len(after), 3) if after else None
+        successes = read_evals(run, "success_rate")
+        if successes:  # a goal env: its success rates beside the returns
+            row["final_success"] = successes[-1][1]
+            row["best_success"] = max(v for _, v in successes)
+            step, seconds = _threshold_crossing(successes, progress, success_threshold)
+            row["steps_to_success"] = step
+            row["seconds_to_success"] = None if seconds is None else round(seconds, 1)
         rows.append(row)
     return rows
 
@@ -98,6 +109,12 @@ def aggregate(rows: list[dict[str, Any]], keys: list[str], threshold: float | No
                 secs = [r["seconds_to_threshold"] for r in reached if r["seconds_to_threshold"] is not None]
                 entry["seconds_to_threshold"] = float(np.median(secs)) if secs else None
                 entry["held_threshold"] = float(np.mean([r["held_threshold"] for r in reached]))
+        successes = [r["final_success"] for r in members if r.get("final_success") is not None]
+        if successes:
+            entry["final_success"] = float(np.mean(successes))
+            reached = [r for r in members if r.get("steps_to_success") is not None]
+            entry["success_reached"] = len(reached)
+            entry["steps_to_success"] = float(np.median([r["steps_to_success"] for r in reached])) if reached else None
         table.append(entry)
     table.sort(key=lambda e: -(e["final"].mean if "final" in e else -math.inf))
     return table
@@ -107,9 +124,13 @@ def _fmt(x: float | None, digits: int = 1) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
 
 
-def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
+def markdown_table(table: list[dict[str, Any]], threshold: float | None,
+                   success_threshold: float = SUCCESS_THRESHOLD) -> str:
     head = ["configuration", "seeds", "final eval (mean ± std)", "final 95% CI", "final IQM", "best eval (mean ± std)",
             "median steps", "median wall s", "steps/s"]
+    success = any("final_success" in e for e in table)
+    if success:
+        head += ["final success rate (mean)", f"reached success {success_threshold:g}", "median steps to it"]
     if threshold is not None:
         head += [f"reached {threshold:g}", "median steps to it", "median s to it", "evals held after"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
@@ -121,6 +142,10 @@ def markdown_table(table: list[dict[str, Any]], threshold: float | None) -> str:
                  f"{final.iqm:.1f}" if final else "-",
                  f"{best.mean:.1f} ± {best.std:.1f}" if best else "-", f"{e['steps']}", _fmt(e["wall_s"]),
                  _fmt(e.get("steps_per_s"))]
+        if success:
+            cells += [_fmt(e.get("final_success"), 2),
+                      f"{e['success_reached']}/{e['seeds']}" if "final_success" in e else "-",
+                      _fmt(e.get("steps_to_success"), 0)]
         if threshold is not None:
             cells += [f"{e['reached']}/{e['seeds']}", _fmt(e.get("steps_to_threshold"), 0),
                       _fmt(e.get("seconds_to_threshold")),
@@ -144,16 +169,17 @@ def check_command(spec: SweepSpec, values: dict[str, Any], seeds: int = 5, out: 
     return " ".join(shlex.quote(part) for part in [*cmd, "--out", out])
 
 
-def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) -> list[Path]:
+def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None,
+                    success_threshold: float = SUCCESS_THRESHOLD) -> list[Path]:
     """DIR/summary.csv, DIR/summary.md and DIR/plots/ from the trial run directories."""
     import csv
 
     from softac.rundir import write_atomic
 
-    rows = trial_rows(out, spec, threshold)
+    rows = trial_rows(out, spec, threshold, success_threshold)
     if not rows:
         return []
-    columns = list(rows[0])
+    columns = list(dict.fromkeys(key for row in rows for key in row))  # success columns where any trial has them
     csv_path = out / "summary.csv"
     with open(csv_path.with_suffix(".csv.tmp"), "w", newline="") as f:
         writer = csv.DictWriter(f, columns)
@@ -170,7 +196,7 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) 
                                                         if spec.overrides else "") + ".",
             "Final eval: the last deterministic evaluation of each trial; 95% CI: Student t over seeds; IQM: the "
             "interquartile mean over seeds (rliable's; the plain mean below 4 seeds).", "",
-            markdown_table(table, threshold), ""]
+            markdown_table(table, threshold, success_threshold), ""]
     if spec.search and table:
         best = max((r for r in rows if r["final_eval_mean"] is not None), key=lambda r: r["final_eval_mean"],
                    default=None)
@@ -187,6 +213,8 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None) 
         runs = trial_dirs(out)
         written.append(plot_comparison(runs, out / PLOT_DIR / "comparison.png"))
         written.append(plot_final_returns(runs, out / PLOT_DIR / "final_returns.png"))
+        if any(r.get("final_success") is not None for r in rows):
+            written.append(plot_comparison(runs, out / PLOT_DIR / "success_comparison.png", column="success_rate"))
     return written
 
 

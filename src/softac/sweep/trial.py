@@ -69,13 +69,14 @@ def trial_process_setup(cpus: list[int]):
     return setup
 
 
-def read_evals(run: Path) -> list[tuple[int, float]]:
+def read_evals(run: Path, column: str = "mean_return") -> list[tuple[int, float]]:
+    """(step, value) of each evaluation in eval.csv that has `column` (mean_return, or success_rate)."""
     from softac.logs import read_csv
 
     out = []
     for row in read_csv(run / "eval.csv"):
-        with contextlib.suppress(ValueError, TypeError):
-            out.append((int(float(row["step"])), float(row["mean_return"])))
+        with contextlib.suppress(ValueError, TypeError, KeyError):  # (a run written before the column: none)
+            out.append((int(float(row["step"])), float(row[column])))
     return out
 
 
