@@ -153,3 +153,32 @@ def test_a_peer_run_stopped_by_a_signal_continues_from_its_checkpoint(tmp_path):
     # softac cannot load a peer's checkpoint as an agent: one line, exit 2
     ev = run_cli("eval", str(run), "--episodes", "1")
     assert ev.returncode == 2 and "peer's run" in ev.stderr and "Traceback" not in ev.stderr, ev.stderr
+
+
+def test_a_her_peer_trains_a_goal_env_resumes_with_its_dict_buffer_and_reports_success(tmp_path):
+    """sbx-her (SBX's SAC + SB3's HerReplayBuffer, stand-ins): the dict observation goes to the peer as a dict
+    (training, and evaluation through softac's flattened envs), the HER buffer's dict arrays and episode
+    arrays come back from its checkpoint, and the success rate is in episodes.csv, eval.csv and the summary."""
+    import signal
+
+    run = tmp_path / "her"
+    command = [sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", "softac_test_envs:PointGoal-v0",
+               "--seed", "0", "--steps", "1500", "--out", str(run), "--eval-interval", "300", "--eval-episodes", "2",
+               "--log-interval", "100", "--checkpoint-interval", "300"]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env(FAKE_PEERS))
+    stderr = signal_when(proc, lambda: len(read_csv(run / "eval.csv")) >= 2, signal.SIGTERM)
+    assert proc.returncode == 130, stderr
+    resumed = subprocess.run(command, capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+    assert resumed.returncode == 0, resumed.stderr  # the stand-in checks its buffer came back whole
+    evals = read_csv(run / "eval.csv")
+    assert [int(r["step"]) for r in evals] == [300, 600, 900, 1200, 1500]
+    assert all(0.0 <= float(r["success_rate"]) <= 1.0 for r in evals)
+    assert {r["success"] for r in read_csv(run / "episodes.csv")} <= {"0", "1"}
+    assert json.loads((run / "summary.json").read_text())["last_success"] == float(evals[-1]["success_rate"])
+
+
+def test_a_her_peer_on_an_env_without_goals_is_refused_in_one_line(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", DRIFT, "--steps", "100",
+                        "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=300,
+                       env=child_env(FAKE_PEERS))
+    assert r.returncode == 2 and "sbx-her needs a goal env" in r.stderr and "Traceback" not in r.stderr, r.stderr

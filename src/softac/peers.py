@@ -6,9 +6,9 @@ this module's entry point:
     python -m softac.peers run|throughput|solve PEER --env ENV [...]
 
 which prints one JSON line (`python -m softac.bench ...`, the older form, still works). PEER is one of
-`PEERS`: Stable-Baselines3's SAC and SBX's SAC at their defaults, SBX's CrossQ at its defaults, and SBX's
-CrossQ at the settings of softac's `crossq` preset (like for like with the suite's presets). Needs the
-`[bench]` extra."""
+`PEERS`: Stable-Baselines3's SAC and SBX's SAC at their defaults, SBX's CrossQ at its defaults, SBX's
+CrossQ at the settings of softac's `crossq` preset (like for like with the suite's presets), and for goal envs
+SB3's and SBX's SAC with SB3's HerReplayBuffer. Needs the `[bench]` extra."""
 
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ class Peer:
     settings: str  # "defaults" (the peer's own), or the softac preset whose settings it runs at
     about: str
     label: str  # the configuration's name in tables and legends
+    her: bool = False  # with SB3's HerReplayBuffer: for goal envs only
 
 
 PEERS = {
@@ -47,7 +48,16 @@ PEERS = {
                               "SBX's CrossQ at softac's crossq preset settings (256x256, batch 128, learning_starts "
                               "5000, lr 1e-3, Adam b1 0.5, policy delay 3)",
                               "SBX CrossQ, crossq preset's settings"),
+    "sb3-her": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults",
+                    "Stable-Baselines3's SAC at its defaults with its HerReplayBuffer (future, 4 goals) and "
+                    "learning_starts 1000, for goal envs", "SB3 SAC + HER, its defaults", her=True),
+    "sbx-her": Peer("sbx", "sbx-rl", "SAC", "defaults",
+                    "SBX's SAC at its defaults with SB3's HerReplayBuffer (future, 4 goals) and learning_starts "
+                    "1000, for goal envs", "SBX SAC + HER, its defaults", her=True),
 }
+# SB3's HER examples' settings; its buffer cannot sample before an episode has ended
+HER_SETTINGS = {"n_sampled_goal": 4, "goal_selection_strategy": "future"}
+HER_LEARNING_STARTS = 1000
 THROUGHPUT_LEARNING_STARTS = 100
 
 
@@ -92,19 +102,42 @@ def _peer_algorithm(framework: str) -> tuple[Any, dict[str, Any]]:
     return getattr(sbx, peer.algorithm), {}
 
 
+def peer_env(framework: str, env_id: str):
+    """The peer's training env as Gymnasium makes it (a goal env's dict observation kept: SB3's
+    MultiInputPolicy takes it); a HER peer on an env that is no goal env is refused in one line."""
+    import gymnasium as gym
+
+    from softac.envs import make_env, resolve_env_id
+    from softac.errors import SoftacError
+    from softac.her import is_goal_env
+
+    env = gym.make(resolve_env_id(env_id))  # resolve_env_id imports Gymnasium-Robotics for its ids
+    if PEERS[framework].her and not is_goal_env(make_env(env_id)):
+        raise SoftacError(f"{framework} needs a goal env (a dict observation with observation, achieved_goal, "
+                          f"desired_goal and compute_reward); {env_id} is not one")
+    return env
+
+
 def peer_model(framework: str, env_id: str, seed: int, **overrides: Any):
     """The peer's model on a fresh env, at its settings (`overrides`, e.g. learning_starts for a throughput
     probe, replace them)."""
     import gymnasium as gym
 
     algorithm, kwargs = _peer_algorithm(framework)
-    settings = PEERS[framework].settings
-    if settings != "defaults":
+    peer = PEERS[framework]
+    if peer.settings != "defaults":
         from softac.config import SACConfig
 
-        kwargs.update(crossq_settings(SACConfig.preset(settings)))
+        kwargs.update(crossq_settings(SACConfig.preset(peer.settings)))
+    if peer.her:
+        from stable_baselines3 import HerReplayBuffer
+
+        kwargs.update(replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(HER_SETTINGS),
+                      learning_starts=HER_LEARNING_STARTS)
     kwargs.update(overrides)
-    return without_log_dir(algorithm("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs))
+    env = peer_env(framework, env_id)
+    policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else "MlpPolicy"
+    return without_log_dir(algorithm(policy, env, seed=seed, verbose=0, **kwargs))
 
 
 def without_log_dir(model):
@@ -116,8 +149,38 @@ def without_log_dir(model):
     return model
 
 
-# the replay buffer's arrays (SB3's ReplayBuffer, which SBX uses too)
+# the replay buffer's arrays (SB3's ReplayBuffer, which SBX uses too; its DictReplayBuffer keeps observations
+# as a dict of arrays; its HerReplayBuffer adds where each episode starts and how long it is)
 BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+HER_BUFFER_FIELDS = ("ep_start", "ep_length")
+
+
+def _buffer_arrays(buffer: Any, filled: int) -> dict[str, Any]:
+    """The filled rows of an SB3 replay buffer's arrays, a dict buffer's per key, HER's episode arrays too."""
+    arrays = {}
+    for name in BUFFER_FIELDS + (HER_BUFFER_FIELDS if hasattr(buffer, "ep_start") else ()):
+        value = getattr(buffer, name)
+        if isinstance(value, dict):
+            arrays.update({f"buffer_{name}.{key}": part[:filled] for key, part in value.items()})
+        else:
+            arrays[f"buffer_{name}"] = value[:filled]
+    if hasattr(buffer, "_current_ep_start"):
+        arrays["buffer__current_ep_start"] = buffer._current_ep_start
+    return arrays
+
+
+def _refill_buffer(buffer: Any, arrays: dict[str, Any]) -> None:
+    for name, rows in arrays.items():
+        if not name.startswith("buffer_"):
+            continue
+        field, _, key = name[len("buffer_"):].partition(".")
+        target = getattr(buffer, field)
+        if field == "_current_ep_start":
+            target[:] = rows
+        elif key:
+            target[key][:len(rows)] = rows
+        else:
+            target[:len(rows)] = rows
 
 
 def save_peer_checkpoint(model: Any, directory: Path, meta: dict[str, Any]) -> None:
@@ -135,7 +198,7 @@ def save_peer_checkpoint(model: Any, directory: Path, meta: dict[str, Any]) -> N
     buffer = model.replay_buffer
     filled = buffer.buffer_size if buffer.full else buffer.pos
     arrays = {"model_zip": np.frombuffer(zipped.getvalue(), np.uint8)}
-    arrays.update({f"buffer_{name}": getattr(buffer, name)[:filled] for name in BUFFER_FIELDS})
+    arrays.update(_buffer_arrays(buffer, filled))
     ckpt.save(directory, {**meta, "buffer_pos": int(buffer.pos), "buffer_full": bool(buffer.full)}, arrays)
 
 
@@ -146,8 +209,6 @@ def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
     another run (`identity`: framework, env, seed, steps) is refused."""
     import io
 
-    import gymnasium as gym
-
     from softac import checkpoint as ckpt
     from softac.errors import SoftacError
 
@@ -156,11 +217,10 @@ def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
         raise SoftacError(f"{directory} holds the checkpoint of another run ({meta.get('peer') or 'softac'}), not "
                           f"of {identity}; pick another --out")
     algorithm, kwargs = _peer_algorithm(framework)
-    model = without_log_dir(algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=gym.make(env_id), **kwargs))
+    model = without_log_dir(algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=peer_env(framework, env_id),
+                                           **kwargs))
     buffer = model.replay_buffer
-    for name in BUFFER_FIELDS:
-        rows = arrays[f"buffer_{name}"]
-        getattr(buffer, name)[:len(rows)] = rows
+    _refill_buffer(buffer, arrays)
     buffer.pos, buffer.full = int(meta["buffer_pos"]), bool(meta["buffer_full"])
     return model, meta
 
@@ -273,11 +333,12 @@ class PeerRun:
                            "elapsed_s": 0.0, "recent_returns": []}
 
     def run(self) -> dict[str, Any]:
-        import gymnasium as gym
         from stable_baselines3.common.callbacks import BaseCallback
 
+        from softac.envs import make_env
         from softac.errors import TrainingInterrupted
         from softac.evaluation import MAX_PARALLEL
+        from softac.her import dict_layout, dict_observation_space
         from softac.loggers import CsvLogger
         from softac.logs import TrainRows
         from softac.rundir import write_config, write_summary
@@ -287,14 +348,20 @@ class PeerRun:
         config = {**self.identity, "algorithm": peer.algorithm, "settings": peer.settings, "about": peer.about,
                   "eval_interval": self.eval_interval, "eval_episodes": self.eval_episodes,
                   **_hyperparameters(self.model)}
+        if peer.her:
+            config["her"] = {"replay_buffer_class": "HerReplayBuffer", **HER_SETTINGS}
         write_config(self.out, config, {"versions": {self.framework: peer_version(self.framework)}},
                      start_step=start, continuing=self.resumed)
         # the same files as a softac run (plots, reports and sweep tables read both); on resume, rows past the
         # checkpoint's step are dropped
         self.logs = CsvLogger(self.out, start if self.resumed else None)
-        self.eval_envs = [gym.make(self.env_id) for _ in range(min(self.eval_episodes, MAX_PARALLEL))]
+        # evaluated on softac's envs (a dict observation flattened, as run_episodes takes it), the flat
+        # observations given back to the peer's policy as the dict it was trained on
+        self.eval_envs = [make_env(self.env_id) for _ in range(min(self.eval_episodes, MAX_PARALLEL))]
+        space = dict_observation_space(self.eval_envs[0])
+        self.layout = dict_layout(space) if space is not None else None
         self.t0 = time.perf_counter() - self.record["elapsed_s"]  # time_s counts every segment's seconds
-        self.rows = TrainRows(start, self.record["recent_returns"])
+        self.rows = TrainRows(start, self.record["recent_returns"], self.record.get("recent_successes", []))
         run = self
 
         class Hooks(BaseCallback):
@@ -317,18 +384,25 @@ class PeerRun:
                    "train_time_s": elapsed, "wall_s": elapsed, "last_eval": self.record["last"],
                    "best_eval": self.record["best"], "stopped_early": False, "best_step": self.record["best_step"],
                    "total_steps": self.steps, "framework": self.framework}
+        if self.layout is not None and "last_success" in self.record:
+            summary.update(last_success=self.record["last_success"], recent_success_rate=self.rows.success_rate())
         write_summary(self.out, summary)
         return summary
 
     def on_step(self, step: int, infos: list[dict[str, Any]]) -> bool:
         """Episodes, log rows, evaluations and checkpoints due at this step; False stops training (a signal,
         after the checkpoint is written)."""
+        from softac.envs import success_of
+
         for info in infos:
             if "episode" in info:
                 self.record["episodes"] += 1
-                self.rows.episode_finished(float(info["episode"]["r"]))
-                self.logs.log("rollout", {"return": float(info["episode"]["r"]), "length": int(info["episode"]["l"])},
-                              step)
+                success = success_of(info)  # the env's info at the episode's last step (SB3's Monitor keeps it)
+                self.rows.episode_finished(float(info["episode"]["r"]), success)
+                values = {"return": float(info["episode"]["r"]), "length": int(info["episode"]["l"])}
+                if success is not None:
+                    values["success"] = success
+                self.logs.log("rollout", values, step)
         if step % self.log_interval == 0:
             row = self.rows.row(step, time.perf_counter() - self.t0, self.record["episodes"])
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
@@ -338,15 +412,22 @@ class PeerRun:
             self.save(step)
         return not self.stop.requested
 
-    def evaluate(self, step: int) -> None:
-        import gymnasium as gym
+    def policy(self, obs: Any) -> Any:
+        """The peer's deterministic actions for a batch of flat observations (as a dict, for a dict env)."""
+        if self.layout is not None:
+            obs = {key: obs[:, self.layout.slices[key]] for key in self.layout.keys}
+        return self.model.predict(obs, deterministic=True)[0]
 
+    def evaluate(self, step: int) -> None:
+        from softac.envs import make_env
         from softac.evaluation import EVAL_SEED_OFFSET, run_episodes
 
-        stats = run_episodes(lambda obs: self.model.predict(obs, deterministic=True)[0], lambda: gym.make(self.env_id),
-                             self.eval_episodes, self.seed + EVAL_SEED_OFFSET, envs=self.eval_envs)
-        self.logs.log("eval", {"mean_return": stats["mean_return"], "std_return": stats["std_return"],
-                               "episodes": stats["episodes"]}, step)
+        stats = run_episodes(self.policy, lambda: make_env(self.env_id), self.eval_episodes,
+                             self.seed + EVAL_SEED_OFFSET, envs=self.eval_envs)
+        values = {"mean_return": stats["mean_return"], "std_return": stats["std_return"], "episodes": stats["episodes"]}
+        if stats["success_rate"] is not None:
+            values["success_rate"] = self.record["last_success"] = stats["success_rate"]
+        self.logs.log("eval", values, step)
         self.record["last"] = stats["mean_return"]
         if self.record["best"] is None or stats["mean_return"] > self.record["best"]:
             self.record["best"], self.record["best_step"] = stats["mean_return"], step
@@ -354,7 +435,8 @@ class PeerRun:
     def save(self, step: int) -> None:
         from softac.errors import RunFailed
 
-        self.record.update(step=step, elapsed_s=time.perf_counter() - self.t0, recent_returns=list(self.rows.recent))
+        self.record.update(step=step, elapsed_s=time.perf_counter() - self.t0, recent_returns=list(self.rows.recent),
+                           recent_successes=list(self.rows.successes))
         try:
             save_peer_checkpoint(self.model, self.checkpoint, {"peer": self.identity, "record": self.record})
         except OSError as exc:

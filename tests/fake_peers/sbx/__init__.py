@@ -25,7 +25,7 @@ class ReplayBuffer:
         self.actions = np.zeros((size, 1, *act), np.float32)
         self.rewards, self.dones, self.timeouts = (np.zeros((size, 1), np.float32) for _ in range(3))
 
-    def add(self, obs, next_obs, action, reward, done):
+    def add(self, obs, next_obs, action, reward, done, episode_end=False):
         self.observations[self.pos, 0], self.next_observations[self.pos, 0] = obs, next_obs
         self.actions[self.pos, 0], self.rewards[self.pos, 0], self.dones[self.pos, 0] = action, reward, done
         self.pos = (self.pos + 1) % self.buffer_size
@@ -46,20 +46,32 @@ class SAC:
         self.policy_kwargs = {}
         self.num_timesteps = 0
         self.rng = np.random.default_rng(seed)
-        self.replay_buffer = ReplayBuffer(self.BUFFER, env)
+        self.her = kwargs.get("replay_buffer_class") is not None  # SB3's HerReplayBuffer (its stand-in)
+        if self.her:
+            from stable_baselines3 import HerReplayBuffer
+
+            self.replay_buffer = HerReplayBuffer(self.BUFFER, env, **kwargs.get("replay_buffer_kwargs", {}))
+            self.learning_starts = kwargs.get("learning_starts", 100)
+        else:
+            self.replay_buffer = ReplayBuffer(self.BUFFER, env)
         self._custom_logger = False
 
     def set_logger(self, logger):
         self._logger, self._custom_logger = logger, True
 
     def save(self, file):
-        file.write(json.dumps({"num_timesteps": self.num_timesteps, "seed": self.seed,
+        file.write(json.dumps({"num_timesteps": self.num_timesteps, "seed": self.seed, "her": self.her,
                                "settings": {k: v for k, v in vars(self).items() if isinstance(v, (int, float))}}).encode())
 
     @classmethod
     def load(cls, file, env, **kwargs):
         data = json.loads(file.read())
-        model = cls("MlpPolicy", env, seed=data["seed"])
+        if data["her"]:  # as SB3: the replay buffer class is part of what save() kept
+            from stable_baselines3 import HerReplayBuffer
+
+            model = cls("MultiInputPolicy", env, seed=data["seed"], replay_buffer_class=HerReplayBuffer)
+        else:
+            model = cls("MlpPolicy", env, seed=data["seed"])
         for key, value in data["settings"].items():
             setattr(model, key, value)
         return model  # like SB3's load(): the replay buffer comes back empty
@@ -72,6 +84,8 @@ class SAC:
         self.gradient_steps_taken = getattr(self, "gradient_steps_taken", 0) + gradient_steps
 
     def predict(self, obs, deterministic=True):
+        if isinstance(obs, dict):  # MultiInputPolicy: a dict of arrays, batched or not
+            obs = obs["observation"]
         obs = np.asarray(obs)
         time.sleep(STEP_S * (obs.shape[0] if obs.ndim > 1 else 1))
         shape = (obs.shape[0], *self.env.action_space.shape) if obs.ndim > 1 else self.env.action_space.shape
@@ -88,7 +102,9 @@ class SAC:
         # SB3 stores after the callback that saved the checkpoint
         expected = min(self.num_timesteps, self.BUFFER)
         filled = self.BUFFER if self.replay_buffer.full else self.replay_buffer.pos
-        if not expected - 1 <= filled <= expected or (self.num_timesteps and not self.replay_buffer.observations.any()):
+        observations = self.replay_buffer.observations
+        held = any(a.any() for a in observations.values()) if isinstance(observations, dict) else observations.any()
+        if not expected - 1 <= filled <= expected or (self.num_timesteps and not held):
             raise RuntimeError(f"replay buffer holds {filled} rows after {self.num_timesteps} steps")
         callback.model = self
         space = self.env.action_space
@@ -106,7 +122,9 @@ class SAC:
             callback.locals = {"infos": [info]}
             if callback._on_step() is False:  # as SB3: the callback first, then the transition is stored
                 break
-            self.replay_buffer.add(obs, next_obs, action, reward, terminated)
+            self.replay_buffer.add(obs, next_obs, action, reward, terminated, episode_end=terminated or truncated)
+            if self.her and self.num_timesteps >= self.learning_starts:
+                self.replay_buffer.sample_check()
             obs = self.env.reset()[0] if terminated or truncated else next_obs
         return self
 
