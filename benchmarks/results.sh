@@ -12,9 +12,11 @@
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
+#   robotics: issue 31's goal envs (the [robotics] extra): softac's presets (SAC + HER) beside SB3's SAC + HER at its
+#            defaults (sb3-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|robotics|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -26,6 +28,7 @@ SWEEPS=${SWEEPS:-benchmarks/sweeps}
 MUJOCO="HalfCheetah-v5 Hopper-v5 Walker2d-v5 Ant-v5 Humanoid-v5"
 CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
 FALLBACK="Swimmer-v5 Reacher-v5 InvertedDoublePendulum-v5"
+ROBOTICS="FetchReach-v4 FetchPush-v4 PointMaze_UMaze-v3"
 
 classic() {
   case $1 in
@@ -64,6 +67,17 @@ fallback() {
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx --set eval_interval=5000 --out $SWEEPS/$1-sbx
 }
 
+robotics() {
+  local steps evals=(--set eval_episodes=20)
+  case $1 in
+    FetchReach-v4) steps=10000; evals=(--set eval_interval=1000 eval_episodes=20) ;;
+    FetchPush-v4) steps=300000; evals=(--set eval_interval=10000 eval_episodes=20) ;;
+    PointMaze_UMaze-v3) steps=50000; evals=(--set eval_interval=2500 eval_episodes=20) ;;
+  esac
+  $SOFTAC sweep --env $1 --seeds 5 --steps $steps "${evals[@]}" --out $SWEEPS/$1-softac
+  $SOFTAC sweep --env $1 --seeds 3 --steps $steps --framework sb3-her "${evals[@]}" --out $SWEEPS/$1-sb3-her
+}
+
 targets=${*:-classic mujoco}
 for target in $targets; do
   case $target in
@@ -76,6 +90,8 @@ for target in $targets; do
     crossq-wn) for env in $MUJOCO; do crossq_wn $env; done ;;
     crossq-wn:*) crossq_wn ${target#crossq-wn:} ;;
     fallback) for env in $FALLBACK; do fallback $env; done ;;
+    robotics) for env in $ROBOTICS; do robotics $env; done ;;
+    robotics:*) robotics ${target#robotics:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
        elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
        else classic $target; fi ;;

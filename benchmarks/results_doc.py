@@ -30,7 +30,8 @@ from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial
 ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
                                  "Humanoid-v5": None, "Swimmer-v5": None, "Reacher-v5": None,
-                                 "InvertedDoublePendulum-v5": None}
+                                 "InvertedDoublePendulum-v5": None, "FetchReach-v4": None, "FetchPush-v4": None,
+                                 "PointMaze_UMaze-v3": None}
 SUITE = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
 AGGREGATE = "MuJoCo suite: one aggregate"
 OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
@@ -53,6 +54,11 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
   softac multiplies in bf16 where the CPU has it (`matmul_dtype: auto`), SBX in float32. Stable-Baselines3
   trains ~3x slower than SBX and is left out of this budget. The aggregate section puts the five envs
   together.
+- Goal envs (FetchReach-v4, FetchPush-v4, PointMaze_UMaze-v3; the `[robotics]` extra): softac's env presets
+  (SAC with hindsight experience replay) beside Stable-Baselines3's SAC with its HerReplayBuffer at its
+  defaults (`--framework sb3-her`: future, 4 goals, learning_starts 1000), 20 deterministic episodes an
+  evaluation; their tables add the final success rate and the steps until it first reached 0.9, and a second
+  figure draws the success rates.
 - Other rows, on the same seeds and budget: "softac, NAME preset" is another preset on the env (`results.sh
   options`: plain SAC, `sac-100k`, beside the CrossQ presets; `results.sh fallback`: `default` and
   `crossq` on envs with no preset of their own); "... + KEY=VALUE" adds options to it.
@@ -123,8 +129,13 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
     figure = figures / f"{env}.png"
     plot_comparison(list(names), figure, names=names)
     budget = ", ".join(f"{s:,}" for s in sorted(steps))
-    return [f"## {env}", "", f"{budget} env steps per trial, on {machines_of(list(names))}. "
-            f"![{env}](results/{figure.name})", "", markdown_table(rows, threshold), ""]
+    figures_md = f"![{env}](results/{figure.name})"
+    if any("final_success" in row for row in rows):  # a goal env: its success-rate curves too
+        success = figures / f"{env}-success.png"
+        plot_comparison(list(names), success, names=names, column="success_rate")
+        figures_md += f" ![{env} success rate](results/{success.name})"
+    return [f"## {env}", "", f"{budget} env steps per trial, on {machines_of(list(names))}. {figures_md}", "",
+            markdown_table(rows, threshold), ""]
 
 
 # trials whose wall time is not comparable (their returns are): sweep/trial -> why, kept beside the sweeps
