@@ -170,6 +170,23 @@ def test_a_claim_passes_over_a_cpu_that_a_sharing_process_still_uses(tmp_path, m
     assert cpus.claim_cpus(1).cpus == allowed[:1]
 
 
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_processes_that_must_share_go_to_different_cpus(tmp_path, monkeypatch):
+    """Every CPU held (by runs running or stopped): two more processes share, one per CPU, whatever their pids
+    (measured before: both on CPU 0, by their pids' parity, while CPU 1 had one process)."""
+    from softac import cpus
+
+    monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
+    monkeypatch.setattr(cpus.os, "getpid", lambda: 4242)  # the same pid parity for both
+    allowed = sorted(os.sched_getaffinity(0))
+    holders = [cpus.claim_cpus(1) for _ in allowed]
+    first, second = cpus.claim_cpus(1), cpus.claim_cpus(1)
+    assert first.shared and second.shared and first.cpus != second.cpus
+    for claim in (*holders, first, second):
+        for lock in claim.locks:
+            lock.close()
+
+
 def test_cpus_pins_the_run_to_a_cpu_no_other_run_holds(tmp_path):
     """`--cpus 1` beside another pinned softac process takes a CPU that process does not hold, and the run's
     config.yaml records how many CPUs it ran on (its numbers depend on it)."""

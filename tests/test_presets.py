@@ -7,8 +7,11 @@ import yaml
 
 from conftest import run_cli
 from softac.config import GENERIC_PRESETS, SACConfig, preset_names
+from softac.envs import ROBOTICS_PREFIXES
 
-ENV_PRESETS = [name for name in preset_names() if name not in GENERIC_PRESETS]
+# Gymnasium-Robotics' envs need the [robotics] extra (the test extra has it; test-min leaves them out)
+ENV_PRESETS = [pytest.param(name, marks=pytest.mark.robotics) if name.startswith(ROBOTICS_PREFIXES) else name
+               for name in preset_names() if name not in GENERIC_PRESETS]
 
 
 @pytest.mark.parametrize("name", ENV_PRESETS)
