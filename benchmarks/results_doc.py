@@ -179,11 +179,31 @@ def wall_ratio(theirs: list[dict], ours: list[dict]) -> tuple[float, float, floa
     return theirs_s / ours_s, theirs_s, ours_s, bool(beside)
 
 
-def random_returns(envs: list[str]) -> dict[str, float]:
-    """The uniform random policy's mean return over the 10 evaluation episodes (seed 0's), per env."""
+# the random policy's returns the normalisation uses, kept beside the sweeps: they depend on the MuJoCo release
+# (HalfCheetah's moved from -303.1 to -290.2 between MuJoCo 4.0.0 and 3.11.0), which should not move the aggregate
+RANDOM_RETURNS = "random-returns.yaml"
+
+
+def random_returns(envs: list[str], sweeps: Path | None = None) -> dict[str, float]:
+    """The uniform random policy's mean return over the 10 evaluation episodes (seed 0's), per env: from
+    SWEEPS/random-returns.yaml where it is there, else measured now with the installed MuJoCo and added to it."""
+    import yaml
+
     from softac.baselines import run_baselines
 
-    return {env: run_baselines(env, episodes=10, seed=0)["baselines"]["random"]["mean_return"] for env in envs}
+    path = sweeps / RANDOM_RETURNS if sweeps is not None else None
+    kept = (yaml.safe_load(path.read_text()) or {}) if path is not None and path.exists() else {}
+    returns = {env: float(kept[env]["random"]) for env in envs if env in kept}
+    missing = [env for env in envs if env not in returns]
+    if missing:
+        import mujoco
+
+        for env in missing:
+            returns[env] = run_baselines(env, episodes=10, seed=0)["baselines"]["random"]["mean_return"]
+            kept[env] = {"random": returns[env], "mujoco": mujoco.__version__}
+        if path is not None:
+            path.write_text(yaml.safe_dump(kept, sort_keys=True))
+    return returns
 
 
 def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
@@ -200,7 +220,7 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
                 finals.setdefault(name, {})[env] = rows
     if not finals:
         return kept.get(AGGREGATE, [])
-    random = random if random is not None else random_returns(SUITE)
+    random = random if random is not None else random_returns(SUITE, sweeps)
     best = {env: max(r["final_eval_mean"] for envs in finals.values() for r in envs.get(env, [])) for env in SUITE
             if any(env in envs for envs in finals.values())}
     ours = OURS if OURS in finals else next((name for name in finals if name.startswith("softac")), None)
