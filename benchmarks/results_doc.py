@@ -70,7 +70,9 @@ Columns:
 - final eval: the last evaluation of each trial (mean ± std over seeds, and the 95% Student-t interval);
   final IQM: its interquartile mean over seeds (rliable's; the plain mean below 4 seeds);
 - best eval: the best evaluation of each trial;
-- median wall s: the whole trial's training time, evaluations included; steps/s: steps over that time;
+- median wall s: the whole trial's training time, evaluations included, over the trials whose wall time is
+  comparable (those in benchmarks/sweeps/timing-excluded.yaml, listed under the aggregate, are left out of
+  it; their returns count); steps/s: steps over that time;
 - reached R (classic set): trials whose evaluation reached the threshold R at least once, with the
   median steps and seconds (training wall time, evaluations included) until the first time.
 
@@ -121,10 +123,17 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
     if not present:
         return kept.get(env) or [f"## {env}", "", "Not run yet.", ""]
     rows, names, steps = [], {}, set()
+    excluded = timing_excluded(sweeps)
     for name, d in present.items():
         spec = load_spec(d)
         steps.add(spec.steps)
-        rows.extend(aggregate(trial_rows(d, spec, threshold), [], threshold, name=name))
+        trials = trial_rows(d, spec, threshold)
+        [entry] = aggregate(trials, [], threshold, name=name)
+        timed = [r for r in trials if f"{d.name}/{r['trial']}" not in excluded and r["wall_s"]]
+        if timed and len(timed) < len(trials):  # wall time from the trials whose wall time is comparable
+            entry["wall_s"] = float(np.median([r["wall_s"] for r in timed]))
+            entry["steps_per_s"] = float(np.median([r["steps"] / r["wall_s"] for r in timed]))
+        rows.append(entry)
         names.update({run: name for run in trial_dirs(d)})
     figure = figures / f"{env}.png"
     plot_comparison(list(names), figure, names=names)
