@@ -151,6 +151,8 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     (["--cpus-per-trial", "0"], "--cpus-per-trial"),
     (["--address", "127.0.0.1:1"], "cannot reach the Ray cluster"),
     (["--search", "random", "--space", "/nonexistent/space.yaml"], "space"),
+    (["--success-threshold", "1.5"], "--success-threshold is a success rate in (0, 1]"),
+    (["--framework", "sb3-her"], "--framework sb3-her needs a goal env"),
 ])
 def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
     result = run_cli("sweep", "--out", str(tmp_path / "sweep"), *args, timeout=60)

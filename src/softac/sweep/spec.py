@@ -243,6 +243,17 @@ def validate(spec: SweepSpec) -> SACConfig:
                               "eval_episodes/log_interval) are for softac")
         from softac.peers import missing_peers
 
+        if PEERS[spec.framework].her:  # checked now, not in every trial after Ray starts
+            from softac.envs import make_env
+            from softac.her import is_goal_env
+
+            env = make_env(spec.env_id)
+            goal_env = is_goal_env(env)
+            env.close()
+            if not goal_env:
+                raise SoftacError(f"--framework {spec.framework} needs a goal env (a dict observation with "
+                                  f"observation, achieved_goal, desired_goal and compute_reward); {spec.env_id} "
+                                  "is not one")
         if missing_peers([spec.framework]):
             raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
                               "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
