@@ -14,7 +14,7 @@ from softac import SAC
 from softac.buffer import ReplayBuffer
 from softac.config import ConfigError
 from softac.errors import SoftacError
-from softac.her import GoalLayout, HerReplayBuffer
+from softac.her import DictLayout, HerReplayBuffer
 from softac.logs import read_csv
 
 GOAL_ENV = "softac_test_envs:PointGoal-v0"
@@ -60,7 +60,7 @@ def test_a_dict_observation_that_is_no_goal_env_is_flattened_in_its_spaces_key_o
 
 # ---- relabelling, by hand -------------------------------------------------------------------------------
 
-LAYOUT = GoalLayout(("achieved_goal", "desired_goal", "observation"),
+LAYOUT = DictLayout(("achieved_goal", "desired_goal", "observation"),
                     {"achieved_goal": slice(0, 1), "desired_goal": slice(1, 2), "observation": slice(2, 3)}, 3)
 
 

@@ -26,7 +26,7 @@ import numpy as np
 from gymnasium.envs.registration import EnvSpec
 
 from softac.errors import RunFailed, SoftacError
-from softac.her import GoalLayout, dict_layout, dict_observation_space, is_goal_env
+from softac.her import DictLayout, dict_layout, dict_observation_space, is_goal_env
 
 EnvSource = Any  # a Gymnasium id string or a gym.Env instance
 
@@ -158,7 +158,7 @@ class SpaceInfo:
     act_dim: int
     low: np.ndarray
     high: np.ndarray
-    layout: GoalLayout | None = None  # a dict observation's keys in the flat vector (their space's order)
+    layout: DictLayout | None = None  # a dict observation's keys in the flat vector (their space's order)
     goal_env: bool = False  # observation, achieved_goal, desired_goal and compute_reward: HER can train it
 
 

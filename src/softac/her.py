@@ -4,7 +4,7 @@ A goal env (Gymnasium-Robotics' Fetch arm and mazes, or any env built the same w
 `observation`, `achieved_goal` and `desired_goal`, and has `compute_reward(achieved_goal, desired_goal, info)`
 that works on batches. The networks see the dict flattened into one vector, its keys in the observation
 space's order (Gymnasium's Dict sorts them: achieved_goal, desired_goal, observation), which is what
-`GoalLayout` records. The replay buffer keeps the three parts apart and, at sample time, gives a share of the
+`DictLayout` records. The replay buffer keeps the three parts apart and, at sample time, gives a share of the
 batch (her_k / (her_k + 1), as the paper's `future_p`) a goal that the same episode achieved later (`future`),
 at its end (`final`) or anywhere (`episode`), with the reward the env's own compute_reward gives for it.
 
@@ -29,19 +29,12 @@ HER_STRATEGIES = ("future", "final", "episode")
 
 
 @dataclass(frozen=True)
-class GoalLayout:
-    """Where each key of a dict observation sits in the flat vector the networks see (its space's key order)."""
+class DictLayout:
+    """Where each key of a dict observation (a goal env's, or any other) sits in the flat vector the networks
+    see: the keys in their space's order, each flattened."""
     keys: tuple[str, ...]
     slices: dict[str, slice]
     dim: int
-
-    @property
-    def goal_dim(self) -> int:
-        s = self.slices["desired_goal"]
-        return s.stop - s.start
-
-    def part(self, flat: np.ndarray, key: str) -> np.ndarray:
-        return flat[..., self.slices[key]]
 
     def flatten(self, obs: dict[str, Any]) -> np.ndarray:
         """One dict observation, or a dict of batches (leading axis), as flat float32 vectors."""
@@ -73,14 +66,14 @@ def dict_observation_space(env: gym.Env) -> gym.spaces.Dict | None:
     return space if isinstance(space, gym.spaces.Dict) else None
 
 
-def dict_layout(space: gym.spaces.Dict) -> GoalLayout:
+def dict_layout(space: gym.spaces.Dict) -> DictLayout:
     """The flat layout of a Dict space: its keys in order, each flattened (as gym.spaces.flatten does)."""
     slices, start = {}, 0
     for key, sub in space.spaces.items():
         n = int(gym.spaces.flatdim(sub))
         slices[key] = slice(start, start + n)
         start += n
-    return GoalLayout(tuple(space.spaces), slices, start)
+    return DictLayout(tuple(space.spaces), slices, start)
 
 
 def is_goal_env(env: gym.Env) -> bool:
@@ -90,7 +83,7 @@ def is_goal_env(env: gym.Env) -> bool:
             and callable(getattr(env.unwrapped, "compute_reward", None)))
 
 
-def goal_layout(env: gym.Env) -> GoalLayout | None:
+def goal_layout(env: gym.Env) -> DictLayout | None:
     """The layout of a goal env's observation, else None."""
     if not is_goal_env(env):
         return None
@@ -110,7 +103,7 @@ def _name(env: gym.Env) -> str:
 RewardFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def batched_reward_fn(env: gym.Env, layout: GoalLayout) -> RewardFn:
+def batched_reward_fn(env: gym.Env, layout: DictLayout) -> RewardFn:
     """`reward(achieved_goals, desired_goals)` for batches, from the env's compute_reward; checked here on a
     batch of three so that an env whose compute_reward takes one goal at a time fails at the start, in one
     line. Infos are not kept in the buffer: each relabelled transition's info is an empty dict."""
@@ -147,7 +140,7 @@ class HerReplayBuffer(_Ring):
     PARTS = GOAL_KEYS
     ARRAYS = ("actions", "rewards", "terminated", "done", "episode", "t", "length")
 
-    def __init__(self, capacity: int, layout: GoalLayout, act_dim: int, n_envs: int, reward_fn: RewardFn,
+    def __init__(self, capacity: int, layout: DictLayout, act_dim: int, n_envs: int, reward_fn: RewardFn,
                  strategy: str = "future", k: int = 4, memory_fraction: float = 0.8, gamma: float = 0.99):
         if strategy not in HER_STRATEGIES:
             raise SoftacError(f"her_strategy must be one of {', '.join(HER_STRATEGIES)}, got '{strategy}'")
@@ -275,7 +268,7 @@ class HerReplayBuffer(_Ring):
 @dataclass(frozen=True)
 class HerSetup:
     """What the replay buffer needs to relabel: the goal layout, the env's batched reward, the strategy and k."""
-    layout: GoalLayout
+    layout: DictLayout
     reward_fn: RewardFn
     strategy: str
     k: int
