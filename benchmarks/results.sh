@@ -12,8 +12,8 @@
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
-#   robotics: issue 31's goal envs (the [robotics] extra): softac's presets (SAC + HER) beside SB3's SAC + HER at its
-#            defaults (sb3-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
+#   robotics: issue 31's goal envs (the [robotics] extra): softac's presets (SAC + HER) beside SB3's and SBX's SAC + HER
+#            at their defaults (sb3-her, sbx-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
 # Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|robotics|ENV|options:ENV ...]   (default: classic mujoco)
@@ -76,6 +76,7 @@ robotics() {
   esac
   $SOFTAC sweep --env $1 --seeds 5 --steps $steps "${evals[@]}" --out $SWEEPS/$1-softac
   $SOFTAC sweep --env $1 --seeds 3 --steps $steps --framework sb3-her "${evals[@]}" --out $SWEEPS/$1-sb3-her
+  $SOFTAC sweep --env $1 --seeds 3 --steps $steps --framework sbx-her "${evals[@]}" --out $SWEEPS/$1-sbx-her
 }
 
 targets=${*:-classic mujoco}

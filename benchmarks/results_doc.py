@@ -55,9 +55,9 @@ deterministic actions, episode i seeded `seed + 1000000 + i`.
   trains ~3x slower than SBX and is left out of this budget. The aggregate section puts the five envs
   together.
 - Goal envs (FetchReach-v4, FetchPush-v4, PointMaze_UMaze-v3; the `[robotics]` extra): softac's env presets
-  (SAC with hindsight experience replay) beside Stable-Baselines3's SAC with its HerReplayBuffer at its
-  defaults (`--framework sb3-her`: future, 4 goals, learning_starts 1000), 20 deterministic episodes an
-  evaluation; their tables add the final success rate and the steps until it first reached 0.9, and a second
+  (SAC with hindsight experience replay) beside Stable-Baselines3's and SBX's SAC with SB3's HerReplayBuffer at
+  their defaults (`--framework sb3-her`, `sbx-her`: future, 4 goals, learning_starts 1000), 20 deterministic
+  episodes an evaluation; their tables add the final success rate and the steps until it first reached 0.9, and a second
   figure draws the success rates.
 - Other rows, on the same seeds and budget: "softac, NAME preset" is another preset on the env (`results.sh
   options`: plain SAC, `sac-100k`, beside the CrossQ presets; `results.sh fallback`: `default` and
