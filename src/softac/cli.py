@@ -234,10 +234,10 @@ def _pin_cpus(n: int | None) -> str | None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from softac.loop import check_success_rate
     from softac.rundir import run_lock
 
-    if args.target_success is not None and not 0.0 < args.target_success <= 1.0:
-        raise SoftacError(f"--target-success is a success rate in (0, 1], got {args.target_success}")
+    check_success_rate(args.target_success, "--target-success")
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
@@ -483,8 +483,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             raise SoftacError("softac sweep needs --out DIR (or --resume DIR)")
         out = Path(args.out)
         spec = sweep_spec_from_args(args)
-    if not 0.0 < args.success_threshold <= 1.0:
-        raise SoftacError(f"--success-threshold is a success rate in (0, 1], got {args.success_threshold}")
+    from softac.loop import check_success_rate
+
+    check_success_rate(args.success_threshold, "--success-threshold")
     threshold = args.threshold
     if threshold is None:
         threshold = sweep.default_threshold(spec.env_id)

@@ -83,27 +83,16 @@ def is_goal_env(env: gym.Env) -> bool:
             and callable(getattr(env.unwrapped, "compute_reward", None)))
 
 
-def goal_layout(env: gym.Env) -> DictLayout | None:
-    """The layout of a goal env's observation, else None."""
-    if not is_goal_env(env):
-        return None
-    layout = dict_layout(dict_observation_space(env))
-    achieved, desired = (layout.slices[k] for k in ("achieved_goal", "desired_goal"))
-    if achieved.stop - achieved.start != desired.stop - desired.start:
-        raise SoftacError(f"env {_name(env)}: achieved_goal has {achieved.stop - achieved.start} values but "
-                          f"desired_goal {desired.stop - desired.start}; HER needs goals of one shape")
-    return layout
-
-
 def _name(env: gym.Env) -> str:
-    spec = getattr(env, "spec", None)
-    return spec.id if spec is not None else type(env.unwrapped).__name__
+    from softac.envs import env_name  # (softac.envs imports this module)
+
+    return env_name(env)
 
 
 RewardFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def batched_reward_fn(env: gym.Env, layout: DictLayout) -> RewardFn:
+def batched_reward_fn(env: gym.Env) -> RewardFn:
     """`reward(achieved_goals, desired_goals)` for batches, from the env's compute_reward; checked here on a
     batch of three so that an env whose compute_reward takes one goal at a time fails at the start, in one
     line. Infos are not kept in the buffer: each relabelled transition's info is an empty dict."""
@@ -289,5 +278,9 @@ def her_setup(config: Any, env: gym.Env, spaces: Any) -> HerSetup | None:
     if config.buffer_obs_once:
         raise SoftacError("buffer_obs_once cannot be combined with HER (its buffer keeps the goal parts of each "
                           "observation apart); set buffer_obs_once=false, or her=off")
-    layout = goal_layout(env)
-    return HerSetup(layout, batched_reward_fn(env, layout), config.her_strategy, config.her_k)
+    layout = spaces.layout
+    achieved, desired = (layout.slices[k] for k in ("achieved_goal", "desired_goal"))
+    if achieved.stop - achieved.start != desired.stop - desired.start:
+        raise SoftacError(f"env {_name(env)}: achieved_goal has {achieved.stop - achieved.start} values but "
+                          f"desired_goal {desired.stop - desired.start}; HER needs goals of one shape")
+    return HerSetup(layout, batched_reward_fn(env), config.her_strategy, config.her_k)

@@ -33,6 +33,12 @@ from softac.stopsignal import StopSignal
 SHOW_EVERY = 100  # env steps between progress-bar refreshes
 
 
+def check_success_rate(value: float | None, name: str) -> None:
+    """A success rate to reach (--target-success, a sweep's --success-threshold): None, or in (0, 1]."""
+    if value is not None and not 0.0 < value <= 1.0:
+        raise SoftacError(f"{name} is a success rate in (0, 1], got {value}")
+
+
 def crossed(before: int, after: int, interval: int) -> bool:
     """Did the step counter pass a multiple of `interval` going from `before` to `after`?"""
     return interval > 0 and before // interval != after // interval
@@ -100,8 +106,7 @@ class TrainingLoop:
                  target_success: float | None = None):
         if steps < 0:
             raise SoftacError(f"steps must be >= 0, got {steps}")
-        if target_success is not None and not 0.0 < target_success <= 1.0:
-            raise SoftacError(f"target success rate must be in (0, 1], got {target_success}")
+        check_success_rate(target_success, "target_success")
         self.run_path = Path(run_dir) if run_dir is not None else None
         check_backends_installed(parse_backends(learner.config.loggers) if self.run_path is not None else [])
         self.learner, self.collector, self.run_state, self.config = learner, collector, run_state, learner.config
@@ -172,8 +177,7 @@ class TrainingLoop:
     def close(self) -> None:
         self.show.close(self.run_state.num_steps)
         self.run_state.train_time_s = self.elapsed()
-        self.run_state.recent_returns = list(self.rows.recent)  # the next learn() (and save()) go on from them
-        self.run_state.recent_successes = list(self.rows.successes)
+        self.keep_recent_episodes()
         if self.writer is not None:
             self.writer.close()
         for env in self.eval_envs or []:
@@ -214,6 +218,12 @@ class TrainingLoop:
         return summary
 
     # ---- the steps of the loop ---------------------------------------------------------------------
+
+    def keep_recent_episodes(self) -> None:
+        """The last episodes' returns and successes into the run state: a checkpoint, and the next learn(),
+        go on from them."""
+        self.run_state.recent_returns = list(self.rows.recent)
+        self.run_state.recent_successes = list(self.rows.successes)
 
     def elapsed(self) -> float:
         return self.time0 + time.perf_counter() - self.wall0
@@ -330,8 +340,7 @@ class TrainingLoop:
             return None
         _check_finite(self.metric_values(), self.run_state.num_steps)
         self.run_state.train_time_s = self.elapsed()
-        self.run_state.recent_returns = list(self.rows.recent)
-        self.run_state.recent_successes = list(self.rows.successes)
+        self.keep_recent_episodes()
         parts = checkpoint_parts(self.learner, self.run_state, self.collector, include_buffer=name == "last")
         path = self.writer.save_checkpoint(name, *parts)
         if self.hooks:

@@ -102,19 +102,26 @@ def _peer_algorithm(framework: str) -> tuple[Any, dict[str, Any]]:
     return getattr(sbx, peer.algorithm), {}
 
 
-def peer_env(framework: str, env_id: str):
-    """The peer's training env as Gymnasium makes it (a goal env's dict observation kept: SB3's
-    MultiInputPolicy takes it); a HER peer on an env that is no goal env is refused in one line."""
-    import gymnasium as gym
-
-    from softac.envs import make_env, resolve_env_id
+def check_her_env(framework: str, env: Any, env_id: str, named: str | None = None) -> None:
+    """A HER peer on an env that is no goal env is refused in one line (naming the peer as `named`, e.g. the
+    command-line option that chose it)."""
     from softac.errors import SoftacError
     from softac.her import is_goal_env
 
-    env = gym.make(resolve_env_id(env_id))  # resolve_env_id imports Gymnasium-Robotics for its ids
-    if PEERS[framework].her and not is_goal_env(make_env(env_id)):
-        raise SoftacError(f"{framework} needs a goal env (a dict observation with observation, achieved_goal, "
+    if PEERS[framework].her and not is_goal_env(env):
+        raise SoftacError(f"{named or framework} needs a goal env (a dict observation with observation, achieved_goal, "
                           f"desired_goal and compute_reward); {env_id} is not one")
+
+
+def peer_env(framework: str, env_id: str):
+    """The peer's training env as Gymnasium makes it (a goal env's dict observation kept: SB3's
+    MultiInputPolicy takes it), checked by check_her_env."""
+    import gymnasium as gym
+
+    from softac.envs import resolve_env_id
+
+    env = gym.make(resolve_env_id(env_id))  # resolve_env_id imports Gymnasium-Robotics for its ids
+    check_her_env(framework, env, env_id)
     return env
 
 

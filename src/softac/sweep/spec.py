@@ -241,19 +241,16 @@ def validate(spec: SweepSpec) -> SACConfig:
             raise SoftacError(f"--framework {spec.framework} runs {PEERS[spec.framework].about}, not softac's "
                               "settings: --grid, --search, --preset and --set (other than eval_interval/"
                               "eval_episodes/log_interval) are for softac")
-        from softac.peers import missing_peers
+        from softac.peers import check_her_env, missing_peers
 
         if PEERS[spec.framework].her:  # checked now, not in every trial after Ray starts
             from softac.envs import make_env
-            from softac.her import is_goal_env
 
             env = make_env(spec.env_id)
-            goal_env = is_goal_env(env)
-            env.close()
-            if not goal_env:
-                raise SoftacError(f"--framework {spec.framework} needs a goal env (a dict observation with "
-                                  f"observation, achieved_goal, desired_goal and compute_reward); {spec.env_id} "
-                                  "is not one")
+            try:
+                check_her_env(spec.framework, env, spec.env_id, named=f"--framework {spec.framework}")
+            finally:
+                env.close()
         if missing_peers([spec.framework]):
             raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
                               "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
