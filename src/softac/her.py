@@ -83,23 +83,16 @@ def is_goal_env(env: gym.Env) -> bool:
             and callable(getattr(env.unwrapped, "compute_reward", None)))
 
 
-def _name(env: gym.Env) -> str:
-    from softac.envs import env_name  # (softac.envs imports this module)
-
-    return env_name(env)
-
-
 RewardFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def batched_reward_fn(env: gym.Env) -> RewardFn:
+def batched_reward_fn(env: gym.Env, name: str) -> RewardFn:
     """`reward(achieved_goals, desired_goals)` for batches, from the env's compute_reward; checked here on a
     batch of three so that an env whose compute_reward takes one goal at a time fails at the start, in one
     line. Infos are not kept in the buffer: each relabelled transition's info is an empty dict."""
     compute = env.unwrapped.compute_reward
     space = dict_observation_space(env)
     goals = np.stack([np.asarray(space.spaces["desired_goal"].sample(), np.float32).reshape(-1) for _ in range(3)])
-    name = _name(env)
     try:
         out = np.asarray(compute(goals, goals[::-1], [{} for _ in range(3)]), np.float64)
     except Exception as exc:
@@ -264,14 +257,15 @@ class HerSetup:
 
 
 def her_setup(config: Any, env: gym.Env, spaces: Any) -> HerSetup | None:
-    """HER for this config and env (`spaces`: softac.envs.SpaceInfo), or None: `her=auto` turns it on for goal
-    envs; `her=on` on another env, or HER with n-step returns or buffer_obs_once, is refused in one line."""
+    """HER for this config and env (`spaces`: softac.envs.SpaceInfo; errors name the env by config.env_id), or
+    None: `her=auto` turns it on for goal envs; `her=on` on another env, or HER with n-step returns or
+    buffer_obs_once, is refused in one line."""
     if config.her == "off" or (config.her == "auto" and not spaces.goal_env):
         return None
     if not spaces.goal_env:
         observed = spaces.layout.keys if spaces.layout is not None else f"a {spaces.obs_dim}-value vector"
         raise SoftacError(f"her=on needs a goal env (a dict observation with {', '.join(GOAL_KEYS)} and "
-                          f"compute_reward); env {_name(env)} observes {observed}")
+                          f"compute_reward); env {config.env_id} observes {observed}")
     if config.n_step > 1:
         raise SoftacError(f"n_step={config.n_step} cannot be combined with HER (a relabelled goal changes every "
                           "reward of the n steps); set n_step=1, or her=off")
@@ -281,6 +275,6 @@ def her_setup(config: Any, env: gym.Env, spaces: Any) -> HerSetup | None:
     layout = spaces.layout
     achieved, desired = (layout.slices[k] for k in ("achieved_goal", "desired_goal"))
     if achieved.stop - achieved.start != desired.stop - desired.start:
-        raise SoftacError(f"env {_name(env)}: achieved_goal has {achieved.stop - achieved.start} values but "
+        raise SoftacError(f"env {config.env_id}: achieved_goal has {achieved.stop - achieved.start} values but "
                           f"desired_goal {desired.stop - desired.start}; HER needs goals of one shape")
-    return HerSetup(layout, batched_reward_fn(env), config.her_strategy, config.her_k)
+    return HerSetup(layout, batched_reward_fn(env, config.env_id), config.her_strategy, config.her_k)
