@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,7 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     (["--search", "random", "--space", "/nonexistent/space.yaml"], "space"),
     (["--success-threshold", "1.5"], "--success-threshold is a success rate in (0, 1]"),
     (["--framework", "sb3-her"], "--framework sb3-her needs a goal env"),
+    (["--max-retries", "-1"], "--max-retries"),
 ])
 def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
     result = run_cli("sweep", "--out", str(tmp_path / "sweep"), *args, timeout=60)
@@ -417,11 +419,29 @@ def test_a_failing_trial_is_reported_with_its_log_and_the_others_finish(tmp_path
     assert rows[f"env_id={fine},seed=0"] == "done"
 
 
-def test_a_trial_process_runs_on_its_claimed_cpus():
+def test_a_trial_process_runs_on_its_claimed_cpus_and_ends_with_its_parent(tmp_path):
+    """The trial's process pins itself to the trial's CPUs when it starts, and gets SIGTERM when the process that
+    started it (the trial's Ray worker) dies."""
     cpu = sorted(os.sched_getaffinity(0))[-1]
-    out = subprocess.run([sys.executable, "-c", "import os; print(sorted(os.sched_getaffinity(0)))"],
-                         preexec_fn=sweep.trial_process_setup([cpu]), capture_output=True, text=True, timeout=60)
-    assert out.stdout.strip() == f"[{cpu}]"
+    script = ("from softac.cpus import adopt_trial_settings; adopt_trial_settings(); import os, sys, time; "
+              "print(sorted(os.sched_getaffinity(0)), flush=True); sys.stdin.read(); time.sleep(60)")
+    # a parent that starts the child with the trial's environment, prints the child's pid, then is killed
+    parent = subprocess.Popen([sys.executable, "-c", (
+        "import subprocess, sys, os; from softac.sweep.trial import trial_process_env; "
+        f"child = subprocess.Popen([sys.executable, '-c', {script!r}], env=trial_process_env(1, [{cpu}]), "
+        "stdin=subprocess.PIPE, stdout=sys.stdout); print(child.pid, flush=True); child.wait()")],
+        stdout=subprocess.PIPE, text=True, env=child_env())
+    try:
+        child_pid, affinity = int(parent.stdout.readline()), parent.stdout.readline().strip()
+        assert affinity == f"[{cpu}]"
+        parent.kill()
+        parent.wait(30)
+        deadline = time.monotonic() + 30
+        while Path(f"/proc/{child_pid}").exists() and "Z" not in Path(f"/proc/{child_pid}/stat").read_text().split()[2]:
+            assert time.monotonic() < deadline, "the child outlived its parent"
+            time.sleep(0.05)
+    finally:
+        parent.kill()
 
 
 @pytest.mark.ray

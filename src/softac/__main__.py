@@ -1,5 +1,9 @@
 import sys
 
-from softac.cli import main
+from softac.cpus import adopt_trial_settings
+
+adopt_trial_settings()  # a sweep trial's process: its CPUs and parent, before JAX starts
+
+from softac.cli import main  # noqa: E402
 
 sys.exit(main())

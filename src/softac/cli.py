@@ -115,6 +115,9 @@ def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
     sw.add_argument("--gpus-per-trial", type=float, default=0.0,
                     help="GPUs Ray reserves for each trial (with --set device=gpu; fractions share a GPU)")
     sw.add_argument("--max-concurrent", type=_positive_int, help="at most this many trials at once")
+    sw.add_argument("--max-retries", type=_positive_int, default=3, metavar="N",
+                    help="a trial whose process is lost (its node died, a signal killed it) is started again from "
+                         "its last checkpoint, at most N times (default 3); then the sweep exits 3 naming it")
     sw.add_argument("--framework", choices=["softac", *PEERS], default="softac",
                     help="a peer instead of softac, evaluated like softac (needs the [bench] extra): "
                          + "; ".join(f"{name}: {peer.about}" for name, peer in PEERS.items()))
@@ -491,7 +494,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         threshold = sweep.default_threshold(spec.env_id)
     result = sweep.run_sweep(spec, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
                              max_concurrent=args.max_concurrent, threshold=threshold,
-                             success_threshold=args.success_threshold,
+                             success_threshold=args.success_threshold, max_retries=args.max_retries,
                              gpus_per_trial=args.gpus_per_trial)
     if result["failed"]:
         print(f"softac: {len(result['failed'])} trial(s) failed, first: {result['failed'][0]}", file=sys.stderr)

@@ -11,6 +11,7 @@ Also the one-line machine description that benchmarks and reports are labelled w
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -100,6 +101,42 @@ def claim_cpus(n: int) -> Claim:
     cpus = sorted((unshared + [cpu for cpu in rotated if cpu not in unshared])[:n])
     held = [_try_lock(CPU_LOCKS / f"cpu{cpu}.shared", fcntl.LOCK_SH) for cpu in cpus]
     return Claim(cpus, [lock for lock in held if lock is not None], True)
+
+
+# set by a sweep trial (softac.sweep.trial) for the process it starts, which applies them itself when it starts
+TRIAL_CPUS_VAR = "SOFTAC_TRIAL_CPUS"  # the CPUs the trial claimed, e.g. "0,3"
+TRIAL_PARENT_VAR = "SOFTAC_TRIAL_PARENT"  # the pid of the trial's Ray worker
+
+
+def trial_settings_env(cpus: list[int], parent_pid: int) -> dict[str, str]:
+    """The variables that tell a trial's process its CPUs and its parent (see adopt_trial_settings)."""
+    return {TRIAL_CPUS_VAR: ",".join(map(str, cpus)), TRIAL_PARENT_VAR: str(parent_pid)}
+
+
+def adopt_trial_settings() -> None:
+    """First thing in `python -m softac` and `python -m softac.peers` (before JAX starts its backend, which
+    sizes its thread pool from the affinity): in a process a sweep trial started, pin to the trial's CPUs and
+    ask for SIGTERM when the trial's Ray worker dies (PR_SET_PDEATHSIG), so that a stopped sweep's trial
+    checkpoints and exits. Done here, after exec, not in a preexec_fn: Python code run between fork and exec
+    in a Ray worker, whose other threads may hold locks at the fork, hung a trial's child for minutes (seen
+    with two sweeps side by side), and Python's docs warn against preexec_fn with threads."""
+    cpus = os.environ.pop(TRIAL_CPUS_VAR, None)
+    parent = os.environ.pop(TRIAL_PARENT_VAR, None)
+    if cpus:
+        try:
+            os.sched_setaffinity(0, [int(c) for c in cpus.split(",")])
+        except (AttributeError, OSError, ValueError):
+            pass
+    if parent and sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            return
+        if str(os.getppid()) != parent:  # the worker died before the prctl: as if the signal had come
+            os.kill(os.getpid(), signal.SIGTERM)
 
 
 def pin_this_process(n: int) -> tuple[list[int], bool]:

@@ -473,7 +473,10 @@ def arguments() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> None:
+    from softac.cpus import adopt_trial_settings
     from softac.errors import RunFailed, SoftacError, TrainingInterrupted
+
+    adopt_trial_settings()  # a sweep trial's process: its CPUs and parent, before the peer's library starts
 
     parser = arguments()
     a = parser.parse_args(argv)

@@ -165,6 +165,18 @@ def _holder(fd: int) -> str:
     return f"pid {info['pid']}{where}{since}"
 
 
+def holder(directory: Path) -> str:
+    """Who holds DIRECTORY's lock (or held it last), as the lock file names them: "pid N on HOST, since T"."""
+    try:
+        fd = os.open(directory / LOCK, os.O_RDONLY)
+    except OSError:
+        return "another process"
+    try:
+        return _holder(fd)
+    finally:
+        os.close(fd)
+
+
 def _lock_file(directory: Path, what: str) -> int:
     """An open descriptor of DIRECTORY/.lock holding its exclusive lock (fcntl.flock: the kernel drops it
     when the holder exits, however it exits, so a process killed with -9 never blocks the next one)."""

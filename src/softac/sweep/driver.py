@@ -12,9 +12,13 @@ from typing import Any, Iterator
 from softac.errors import SoftacError
 from softac.rundir import run_lock, wait_released
 from softac.sweep.results import SUCCESS_THRESHOLD, unfinished_trials, write_summaries
-from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SweepSpec, grid_trials, planned_trials, prepare_out_dir,
-                               validate)
+from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SPEC_FILE, SweepSpec, grid_trials, planned_trials,
+                               prepare_out_dir, validate)
 from softac.sweep.trial import run_trial, trial_state
+
+# a trial whose process is lost (its node died, it was killed by a signal) is retried this many times, each
+# retry continuing from the run's last checkpoint (Tune's FailureConfig.max_failures); `--max-retries`
+MAX_RETRIES = 3
 
 
 def _require_ray() -> None:
@@ -48,6 +52,7 @@ def _start_ray(address: str | None) -> Any:
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
     os.environ.setdefault("TUNE_DISABLE_AUTO_CALLBACK_LOGGERS", "1")
+    os.environ.setdefault("TUNE_PRINT_ALL_TRIAL_ERRORS", "0")  # a lost trial gets one line (_Lines), not a traceback
     # Ray's workers SIGKILL their child processes when they exit, which cut a stopped trial's checkpoint short
     # (measured: a peer trial killed while writing it, its last 8k steps lost). Without that, a trial whose worker
     # ends gets SIGTERM (trial.py's PR_SET_PDEATHSIG), checkpoints and exits, and the driver waits for it
@@ -58,12 +63,72 @@ def _start_ray(address: str | None) -> Any:
         if address:
             ray.init(address=address, **kwargs)
         else:
-            ray.init(num_cpus=os.cpu_count() or 1, **kwargs)
+            # "local": a Ray of its own even where `ray start` runs on this machine (ray.init() would join that one)
+            ray.init(address="local", num_cpus=os.cpu_count() or 1, **kwargs)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"the Ray cluster at {address}" if address else "a local Ray"
         raise SoftacError(f"cannot start {where}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                           ) from None
+    _shorten_ray_error_messages()
     return ray
+
+
+def _shorten_ray_error_messages() -> None:
+    """Ray's driver prints each error the cluster publishes (a lost raylet: its last 20 log lines) to stdout;
+    the sweep keeps the first line, on stderr, and says what it does about it in its own lines."""
+    from ray._private import worker
+
+    original = getattr(worker, "print_to_stdstream", None)
+    if original is None or getattr(original, "softac", False):
+        return
+
+    def first_line(data: dict, ignore_prefix: bool) -> None:
+        if data.get("pid") != "raylet":
+            return original(data, ignore_prefix)
+        for message in data.get("lines", []):
+            print(f"softac: Ray: {str(message).strip().splitlines()[0] if str(message).strip() else ''}",
+                  file=sys.stderr, flush=True)
+
+    first_line.softac = True
+    worker.print_to_stdstream = first_line
+
+
+def _read_bytes(path: str) -> bytes | None:
+    try:
+        return Path(path).read_bytes()
+    except OSError:
+        return None
+
+
+def _check_nodes_see(out: Path, timeout_s: float = 60.0, log=lambda *a: None) -> None:
+    """Every live node must see the sweep directory, and the same one (a node's own local copy at that path would
+    scatter the runs): a task pinned to each node reads DIR/sweep.json and compares it with the driver's. A node
+    that does not fails the sweep here, in one line, before any trial starts; one that does not answer within
+    `timeout_s` is named in a warning (its trials would still fail in seconds: trial.run_trial checks too)."""
+    import ray
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    expected = (out / SPEC_FILE).read_bytes()
+    nodes = {n["NodeID"]: n.get("NodeManagerHostname", "?") for n in ray.nodes() if n.get("Alive")}
+    read = ray.remote(num_cpus=0)(_read_bytes)
+    refs = {read.options(scheduling_strategy=NodeAffinitySchedulingStrategy(node, soft=False)).remote(
+        str(out / SPEC_FILE)): node for node in nodes}
+    ready, late = ray.wait(list(refs), num_returns=len(refs), timeout=timeout_s)
+    blind = []
+    for ref in ready:
+        try:
+            if ray.get(ref) != expected:
+                blind.append(refs[ref])
+        except ray.exceptions.RayError:  # the node went away meanwhile: as one that did not answer
+            late.append(ref)
+    if blind:
+        which = ", ".join(f"node {node[:12]} on {nodes[node]}" for node in blind)
+        raise SoftacError(f"{which} {'does' if len(blind) == 1 else 'do'} not see the sweep directory {out} "
+                          f"({len(nodes) - len(blind)} of {len(nodes)} nodes do); every node needs it on a shared "
+                          "filesystem at the same path (docs/cluster.md)")
+    for ref in late:
+        log(f"softac: node {refs[ref][:12]} on {nodes[refs[ref]]} did not answer within {timeout_s:.0f} s; "
+            f"its trials check {out} themselves")
 
 
 @contextlib.contextmanager
@@ -86,8 +151,8 @@ def _sigterm_as_ctrl_c() -> Iterator[None]:
 class _Lines:
     """Plain progress lines from Tune's callback hooks (Ray's own tables are switched off)."""
 
-    def __init__(self, total: int, done: int):
-        self.total, self.done = total, done
+    def __init__(self, total: int, done: int, max_retries: int):
+        self.total, self.done, self.max_retries = total, done, max_retries
 
     def make(self):
         from ray.tune import Callback
@@ -106,12 +171,40 @@ class _Lines:
                 what = f"FAILED {error}" if error else f"finished {_trial_label(trial)}"
                 print(f"[{lines.done}/{lines.total}] {what}", file=sys.stderr, flush=True)
 
-            def on_trial_error(self, iteration, trials, trial, **info):  # a bug of ours or Ray's, not the run's
+            def on_trial_recover(self, iteration, trials, trial, **info):  # lost; Tune starts it again
+                print(f"  {_trial_label(trial)}: lost ({_last_error(trial)}); retry "
+                      f"{trial.num_failures} of {lines.max_retries}, from its last checkpoint", file=sys.stderr,
+                      flush=True)
+
+            def on_trial_error(self, iteration, trials, trial, **info):  # lost once more than retried
                 lines.done += 1
-                print(f"[{lines.done}/{lines.total}] FAILED {_trial_label(trial)} (Ray: {trial.error_file})",
-                      file=sys.stderr, flush=True)
+                print(f"[{lines.done}/{lines.total}] FAILED {_trial_label(trial)} after {lines.max_retries} "
+                      f"retries: {_last_error(trial)}", file=sys.stderr, flush=True)
 
         return Printer()
+
+
+def _last_error(trial: Any) -> str:
+    """The latest failure of a trial, from the error file Tune appends each one to ("Failure # N ...")."""
+    try:
+        text = Path(trial.error_file).read_text()
+    except (OSError, TypeError):
+        return "no error recorded"
+    return _error_line(text.rsplit("Failure # ", 1)[-1].split("\n", 1)[-1])
+
+
+def _error_line(error: BaseException | str | None) -> str:
+    """One line for what ended a trial's attempt: ours (TrialLost) names the trial's process and log; Ray's
+    (a lost node or worker) gets the line that says what happened, without Ray's traceback."""
+    if error is None:
+        return "no error recorded"
+    text = error if isinstance(error, str) else str(getattr(error, "cause", None) or error)
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith((" ", "Traceback"))]
+    for line in lines:
+        if "TrialLost:" in line:
+            return line.split("TrialLost:", 1)[1].strip()
+    named = [ln for ln in lines if "died" in ln.lower() or "node" in ln.lower() or "Error" in ln]
+    return (named or lines or [type(error).__name__])[-1][:300]
 
 
 def _trial_label(trial: Any) -> str:
@@ -121,15 +214,22 @@ def _trial_label(trial: Any) -> str:
 
 def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_trial: float = 1.0,
               max_concurrent: int | None = None, threshold: float | None = None, gpus_per_trial: float = 0.0,
-              success_threshold: float = SUCCESS_THRESHOLD, log=lambda *a: print(*a, file=sys.stderr, flush=True)) -> dict[str, Any]:
-    """Run (or continue) a sweep; returns {'trials', 'unfinished', 'failed', 'files'}."""
+              success_threshold: float = SUCCESS_THRESHOLD, max_retries: int = MAX_RETRIES,
+              log=lambda *a: print(*a, file=sys.stderr, flush=True)) -> dict[str, Any]:
+    """Run (or continue) a sweep; returns {'trials', 'unfinished', 'failed', 'files'}. A trial whose process is
+    lost (its node died, a signal killed it) is retried up to `max_retries` times from its last checkpoint."""
     validate(spec)
     if cpus_per_trial <= 0:
         raise SoftacError("--cpus-per-trial must be > 0")
+    if max_retries < 0:
+        raise SoftacError("--max-retries must be >= 0")
     if gpus_per_trial < 0:
         raise SoftacError("--gpus-per-trial must be >= 0")
     resources = {"cpu": cpus_per_trial, **({"gpu": gpus_per_trial} if gpus_per_trial else {})}
     _require_ray()
+    if not address and os.environ.get("RAY_ADDRESS"):  # as `ray job submit` sets it for the driver
+        address = os.environ["RAY_ADDRESS"]
+        log(f"softac: joining the Ray cluster at {address} (from RAY_ADDRESS; unset it for a local Ray)")
     if address:
         _check_reachable(address)
     with run_lock(out, "sweep"):  # one driver per sweep directory; each trial's run has its own lock
@@ -138,7 +238,7 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
         failed: list[str] = []
         if spec.search:
             if unfinished_trials(out, spec):
-                failed = _run_search(spec, out, address, resources, max_concurrent, log)
+                failed = _run_search(spec, out, address, resources, max_concurrent, max_retries, log)
             else:
                 log(f"sweep {out}: all {spec.samples} sampled trials are finished")
         else:
@@ -147,7 +247,8 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
             log(f"sweep {out}: {len(trials)} trial{'s' * (len(trials) != 1)} ({len(trials) - len(todo)} already "
                 f"finished), {spec.framework} on {spec.env_id}, {spec.steps} steps each")
             if todo:
-                failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, log)
+                failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, max_retries,
+                                   log)
         files = write_summaries(out, spec, threshold, success_threshold)
     for path in files:
         log(f"wrote {path}")
@@ -155,11 +256,17 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
     return {"trials": planned_trials(spec), "unfinished": unfinished, "failed": failed, "files": files}
 
 
-def _run_config(out: Path, name: str, callbacks: list) -> Any:
+def _run_config(out: Path, name: str, callbacks: list, max_retries: int) -> Any:
     from ray import tune
 
     return tune.RunConfig(name=name, storage_path=str(out / RAY_DIR), verbose=0, callbacks=callbacks,
-                          failure_config=tune.FailureConfig(max_failures=0))
+                          failure_config=tune.FailureConfig(max_failures=max_retries))
+
+
+def _connect(address: str | None, out: Path, log) -> None:
+    _start_ray(address)
+    if address:  # the driver may run elsewhere than the trials: every node must see DIR
+        _check_nodes_see(out, log=log)
 
 
 def _trainable(spec: SweepSpec, out: Path, resources: dict[str, float]):
@@ -173,26 +280,28 @@ def _trainable(spec: SweepSpec, out: Path, resources: dict[str, float]):
 def _failures(results: Any) -> list[str]:
     failed = []
     for result in results:
-        if result.error is not None:
-            failed.append(str(result.error).strip().splitlines()[-1][:300])
+        if result.error is not None:  # lost more often than retried (trial.TrialLost), or Ray's own error
+            line = _error_line(result.error)
+            name = ((result.config or {}).get("trial") or {}).get("name")
+            failed.append(line if not name or line.startswith(name) else f"{name}: {line}")
         elif (result.metrics or {}).get("trial_error"):
             failed.append(result.metrics["trial_error"])
     return failed
 
 
 def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path, address: str | None,
-              resources: dict[str, float], max_concurrent: int | None, log) -> list[str]:
-    _start_ray(address)
+              resources: dict[str, float], max_concurrent: int | None, max_retries: int, log) -> list[str]:
     import ray
     from ray import tune
 
-    printer = _Lines(total, total - len(todo)).make()
+    printer = _Lines(total, total - len(todo), max_retries).make()
     try:
+        _connect(address, out, log)
         tuner = tune.Tuner(
             _trainable(spec, out, resources),
             param_space={"trial": tune.grid_search(todo)},
             tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, reuse_actors=False),
-            run_config=_run_config(out, f"grid-{time.strftime('%Y%m%d-%H%M%S')}", [printer]))
+            run_config=_run_config(out, f"grid-{time.strftime('%Y%m%d-%H%M%S')}", [printer], max_retries))
         with _sigterm_as_ctrl_c():
             return _failures(tuner.fit())
     finally:
@@ -211,14 +320,14 @@ def _wait_for_trials(runs: list[Path], log, timeout_s: float = 300.0) -> None:
 
 
 def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict[str, float],
-                max_concurrent: int | None, log) -> list[str]:
-    _start_ray(address)
+                max_concurrent: int | None, max_retries: int, log) -> list[str]:
     import ray
     from ray import tune
 
     path = out / RAY_DIR / "search"
-    printer = _Lines(spec.samples, 0).make()
+    printer = _Lines(spec.samples, 0, max_retries).make()
     try:
+        _connect(address, out, log)
         if tune.Tuner.can_restore(str(path)):
             log(f"sweep {out}: continuing the search ({spec.samples} samples)")
             tuner = tune.Tuner.restore(str(path), trainable=_trainable(spec, out, resources), resume_unfinished=True,
@@ -250,7 +359,7 @@ def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict
                 tune_config=tune.TuneConfig(metric=METRIC, mode="max", num_samples=spec.samples,
                                             search_alg=search_alg, scheduler=scheduler,
                                             max_concurrent_trials=max_concurrent, reuse_actors=False),
-                run_config=_run_config(out, "search", [printer]))
+                run_config=_run_config(out, "search", [printer], max_retries))
         with _sigterm_as_ctrl_c():
             return _failures(tuner.fit())
     finally:

@@ -8,6 +8,7 @@ import json
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -15,8 +16,21 @@ from pathlib import Path
 from typing import Any
 
 from softac.config import SACConfig
-from softac.cpus import claim_cpus
-from softac.sweep.spec import LOG_DIR, METRIC, SweepSpec, value_text
+from softac.cpus import claim_cpus, trial_settings_env
+from softac.rundir import holder, wait_released
+from softac.sweep.spec import LOG_DIR, METRIC, SPEC_FILE, SweepSpec, value_text
+
+# how long a trial waits for the lock of its run directory, held by an earlier attempt's process that is still
+# writing its checkpoint (a stopped driver's trial), or by one on a lost node until the filesystem frees its lock
+# (NFSv4: when the node's lease expires, 90 s by default)
+LOCK_WAIT_S = 300.0
+
+
+class TrialLost(RuntimeError):
+    """The trial's process ended without finishing and without an error of its own: killed by a signal (a lost
+    node, the OOM killer, `kill -9`) or stopped by someone other than the sweep. Raised, so that Tune retries the
+    trial (FailureConfig.max_failures), which continues from the run's last checkpoint. A run's own error (exit 2
+    or 3: bad settings, a diverging run) is reported instead and not retried: it would fail again."""
 
 
 def trial_state(run: Path) -> str:
@@ -49,24 +63,14 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
     return cmd
 
 
-def _thread_env(threads: int) -> dict[str, str]:
-    """Thread counts for the libraries that read them (PyTorch for the peers, OpenMP, MKL); XLA takes
-    its own from the CPUs of `claim_cpus`."""
+def trial_process_env(threads: int, cpus: list[int]) -> dict[str, str]:
+    """The environment of a trial's process: thread counts for the libraries that read them (PyTorch for the
+    peers, OpenMP, MKL; XLA takes its own from the CPU affinity), and its CPUs and parent, which the process
+    applies itself when it starts (softac.cpus.adopt_trial_settings)."""
     env = dict(os.environ)
     env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
+    env.update(trial_settings_env(cpus, os.getpid()))
     return env
-
-
-def trial_process_setup(cpus: list[int]):
-    """What the trial's process runs before `exec`: pinned to its CPUs; SIGTERM when the Ray worker dies."""
-    def setup() -> None:
-        if cpus:
-            os.sched_setaffinity(0, cpus)
-        with contextlib.suppress(Exception):
-            import ctypes
-
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG (Linux)
-    return setup
 
 
 def read_evals(run: Path, column: str = "mean_return") -> list[tuple[int, float]]:
@@ -78,6 +82,14 @@ def read_evals(run: Path, column: str = "mean_return") -> list[tuple[int, float]
         with contextlib.suppress(ValueError, TypeError, KeyError):  # (a run written before the column: none)
             out.append((int(float(row["step"])), float(row[column])))
     return out
+
+
+def node_label() -> str:
+    """This process's Ray node (its id's first 12 characters, as `ray status` and the dashboard show them) and
+    host, for the trial's log: which node ran which attempt."""
+    import ray
+
+    return f"node {ray.get_runtime_context().get_node_id()[:12]} on {socket.gethostname()}"
 
 
 def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: float) -> None:
@@ -93,8 +105,16 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
         trial = params["trial"]
     root = Path(out)
     run = root / trial["name"]
+    if not (root / SPEC_FILE).exists():  # checked before anything is written there: nothing lands on a local disk
+        tune.report({METRIC: -math.inf, "step": 0, "trial_error": (
+            f"{trial['name']}: {node_label()} does not see the sweep directory {root} (no {SPEC_FILE} there); "
+            "every node needs it on a shared filesystem at the same path (docs/cluster.md)")})
+        return
     if trial_state(run) == "done":
         return
+    if not wait_released(run, LOCK_WAIT_S):
+        raise TrialLost(f"{trial['name']}: its run directory is still locked by {holder(run)} after "
+                        f"{LOCK_WAIT_S:.0f} s")
     if sweep.framework != "softac" and run.exists() and trial_state(run) == "new":
         # a peer's run stopped before its first checkpoint cannot continue: keep it aside, start again
         n = 1
@@ -108,14 +128,15 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     best = max((v for _, v in previous), default=-math.inf)
     cmd = trial_command(sweep, base, trial, run)
     threads = max(1, int(cpus))
+    where = node_label()
     pinned, locks, _ = claim_cpus(threads)
     with open(log_path, "a") as log, contextlib.ExitStack() as held:
         for lock in locks:
             held.callback(lock.close)
-        log.write(f"$ {' '.join(cmd)}" + (f"  (CPUs {pinned})" if pinned else "") + "\n")
+        log.write(f"$ {' '.join(cmd)}  ({f'CPUs {pinned}, ' if pinned else ''}{where})\n")
         log.flush()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=_thread_env(threads),
-                                preexec_fn=trial_process_setup(pinned) if os.name == "posix" else None)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=trial_process_env(threads, pinned))
+        code = None
         try:
             while True:
                 code = proc.poll()
@@ -134,7 +155,11 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
                     proc.wait(60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    if code not in (0, 130):  # 130: stopped by a signal, with a checkpoint; it resumes later
+    if code is not None and (code < 0 or (code == 130 and trial_state(run) != "done")):
+        # ended by a signal the sweep did not send (it stops a trial in the `finally` above, where code stays None)
+        how = f"killed by {signal.Signals(-code).name}" if code < 0 else "stopped (SIGTERM or SIGINT)"
+        raise TrialLost(f"{trial['name']}: its process was {how} (log: {log_path})")
+    if code not in (0, 130, None):
         # reported, not raised: a raised error makes Tune print a traceback; this way the user gets one line
         lines = [ln for ln in log_path.read_text().splitlines() if ln.strip()]
         tune.report({METRIC: best, "step": max(reported, default=0),
