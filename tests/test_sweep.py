@@ -419,6 +419,24 @@ def test_a_failing_trial_is_reported_with_its_log_and_the_others_finish(tmp_path
     assert rows[f"env_id={fine},seed=0"] == "done"
 
 
+def test_a_trial_on_a_node_without_the_sweep_directory_fails_in_one_line_and_writes_nothing(tmp_path, monkeypatch):
+    """A node that joined after the sweep's start-up check (docs/cluster.md): the trial reports one line naming
+    its node and writes nothing on that node's disk (no run directory, no log)."""
+    from ray import tune
+
+    from softac.sweep import trial as trial_module
+
+    reports = []
+    monkeypatch.setattr(tune, "report", reports.append)
+    monkeypatch.setattr(trial_module, "node_label", lambda: "node 0123456789ab on elsewhere")
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0])
+    out = tmp_path / "not-here"
+    sweep.run_trial({"trial": sweep.grid_trials(spec)[0]}, spec.to_dict(), str(out), 1.0)
+    assert not out.exists()
+    assert len(reports) == 1 and reports[0]["trial_error"].startswith(
+        f"seed=0: node 0123456789ab on elsewhere does not see the sweep directory {out} (no sweep.json there)")
+
+
 def test_a_trial_process_runs_on_its_claimed_cpus_and_ends_with_its_parent(tmp_path):
     """The trial's process pins itself to the trial's CPUs when it starts, and gets SIGTERM when the process that
     started it (the trial's Ray worker) dies."""
