@@ -91,3 +91,40 @@ def test_the_package_has_no_import_cycle():
         return False
 
     assert [m for m in sorted(imports) if reaches(m, m, {m})] == []
+
+
+def test_a_run_stopped_during_its_final_evaluation_evaluates_when_resumed(tmp_path):
+    """SIGTERM during the last evaluation (here the first, at total_steps): the evaluation is cut short, the
+    run checkpoints at its last step and exits 130; the resumed segment has no steps left but still evaluates,
+    so eval.csv ends as an undisturbed run's (a sweep's driver killed as a trial ended left runs without it)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import child_env, run_cli
+
+    args = ["train", "--env", "softac_test_envs:Slow-v0", "--seed", "0", "--steps", "200", "--no-progress", "--set",
+            "hidden_sizes=[16,16]", "batch_size=32", "learning_starts=100", "eval_interval=200", "eval_episodes=2",
+            "checkpoint_interval=200"]
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "softac", *args, "--out", str(run)], stderr=subprocess.PIPE,
+                            text=True, env=child_env(SOFTAC_TEST_STOP_IN_EVAL="1"))
+    try:
+        deadline = time.monotonic() + 300
+        while open(f"/proc/{proc.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "T":  # stopped in the eval
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGCONT)
+        stderr = proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert (run / "eval.csv").read_text().count("\n") == 1  # the header only: no evaluation finished
+    resumed = run_cli("train", "--resume", str(run), "--no-progress")
+    assert resumed.returncode == 0, resumed.stderr
+    single = run_cli(*args, "--out", str(tmp_path / "single"))
+    assert single.returncode == 0, single.stderr
+    assert (run / "eval.csv").read_text() == (tmp_path / "single" / "eval.csv").read_text()

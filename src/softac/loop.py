@@ -190,11 +190,13 @@ class TrainingLoop:
         leave the logs, the best checkpoint and eval.csv as one straight run leaves them. Then the last
         checkpoint."""
         final_step = self.run_state.num_steps
-        run_ends = final_step > self.start_step and (final_step >= self.config.total_steps
-                                                     or self.stop_reason is not None)
+        ends_here = final_step >= self.config.total_steps or self.stop_reason is not None
+        run_ends = final_step > self.start_step and ends_here
         if run_ends and self.logged_at != final_step:
             self.log_row(final_step)
-        if run_ends and self.config.eval_interval > 0 and self.run_state.last_eval_step != final_step:
+        # the final evaluation also in a segment that resumed at the last step: the segment before was stopped
+        # (SIGTERM) during that evaluation, after its checkpoint (seen: a sweep's driver killed as a trial ended)
+        if ends_here and self.config.eval_interval > 0 and self.run_state.last_eval_step != final_step:
             self.evaluate(final_step)
         where = self.save_checkpoint("last")
         if self.stop.requested:
