@@ -266,8 +266,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         for line in (pinned, start):  # printed once every input is accepted: a refused one gets one line only
             if line:
                 print(line, file=sys.stderr)
-        summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress,
-                              target_success=args.target_success)
+        try:
+            summary = agent.learn(steps, run_dir=run, target_return=args.target_return, progress=args.progress,
+                                  target_success=args.target_success)
+        except TrainingInterrupted as exc:
+            # said before the lock goes: a stopped sweep waits for the lock, then its user reads the trial's log
+            print(f"softac: {exc}", file=sys.stderr, flush=True)
+            return EXIT_INTERRUPTED
         if args.video:
             _record_video(run, which=None, out=None, episodes=1, deterministic=True,
                           allow_new_bounds=args.allow_new_bounds)
@@ -517,7 +522,10 @@ COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench
 
 
 def main(argv: list[str] | None = None) -> int:
+    from softac.stopsignal import finish_after_stop
+
     argv = sys.argv[1:] if argv is None else argv
+    finish_after_stop()
     try:
         parser = build_parser()
         args = parser.parse_args(argv)

@@ -295,11 +295,18 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     `checkpoint_interval` steps, and when Ctrl-C or SIGTERM stops it (TrainingInterrupted, exit 130), the run
     saves checkpoints/last; the same call on the same directory continues from there, so a peer's run that
     takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes."""
+    from softac.errors import TrainingInterrupted
     from softac.rundir import run_lock
 
     with run_lock(out):
-        return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
-                       checkpoint_interval).run()
+        try:
+            return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
+                           checkpoint_interval).run()
+        except TrainingInterrupted as exc:
+            # said before the lock goes: a stopped sweep waits for the lock, then its user reads the trial's log
+            print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr,
+                  flush=True)
+            raise
 
 
 def _hyperparameters(model: Any) -> dict[str, Any]:
@@ -475,8 +482,10 @@ def arguments() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> None:
     from softac.cpus import adopt_trial_settings
     from softac.errors import RunFailed, SoftacError, TrainingInterrupted
+    from softac.stopsignal import finish_after_stop
 
     adopt_trial_settings()  # a sweep trial's process: its CPUs and parent, before the peer's library starts
+    finish_after_stop()
 
     parser = arguments()
     a = parser.parse_args(argv)
@@ -490,8 +499,7 @@ def main(argv: list[str]) -> None:
             out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
         else:
             out = peer_solve(a.framework, a.env, a.seed, a.target, a.max_steps)
-    except TrainingInterrupted as exc:
-        print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr)
+    except TrainingInterrupted:  # peer_run said where it stopped
         sys.exit(130)
     except SoftacError as exc:
         print(f"python -m softac.peers: {exc}", file=sys.stderr)
