@@ -6,6 +6,7 @@ import pytest
 
 from conftest import assert_same_training
 from softac import SAC, evaluate
+from softac.errors import SoftacError
 from softac.checkpoint import load as load_checkpoint
 from softac.logs import read_csv
 from softac_test_envs import DriftEnv
@@ -393,3 +394,33 @@ def test_load_replaces_only_the_settings_that_do_not_change_what_is_computed(tin
     assert loaded.learner.config == loaded.collector.config == loaded.config  # one config for every part
     with pytest.raises(SoftacError, match="loggers"):
         SAC.load(tmp_path / "run", loggers="tensorboard,wandbb")
+
+
+def test_random_action_prob_replaces_that_share_of_actions_by_uniform_ones():
+    """mix_in_random_actions: about PROB of the rows become uniform in [-1, 1], the others stay as they were
+    (bounds: 5 binomial standard deviations), and the generator advances the same whichever rows it picks."""
+    from softac.loop import mix_in_random_actions
+
+    n, prob = 20000, 0.3
+    policy = np.full((n, 3), 0.25, np.float32)
+    mixed = mix_in_random_actions(np.random.default_rng(0), policy, prob)
+    replaced = np.any(mixed != 0.25, axis=1)
+    assert abs(replaced.sum() - n * prob) < 5 * np.sqrt(n * prob * (1 - prob))
+    uniform = mixed[replaced]
+    assert uniform.min() >= -1.0 and uniform.max() <= 1.0
+    assert abs(uniform.mean()) < 5 * np.sqrt(1 / 3 / uniform.size) and abs(uniform.var() - 1 / 3) < 0.02
+    a, b = np.random.default_rng(1), np.random.default_rng(1)
+    mix_in_random_actions(a, policy, 0.0), mix_in_random_actions(b, policy, 1.0)
+    assert a.random() == b.random()
+    np.testing.assert_array_equal(mix_in_random_actions(np.random.default_rng(2), policy, 0.0), policy)
+
+
+def test_random_action_prob_is_used_in_training_only_after_learning_starts(tiny):
+    """With random_action_prob 1 every training action after learning_starts is uniform: the buffer's actions
+    spread over [-1, 1] as uniform ones do (the policy's own, at 0, have about half that variance here)."""
+    agent = SAC(tiny(random_action_prob=1.0, learning_starts=100))
+    agent.learn(1500, progress=False)
+    actions = agent.collector.buffer.actions[600:1500]
+    assert abs(actions.mean()) < 0.15 and abs(actions.var() - 1 / 3) < 0.08
+    with pytest.raises(SoftacError, match="random_action_prob"):
+        tiny(random_action_prob=1.5).validate()

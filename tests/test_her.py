@@ -150,11 +150,13 @@ def test_episodes_partly_overwritten_in_the_ring_never_lend_another_episodes_goa
 # ---- training with HER ------------------------------------------------------------------------------
 
 @pytest.mark.numerics
-@pytest.mark.parametrize("strategy,workers", [("future", 0), ("episode", 2)])
-def test_resume_with_her_is_exact(tiny, tmp_path, strategy, workers):
+@pytest.mark.parametrize("strategy,workers,random_prob", [("future", 0, 0.0), ("episode", 2, 0.3)])
+def test_resume_with_her_is_exact(tiny, tmp_path, strategy, workers, random_prob):
     """N+M steps equal N, checkpoint, load, M: the episodes' bookkeeping is in the checkpoint (two envs,
-    episodes of 20 steps, the split mid-episode), in-process and in env workers."""
-    cfg = tiny(GOAL_ENV, n_envs=2, gradient_steps=2, eval_interval=300, her_strategy=strategy, env_workers=workers)
+    episodes of 20 steps, the split mid-episode), in-process and in env workers, and with random actions
+    mixed in (their numbers come from the run's saved generator)."""
+    cfg = tiny(GOAL_ENV, n_envs=2, gradient_steps=2, eval_interval=300, her_strategy=strategy, env_workers=workers,
+               random_action_prob=random_prob)
     straight = SAC(cfg)
     straight.learn(900, run_dir=tmp_path / "straight", progress=False)
     first = SAC(cfg)

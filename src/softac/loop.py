@@ -94,6 +94,15 @@ def train(learner: Learner, collector: Collector, run: RunState, steps: int, run
                         target_success=target_success).run()
 
 
+def mix_in_random_actions(rng: np.random.Generator, actions: np.ndarray, prob: float) -> np.ndarray:
+    """Each row of ACTIONS (one per env, in [-1, 1]) replaced with probability PROB by a uniform one.
+    Andrychowicz et al. (2017) explore Fetch with 30% random actions: a policy that never touches the object
+    learns nothing from hindsight goals about moving it. Draws the same numbers whichever rows it replaces."""
+    replace = rng.random(actions.shape[0]) < prob
+    uniform = rng.uniform(-1.0, 1.0, actions.shape).astype(np.float32)
+    return np.where(replace[:, None], uniform, actions).astype(np.float32)
+
+
 class TrainingLoop:
     """One training call: collect, learn, and the work due at each interval (log rows, evaluations,
     checkpoints, callbacks), until `steps` more env steps, a target return or success rate, or a stop. Every input is
@@ -257,6 +266,9 @@ class TrainingLoop:
             if not np.all(np.isfinite(actions)):
                 raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "
                                 "actions; the last good checkpoint is kept")
+            if cfg.random_action_prob > 0:  # drawn only when asked: other runs keep their random numbers
+                actions = mix_in_random_actions(rs.rng, actions, cfg.random_action_prob)
+                env_actions = learner.scaler.to_env(actions)
         result = self.collector.step(obs, actions, env_actions, before)
         rs.num_steps = after = before + cfg.n_envs
         for episode in result.finished:

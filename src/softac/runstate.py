@@ -24,7 +24,7 @@ from softac.rundir import check_new_run_dir, checkpoint_path, holds_run, run_of_
 class RunState:
     act_key: Any  # raw uint32[2] JAX key: exploration noise while training
     predict_key: Any  # raw uint32[2] JAX key: stochastic predict() and evaluation, kept apart from training
-    rng: np.random.Generator  # replay sampling and warm-up actions
+    rng: np.random.Generator  # replay sampling, warm-up actions and random_action_prob
     num_steps: int = 0
     num_episodes: int = 0
     train_time_s: float = 0.0
