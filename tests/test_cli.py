@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 
 import numpy as np
@@ -123,6 +124,32 @@ def test_repeated_sigterm_while_stopping_still_ends_with_its_line_and_130(tmp_pa
     assert proc.returncode == 130, err
     assert "interrupted at step" in err and "Traceback" not in err
     assert (run / "checkpoints" / "last" / "meta.json").exists()
+
+
+@pytest.mark.faults
+def test_main_called_in_process_leaves_the_callers_sigterm_handling_as_it_was_after_a_stop(tmp_path):
+    """Only the command's own process (`softac`, `python -m softac`) ignores SIGTERM once stopped: main() called
+    in-process (a notebook, a test) restores the default, so processes it starts later can still be stopped
+    (seen: a test worker that had run a stopped training in-process started processes that ignored SIGTERM)."""
+    script = textwrap.dedent(f"""
+        import os, signal, sys, threading, time
+        from softac.cli import main
+
+        def stop_once_training():
+            progress = os.path.join(sys.argv[1], "progress.csv")
+            while not (os.path.exists(progress) and len(open(progress).readlines()) >= 3):
+                time.sleep(0.05)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        threading.Thread(target=stop_once_training, daemon=True).start()
+        code = main(["train", "--env", "softac_test_envs:Drift-v0", "--steps", "1000000", "--out", sys.argv[1],
+                     "--no-progress", *{list(TINY_SETS)!r}, "eval_interval=0", "checkpoint_interval=0"])
+        print(code, signal.getsignal(signal.SIGTERM) == signal.SIG_DFL)
+    """)
+    r = subprocess.run([sys.executable, "-c", script, str(tmp_path / "run")], capture_output=True,
+                       text=True, timeout=300, env=child_env())
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["130", "True"], (r.stdout, r.stderr)
 
 
 @pytest.mark.parametrize("args,fragments", [

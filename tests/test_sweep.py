@@ -439,13 +439,14 @@ def test_a_trial_on_a_node_without_the_sweep_directory_fails_in_one_line_and_wri
 
 def test_a_trial_process_runs_on_its_claimed_cpus_and_ends_with_its_parent(tmp_path):
     """The trial's process pins itself to the trial's CPUs when it starts, and gets SIGTERM when the process that
-    started it (the trial's Ray worker) dies."""
+    started it (the trial's Ray worker) dies, also where that process ignored SIGTERM (inherited through exec)."""
     cpu = sorted(os.sched_getaffinity(0))[-1]
     script = ("from softac.cpus import adopt_trial_settings; adopt_trial_settings(); import os, sys, time; "
               "print(sorted(os.sched_getaffinity(0)), flush=True); sys.stdin.read(); time.sleep(60)")
     # a parent that starts the child with the trial's environment, prints the child's pid, then is killed
     parent = subprocess.Popen([sys.executable, "-c", (
-        "import subprocess, sys, os; from softac.sweep.trial import trial_process_env; "
+        "import signal, subprocess, sys, os; from softac.sweep.trial import trial_process_env; "
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN); "
         f"child = subprocess.Popen([sys.executable, '-c', {script!r}], env=trial_process_env(1, [{cpu}]), "
         "stdin=subprocess.PIPE, stdout=sys.stdout); print(child.pid, flush=True); child.wait()")],
         stdout=subprocess.PIPE, text=True, env=child_env())

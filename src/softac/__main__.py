@@ -4,6 +4,6 @@ from softac.cpus import adopt_trial_settings
 
 adopt_trial_settings()  # a sweep trial's process: its CPUs and parent, before JAX starts
 
-from softac.cli import main  # noqa: E402
+from softac.cli import entry_point  # noqa: E402
 
-sys.exit(main())
+sys.exit(entry_point())

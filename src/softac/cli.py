@@ -521,11 +521,16 @@ COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench
             "sweep": cmd_sweep}
 
 
-def main(argv: list[str] | None = None) -> int:
+def entry_point() -> int:
+    """The `softac` command and `python -m softac`: main() in a process of its own."""
     from softac.stopsignal import finish_after_stop
 
-    argv = sys.argv[1:] if argv is None else argv
     finish_after_stop()
+    return main()
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -559,4 +564,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry_point())

@@ -131,6 +131,9 @@ def adopt_trial_settings() -> None:
         import ctypes
         import signal
 
+        # an ignored SIGTERM is inherited through exec (seen: from a process that had run a stopped training
+        # in-process): the signal below must end this process until training installs its own handler
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         try:
             ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
         except (OSError, AttributeError):

@@ -482,10 +482,8 @@ def arguments() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> None:
     from softac.cpus import adopt_trial_settings
     from softac.errors import RunFailed, SoftacError, TrainingInterrupted
-    from softac.stopsignal import finish_after_stop
 
     adopt_trial_settings()  # a sweep trial's process: its CPUs and parent, before the peer's library starts
-    finish_after_stop()
 
     parser = arguments()
     a = parser.parse_args(argv)
@@ -508,4 +506,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
+    from softac.stopsignal import finish_after_stop
+
+    finish_after_stop()  # a process of its own (a sweep's trial): see there
     main(sys.argv[1:])

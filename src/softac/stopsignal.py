@@ -11,11 +11,12 @@ _finish_after_stop = False
 
 
 def finish_after_stop() -> None:
-    """In a command's own process (`softac train`, a peer's run): once a signal has stopped training, a repeated
-    SIGTERM is ignored until the process exits, so that it ends through its own path (its line, exit 130), not
-    killed between the checkpoint and that line. A sweep's trial gets two: the sweep's, and its Ray worker's
-    death (PR_SET_PDEATHSIG); measured, the second one 0.2-0.8 s after the first killed the process (-15) before
-    it had said where it stopped. SIGKILL still ends it; a library caller's own handlers are restored as found."""
+    """For a process that runs one command (`softac`, `python -m softac`, `python -m softac.peers`): once a
+    signal has stopped training, a repeated SIGTERM is ignored until the process exits, so that it ends through
+    its own path (its line, exit 130), not killed between the checkpoint and that line. A sweep's trial gets two:
+    the sweep's, and its Ray worker's death (PR_SET_PDEATHSIG); measured, the second one 0.2-0.8 s after the
+    first killed the process (-15) before it had said where it stopped. SIGKILL still ends it. Not for library
+    callers (their handlers are restored as found), nor for main() called in-process."""
     global _finish_after_stop
     _finish_after_stop = True
 
@@ -41,4 +42,7 @@ class StopSignal:
     def __exit__(self, *exc: Any) -> None:
         for sig, handler in self.previous.items():
             stopping = self.requested and _finish_after_stop and sig == signal.SIGTERM
+            # SIG_IGN, not a Python handler, which the interpreter resets to the default as it exits (measured:
+            # killed, -15, in its teardown); processes started after it would inherit SIG_IGN, so only a process
+            # that runs one command and then exits takes this (finish_after_stop)
             signal.signal(sig, signal.SIG_IGN if stopping else handler)
