@@ -133,6 +133,8 @@ def section(env: str, threshold: float | None, sweeps: Path, figures: Path,
         if timed and len(timed) < len(trials):  # wall time from the trials whose wall time is comparable
             entry["wall_s"] = float(np.median([r["wall_s"] for r in timed]))
             entry["steps_per_s"] = float(np.median([r["steps"] / r["wall_s"] for r in timed]))
+        elif not timed:  # none comparable: no figure (timing-excluded.yaml, listed under the aggregate, says why)
+            entry["wall_s"] = entry["steps_per_s"] = None
         rows.append(entry)
         names.update({run: name for run in trial_dirs(d)})
     figure = figures / f"{env}.png"
