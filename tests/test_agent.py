@@ -415,7 +415,7 @@ def test_random_action_prob_replaces_that_share_of_actions_by_uniform_ones():
     np.testing.assert_array_equal(mix_in_random_actions(np.random.default_rng(2), policy, 0.0), policy)
 
 
-def test_random_action_prob_is_used_in_training_only_after_learning_starts(tiny):
+def test_random_action_prob_1_makes_every_training_action_uniform(tiny):
     """With random_action_prob 1 every training action after learning_starts is uniform: the buffer's actions
     spread over [-1, 1] as uniform ones do (the policy's own, at 0, have about half that variance here)."""
     agent = SAC(tiny(random_action_prob=1.0, learning_starts=100))

@@ -99,7 +99,7 @@ def mix_in_random_actions(rng: np.random.Generator, actions: np.ndarray, prob: f
     Andrychowicz et al. (2017) explore Fetch with 30% random actions: a policy that never touches the object
     learns nothing from hindsight goals about moving it. Draws the same numbers whichever rows it replaces."""
     replace = rng.random(actions.shape[0]) < prob
-    uniform = rng.uniform(-1.0, 1.0, actions.shape).astype(np.float32)
+    uniform = rng.uniform(-1.0, 1.0, actions.shape)
     return np.where(replace[:, None], uniform, actions).astype(np.float32)
 
 

@@ -12,8 +12,8 @@ from typing import Any, Iterator
 from softac.errors import SoftacError
 from softac.rundir import run_lock, wait_released
 from softac.sweep.results import SUCCESS_THRESHOLD, unfinished_trials, write_summaries
-from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SPEC_FILE, SweepSpec, grid_trials, planned_trials,
-                               prepare_out_dir, validate)
+from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, grid_trials,
+                               planned_trials, prepare_out_dir, validate)
 from softac.sweep.trial import run_trial, trial_state
 
 # a trial whose process is lost (its node died, it was killed by a signal) is retried this many times, each
@@ -124,8 +124,7 @@ def _check_nodes_see(out: Path, timeout_s: float = 60.0, log=lambda *a: None) ->
     if blind:
         which = ", ".join(f"node {node[:12]} on {nodes[node]}" for node in blind)
         raise SoftacError(f"{which} {'does' if len(blind) == 1 else 'do'} not see the sweep directory {out} "
-                          f"({len(nodes) - len(blind)} of {len(nodes)} nodes do); every node needs it on a shared "
-                          "filesystem at the same path (docs/cluster.md)")
+                          f"({len(nodes) - len(blind)} of {len(nodes)} nodes do); {SHARED_DIR_HINT}")
     for ref in late:
         log(f"softac: node {refs[ref][:12]} on {nodes[refs[ref]]} did not answer within {timeout_s:.0f} s; "
             f"its trials check {out} themselves")

@@ -17,6 +17,8 @@ from softac.peers import PEERS
 
 
 SPEC_FILE = "sweep.json"
+# what a node that does not see the sweep directory is told, by the driver and by a trial (docs/cluster.md)
+SHARED_DIR_HINT = "every node needs it on a shared filesystem at the same path (docs/cluster.md)"
 
 
 RAY_DIR = "_ray"

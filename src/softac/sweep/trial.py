@@ -18,7 +18,7 @@ from typing import Any
 from softac.config import SACConfig
 from softac.cpus import claim_cpus, trial_settings_env
 from softac.rundir import holder, wait_released
-from softac.sweep.spec import LOG_DIR, METRIC, SPEC_FILE, SweepSpec, value_text
+from softac.sweep.spec import LOG_DIR, METRIC, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, value_text
 
 # how long a trial waits for the lock of its run directory, held by an earlier attempt's process that is still
 # writing its checkpoint (a stopped driver's trial), or by one on a lost node until the filesystem frees its lock
@@ -108,7 +108,7 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     if not (root / SPEC_FILE).exists():  # checked before anything is written there: nothing lands on a local disk
         tune.report({METRIC: -math.inf, "step": 0, "trial_error": (
             f"{trial['name']}: {node_label()} does not see the sweep directory {root} (no {SPEC_FILE} there); "
-            "every node needs it on a shared filesystem at the same path (docs/cluster.md)")})
+            f"{SHARED_DIR_HINT}")})
         return
     if trial_state(run) == "done":
         return
