@@ -43,6 +43,20 @@ def _attempts(out: Path, trial: str) -> list[str]:
     return [line for line in (out / "_logs" / f"{trial}.log").read_text().splitlines() if line.startswith("$ ")]
 
 
+def _wait_until_no_process_names(path: Path, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        running = []
+        for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+            with contextlib.suppress(OSError):
+                if str(path).encode() in cmdline.read_bytes():
+                    running.append(cmdline.parent.name)
+        if not running:
+            return
+        assert time.monotonic() < deadline, f"processes still running on {path}: {running}"
+        time.sleep(0.1)
+
+
 def _node(attempt: str) -> str:
     return attempt.rsplit("node ", 1)[1].split()[0]
 
@@ -154,6 +168,9 @@ def test_a_driver_killed_on_a_cluster_resumes_without_redoing_finished_trials(cl
     finally:
         if driver.poll() is None:
             driver.kill()
+    # the killed driver's trial processes end when Ray sees it gone (SIGTERM from their worker's death: a
+    # checkpoint), and one near its end may finish meanwhile: count the finished trials once they are all gone
+    _wait_until_no_process_names(out, timeout=120)
     finished = {s for s in range(3) if sweep.trial_state(out / f"seed={s}") == "done"}
     assert finished and len(finished) < 3
     resumed = run_cli("sweep", "--resume", str(out), "--address", head.address, "--threshold=-1e9", timeout=600)

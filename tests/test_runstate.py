@@ -2,6 +2,7 @@
 make up training import one way (config -> ... -> loop; the agent composes them)."""
 
 import numpy as np
+import pytest
 
 from softac.runstate import RunState
 
@@ -93,10 +94,12 @@ def test_the_package_has_no_import_cycle():
     assert [m for m in sorted(imports) if reaches(m, m, {m})] == []
 
 
-def test_a_run_stopped_during_its_final_evaluation_evaluates_when_resumed(tmp_path):
-    """SIGTERM during the last evaluation (here the first, at total_steps): the evaluation is cut short, the
-    run checkpoints at its last step and exits 130; the resumed segment has no steps left but still evaluates,
-    so eval.csv ends as an undisturbed run's (a sweep's driver killed as a trial ended left runs without it)."""
+@pytest.mark.parametrize("steps", [200, 400], ids=["final", "mid-run"])
+def test_a_run_stopped_during_an_evaluation_evaluates_first_when_resumed(tmp_path, steps):
+    """SIGTERM during an evaluation (the first, at step 200: the last one when the run has 200 steps, else one in
+    the middle): the evaluation is cut short, the run checkpoints at that step and exits 130; the resumed segment
+    evaluates at that step before going on (also when it has no steps left), so eval.csv is an undisturbed run's.
+    A sweep's driver killed as a trial ended, or as a trial evaluated, left runs without that row."""
     import signal
     import subprocess
     import sys
@@ -104,7 +107,7 @@ def test_a_run_stopped_during_its_final_evaluation_evaluates_when_resumed(tmp_pa
 
     from conftest import child_env, run_cli
 
-    args = ["train", "--env", "softac_test_envs:Slow-v0", "--seed", "0", "--steps", "200", "--no-progress", "--set",
+    args = ["train", "--env", "softac_test_envs:Slow-v0", "--seed", "0", "--steps", str(steps), "--no-progress", "--set",
             "hidden_sizes=[16,16]", "batch_size=32", "learning_starts=100", "eval_interval=200", "eval_episodes=2",
             "checkpoint_interval=200"]
     run = tmp_path / "run"
@@ -128,3 +131,4 @@ def test_a_run_stopped_during_its_final_evaluation_evaluates_when_resumed(tmp_pa
     single = run_cli(*args, "--out", str(tmp_path / "single"))
     assert single.returncode == 0, single.stderr
     assert (run / "eval.csv").read_text() == (tmp_path / "single" / "eval.csv").read_text()
+    assert (run / "eval.csv").read_text().count("\n") == 1 + steps // 200

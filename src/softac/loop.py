@@ -154,6 +154,8 @@ class TrainingLoop:
                     self.stop_reason = f"callback: {self.info.stop_reason}"
                 if self.writer is not None and not self.writer.has_checkpoint("last"):
                     self.save_checkpoint("last")  # from its first moment a run holds a loadable checkpoint
+                if self.stop_reason is None:
+                    self.stop_reason = self.redo_interrupted_evaluation()
                 while self.run_state.num_steps < self.end_step and self.stop_reason is None:
                     if self.stop.requested:
                         raise TrainingInterrupted(self.run_state.num_steps, self.save_checkpoint("last"))
@@ -210,6 +212,21 @@ class TrainingLoop:
         where = self.save_checkpoint("last")
         if self.stop.requested:
             raise TrainingInterrupted(self.run_state.num_steps, where)
+
+    def redo_interrupted_evaluation(self) -> str | None:
+        """The evaluation due at the step this segment resumes from, when a stop (SIGTERM, Ctrl-C) cut it short
+        in the segment before, after that step's update: done first, so that eval.csv, the best checkpoint and
+        a target's stop are as in an undisturbed run (seen: a sweep's trial stopped as its driver was killed).
+        Evaluation draws none of the run's random numbers, so doing it later changes nothing else."""
+        cfg, step = self.config, self.start_step
+        last_collect = step - cfg.n_envs
+        if (step == 0 or cfg.eval_interval <= 0 or self.run_state.last_eval_step == step
+                or not crossed(last_collect, step, cfg.eval_interval)):
+            return None
+        reached = self.target_reached(self.evaluate(step))
+        if reached and not crossed(last_collect, step, cfg.log_interval):
+            self.log_row(step)  # where an undisturbed run's finish() writes it (a logged step is logged already)
+        return reached
 
     def summarise(self) -> dict[str, Any]:
         rs = self.run_state
