@@ -325,3 +325,58 @@ def test_plots_and_the_report_of_a_goal_env_run_show_its_success_rate(tiny, tmp_
     assert "success_comparison.png" in [p.name for p in plot_runs(runs, tmp_path / "both")]
     page = build_report(runs[0]).read_text()
     assert "last success rate" in page and "<th>success rate</th>" in page and "alt='Success rate'" in page
+
+
+def _goal_movement_script():
+    import importlib.util
+
+    from conftest import TESTS
+
+    spec = importlib.util.spec_from_file_location("goal_movement", TESTS.parent / "benchmarks" / "goal_movement.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_goal_movement_script_measures_each_complete_episode_by_hand():
+    """benchmarks/goal_movement.py (docs/results-notes.md, FetchPush): how far each episode moved its achieved goal.
+    Two envs' rows interleave; an episode whose first step was overwritten, and one still running, are left out."""
+    script = _goal_movement_script()
+    #            ep 5 (start overwritten)  ep 6: moves 0.05 at t=1, back to 0.01   ep 7: still   ep 8: running
+    episode = np.array([5, 6, 5, 6, 7, 6, 7, 8, 8])
+    t = np.array([1, 0, 2, 1, 0, 2, 1, 0, 1])
+    done = np.array([0, 0, 1, 0, 0, 1, 1, 0, 0], bool)
+    start = np.zeros((9, 3), np.float32)
+    start[[3, 5]] = [0.03, 0.04, 0.0]  # ep 6's obs at t=1, 2: where t=0 and t=1 left it
+    moved_to = start.copy()
+    moved_to[1], moved_to[3], moved_to[5] = [0.03, 0.04, 0.0], [0.006, 0.008, 0.0], [0.006, 0.008, 0.0]
+    moved_to[[0, 2]] = [1.0, 1.0, 1.0]  # ep 5 moved far, but from a start the buffer no longer holds
+    moved_to[[7, 8]] = [1.0, 1.0, 1.0]  # ep 8 moves far but has not ended
+    buffer = {"pos_size": np.array([9, 9, 9]), "episode": episode, "t": t, "done": done,
+              "obs.achieved_goal": start + 2.0, "next_obs.achieved_goal": moved_to + 2.0}
+    ids, farthest = script.movement_by_episode(buffer)
+    assert ids.tolist() == [6, 7]
+    np.testing.assert_allclose(farthest, [0.05, 0.0], atol=1e-6)
+    rows = script.shares_by_block(farthest, ids, block=1, thresholds=[0.01, 0.05])
+    assert rows == [{"first_episode": 6, "last_episode": 6, "episodes": 1, "moved_over_0.01": 1.0,
+                     "moved_over_0.05": 0.0},  # 0.05 is not farther than 0.05
+                    {"first_episode": 7, "last_episode": 7, "episodes": 1, "moved_over_0.01": 0.0,
+                     "moved_over_0.05": 0.0}]
+
+
+def test_goal_movement_script_reads_a_trained_runs_buffer_and_refuses_one_without_goals(tiny, tmp_path, capsys):
+    script = _goal_movement_script()
+    SAC(tiny(GOAL_ENV)).learn(300, run_dir=tmp_path / "run", progress=False)
+    capsys.readouterr()
+    assert script.main([str(tmp_path / "run"), "--block", "10", "--thresholds", "0", "100", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    episodes = read_csv(tmp_path / "run" / "episodes.csv")
+    assert sum(row["episodes"] for row in rows) == len(episodes) == 15  # 20-step episodes, all complete
+    assert [row["episodes"] for row in rows] == [10, 5]
+    assert all(row["moved_over_0"] == 1.0 and row["moved_over_100"] == 0.0 for row in rows)  # the point moves
+    SAC(tiny()).learn(100, run_dir=tmp_path / "drift", progress=False)
+    capsys.readouterr()
+    assert script.main([str(tmp_path / "drift")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "holds no goal env's replay buffer" in err
+    assert script.main([str(tmp_path / "nothing")]) == 2 and "no such run" in capsys.readouterr().err
