@@ -25,16 +25,14 @@ import numpy as np
 
 def movement_by_episode(buffer: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Episode ids (ascending) and, for each, the farthest its achieved goal got from its position at the episode's
-    first step: from a HER buffer's state (the `buffer/` arrays of a checkpoint, prefix removed)."""
+    first step: from a HER buffer's state (softac.collector.buffer_state of a checkpoint's arrays)."""
     size = int(buffer["pos_size"][1])
     episode, t, done = buffer["episode"][:size], buffer["t"][:size], buffer["done"][:size]
     start, moved_to = buffer["obs.achieved_goal"][:size], buffer["next_obs.achieved_goal"][:size]
     order = np.lexsort((t, episode))  # each episode's rows in step order
-    ids, first = np.unique(episode[order], return_index=True)
-    last = np.append(first[1:], len(order)) - 1
-    complete = (t[order[first]] == 0) & done[order[last]]
-    distance = np.linalg.norm(moved_to[order] - start[order[first]].repeat(np.diff(np.append(first, len(order))),
-                                                                            axis=0), axis=1)
+    ids, first, lengths = np.unique(episode[order], return_index=True, return_counts=True)
+    complete = (t[order[first]] == 0) & done[order[first + lengths - 1]]
+    distance = np.linalg.norm(moved_to[order] - np.repeat(start[order[first]], lengths, axis=0), axis=1)
     farthest = np.maximum.reduceat(distance, first)
     return ids[complete], farthest[complete]
 
@@ -59,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--block must be at least 1 and --thresholds at least 0")
 
     from softac import checkpoint
+    from softac.collector import buffer_state
     from softac.errors import SoftacError
 
     try:
@@ -66,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     except SoftacError as e:
         print(f"goal_movement.py: error: {e}", file=sys.stderr)
         return 2
-    buffer = {k.removeprefix("buffer/"): v for k, v in arrays.items() if k.startswith("buffer/")}
+    buffer = buffer_state(arrays)
     if "obs.achieved_goal" not in buffer:
         print(f"goal_movement.py: error: {a.run}'s checkpoint holds no goal env's replay buffer (a HER run's last "
               "checkpoint with its buffer)", file=sys.stderr)

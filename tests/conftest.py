@@ -55,6 +55,16 @@ def child_env(*paths: str | Path, **variables: str) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": pythonpath, **variables}
 
 
+def load_benchmark_script(name: str):
+    """A script of benchmarks/ (not a package) as a module, to call its functions."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, TESTS.parent / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra: dict | None = None,
             **popen) -> subprocess.CompletedProcess:
     env = {**child_env(), **(env_extra or {})}

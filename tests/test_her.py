@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import assert_clean_error, assert_same_training, run_cli
+from conftest import assert_clean_error, assert_same_training, load_benchmark_script, run_cli
 
 from softac import SAC
 from softac.buffer import ReplayBuffer
@@ -327,21 +327,10 @@ def test_plots_and_the_report_of_a_goal_env_run_show_its_success_rate(tiny, tmp_
     assert "last success rate" in page and "<th>success rate</th>" in page and "alt='Success rate'" in page
 
 
-def _goal_movement_script():
-    import importlib.util
-
-    from conftest import TESTS
-
-    spec = importlib.util.spec_from_file_location("goal_movement", TESTS.parent / "benchmarks" / "goal_movement.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_goal_movement_script_measures_each_complete_episode_by_hand():
     """benchmarks/goal_movement.py (docs/results-notes.md, FetchPush): how far each episode moved its achieved goal.
     Two envs' rows interleave; an episode whose first step was overwritten, and one still running, are left out."""
-    script = _goal_movement_script()
+    script = load_benchmark_script("goal_movement")
     #            ep 5 (start overwritten)  ep 6: moves 0.05 at t=1, back to 0.01   ep 7: still   ep 8: running
     episode = np.array([5, 6, 5, 6, 7, 6, 7, 8, 8])
     t = np.array([1, 0, 2, 1, 0, 2, 1, 0, 1])
@@ -365,7 +354,7 @@ def test_goal_movement_script_measures_each_complete_episode_by_hand():
 
 
 def test_goal_movement_script_reads_a_trained_runs_buffer_and_refuses_one_without_goals(tiny, tmp_path, capsys):
-    script = _goal_movement_script()
+    script = load_benchmark_script("goal_movement")
     SAC(tiny(GOAL_ENV)).learn(300, run_dir=tmp_path / "run", progress=False)
     capsys.readouterr()
     assert script.main([str(tmp_path / "run"), "--block", "10", "--thresholds", "0", "100", "--json"]) == 0

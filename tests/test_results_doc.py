@@ -1,22 +1,14 @@
 """benchmarks/results_doc.py: docs/results.md from the kept sweeps of benchmarks/results.sh."""
 
-import importlib.util
 import json
 import shutil
 
 import pytest
 
-from conftest import TESTS
+from conftest import TESTS, load_benchmark_script
 
 ROOT = TESTS.parent
 KEPT = ROOT / "benchmarks" / "sweeps"
-
-
-def load_results_doc():
-    spec = importlib.util.spec_from_file_location("results_doc", ROOT / "benchmarks" / "results_doc.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
@@ -44,7 +36,7 @@ def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_ot
     docs.mkdir()
     (docs / "results.md").write_text("# old\n\n## Pusher-v5\n\nkept Pusher table\n\n## Hopper-v5\n\nold Hopper table\n")
 
-    assert load_results_doc().main([str(sweeps), "--docs", str(docs)]) == 0
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
 
     text = (docs / "results.md").read_text()
     assert "kept Pusher table" in text and "old Hopper table" not in text
@@ -70,7 +62,7 @@ def test_the_suite_aggregate_is_an_iqm_of_normalised_scores_with_a_bootstrap_int
     from softac.stats import stratified_bootstrap_iqm
     from softac.sweep import load_spec, trial_rows
 
-    results_doc = load_results_doc()
+    results_doc = load_benchmark_script("results_doc")
     sweeps = tmp_path / "sweeps"
     envs = results_doc.SUITE
     for env in envs:
@@ -97,7 +89,7 @@ def test_the_suite_aggregate_is_an_iqm_of_normalised_scores_with_a_bootstrap_int
 def test_wall_time_ratios_compare_trials_that_ran_on_the_same_days():
     """The machine's speed drifts by up to 2x between days: a peer's trials are timed against softac's trials
     of the same days; trials from before the day was recorded form one day of their own."""
-    wall_ratio = load_results_doc().wall_ratio
+    wall_ratio = load_benchmark_script("results_doc").wall_ratio
     ours = [{"day": None, "wall_s": 200.0}, {"day": None, "wall_s": 210.0}, {"day": None, "wall_s": 190.0},
             {"day": "2026-11-25", "wall_s": 500.0}, {"day": "2026-11-25", "wall_s": 480.0}]
     today = [{"day": "2026-11-25", "wall_s": 800.0}, {"day": "2026-11-25", "wall_s": 820.0}]

@@ -30,6 +30,11 @@ def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.nda
     return {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
 
 
+def buffer_state(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The replay buffer's state_dict in a checkpoint's arrays (empty when the checkpoint holds no buffer)."""
+    return _with_prefix(arrays, BUFFER_PREFIX)
+
+
 class Collector:
     """The env pool and the replay buffer of one training run."""
 
@@ -165,7 +170,7 @@ class Collector:
         """Take the buffer and envs a checkpoint holds (`num_steps`: where its run stands)."""
         if meta.get("has_buffer"):
             self.buffer = self._make_buffer()
-            self.buffer.load_state_dict(_with_prefix(arrays, BUFFER_PREFIX))
+            self.buffer.load_state_dict(buffer_state(arrays))
         if meta.get("has_envs"):
             self.close_workers()
             self.pool = None
