@@ -101,6 +101,8 @@ class SlowEnv(DriftEnv):
     SOFTAC_TEST_STOP_IN_EVAL=1: the first step of an episode seeded >= EVAL_SEED_OFFSET (in a seed-0 run,
     the first evaluation step), once logged, stops the process (SIGSTOP), so a test can act on it at that
     exact point and then let it go on (SIGCONT).
+    SOFTAC_TEST_SLOW_CLOSE_S=S: close() takes S seconds, as a simulator's teardown can: a stopped process then
+    winds down for that long after its checkpoint, before it says where it stopped.
     """
 
     stopped_in_eval = False  # once per process
@@ -138,6 +140,14 @@ class SlowEnv(DriftEnv):
             SlowEnv.stopped_in_eval = True
             os.kill(os.getpid(), signal.SIGSTOP)
         return result
+
+
+    def close(self):
+        import os
+        import time
+
+        time.sleep(float(os.environ.get("SOFTAC_TEST_SLOW_CLOSE_S", "0")))
+        super().close()
 
 
 class CrashingEnv(DriftEnv):

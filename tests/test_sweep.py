@@ -344,16 +344,20 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
 def test_a_stopped_sweep_lets_its_running_trial_write_its_checkpoint(tmp_path, framework):
     """Ctrl-C or SIGTERM on the driver alone: Ray ends the trial's worker, the trial gets SIGTERM, writes its
     checkpoint where it stands and exits, and the driver waits for it. Ray's workers SIGKILLed their child
-    processes on exit, which cut a peer's checkpoint short (a .tmp file left, the last steps lost). No periodic
-    checkpoint falls within these runs, so the checkpoint there is the one written when stopped."""
+    processes on exit, which cut a peer's checkpoint short (a .tmp file left, the last steps lost); and Ray kills
+    a worker's process group when Tune gives up waiting for the trial to stop (5 s), which killed a trial still
+    winding down (seen in CI: its log lacked "interrupted at step"). The env here takes 8 s to close, so the
+    trial outlasts those 5 s. No periodic checkpoint falls within these runs, so the checkpoint there is the one
+    written when stopped."""
     out = tmp_path / "sweep"
     settings = (["--set", "hidden_sizes=[16,16]", "batch_size=32", "learning_starts=100", "eval_interval=200",
                  "eval_episodes=2", "checkpoint_interval=100000"] if framework == "softac"
                 else ["--framework", framework, "--set", "eval_interval=200"])
-    driver = subprocess.Popen([sys.executable, "-m", "softac", "sweep", "--env", DRIFT, "--seeds", "1", "--steps",
-                               "50000", "--max-concurrent", "1", "--out", str(out), *settings],
-                              env=child_env(TESTS / "fake_peers"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True)
+    driver = subprocess.Popen([sys.executable, "-m", "softac", "sweep", "--env", "softac_test_envs:Slow-v0",
+                               "--seeds", "1", "--steps", "50000", "--max-concurrent", "1", "--out", str(out),
+                               *settings],
+                              env=child_env(TESTS / "fake_peers", SOFTAC_TEST_SLOW_CLOSE_S="8"),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     evals = out / "seed=0" / "eval.csv"
     stderr = signal_when(driver, lambda: evals.exists() and len(evals.read_text().splitlines()) >= 3, signal.SIGTERM)
     assert driver.returncode in (130, 143), stderr

@@ -57,6 +57,7 @@ def _start_ray(address: str | None) -> Any:
     # (measured: a peer trial killed while writing it, its last 8k steps lost). Without that, a trial whose worker
     # ends gets SIGTERM (trial.py's PR_SET_PDEATHSIG), checkpoints and exits, and the driver waits for it
     # (_wait_for_trials). The workers of a local Ray inherit this; a cluster's take it from where `ray start` ran.
+    # (Ray's kill of a worker's process group does not reach the trial: trial.py starts it in its own session.)
     os.environ.setdefault("RAY_kill_child_processes_on_worker_exit", "false")
     kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.ERROR, "log_to_driver": False}
     try:

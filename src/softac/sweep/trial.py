@@ -135,7 +135,11 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
             held.callback(lock.close)
         log.write(f"$ {' '.join(cmd)}  ({f'CPUs {pinned}, ' if pinned else ''}{where})\n")
         log.flush()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=trial_process_env(threads, pinned))
+        # a session of its own: Ray starts each worker in its own process group and SIGKILLs the group when
+        # Tune force-stops the trial (5 s after asking it to stop), which killed a trial still writing its
+        # checkpoint or winding down; outside that group it ends through its own SIGTERM path (PDEATHSIG)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=trial_process_env(threads, pinned),
+                                start_new_session=True)
         code = None
         try:
             while True:
