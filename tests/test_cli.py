@@ -81,6 +81,37 @@ def test_resume_without_steps_finishes_the_configured_total(tmp_path):
     assert r.returncode == 0 and "training 0 more steps" in r.stderr
 
 
+def test_total_steps_raises_a_runs_budget_and_trains_as_one_longer_run(tmp_path):
+    """`--resume RUN --total-steps N` trains to step N and makes N the run's budget, in its checkpoint (so a
+    plain --resume after a stop continues to N, not to the old budget), summary.json and config.yaml; the
+    weights, buffer and RNGs are those of one run of N steps."""
+    drift = ["--env", "softac_test_envs:Drift-v0", "--no-progress", *TINY_SETS, "eval_interval=0"]
+    straight, raised = tmp_path / "straight", tmp_path / "raised"
+    assert run_cli("train", "--steps", "500", "--out", str(straight), *drift).returncode == 0
+    assert run_cli("train", "--steps", "300", "--out", str(raised), *drift).returncode == 0
+    r = run_cli("train", "--resume", str(raised), "--total-steps", "500", "--no-progress")
+    assert r.returncode == 0 and "training 200 more steps" in r.stderr, r.stderr
+    last = raised / "checkpoints" / "last"
+    assert json.loads((last / "meta.json").read_text())["config"]["total_steps"] == 500
+    summary = json.loads((raised / "summary.json").read_text())
+    assert (summary["steps"], summary["total_steps"]) == (500, 500)
+    assert "total_steps: 500" in (raised / "config.yaml").read_text()
+    a = np.load(next((straight / "checkpoints" / "last").glob("arrays-*.npz")))
+    b = np.load(next(last.glob("arrays-*.npz")))
+    assert set(a.files) == set(b.files)
+    for name in a.files:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    r = run_cli("train", "--resume", str(raised), "--steps", "100", "--no-progress")  # --steps raises it too
+    assert r.returncode == 0 and json.loads((last / "meta.json").read_text())["config"]["total_steps"] == 600
+    assert "training 0 more steps" in run_cli("train", "--resume", str(raised), "--no-progress").stderr
+    assert_clean_error(run_cli("train", "--resume", str(raised), "--total-steps", "400"),
+                       "is at step 600, past --total-steps 400")
+    assert_clean_error(run_cli("train", "--resume", str(raised), "--total-steps", "900", "--steps", "5"),
+                       "give one")
+    assert_clean_error(run_cli("train", "--total-steps", "900", "--out", str(tmp_path / "new"), *drift),
+                       "--total-steps goes with --resume")
+
+
 @pytest.mark.faults
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_writes_a_checkpoint_and_exits_130(tmp_path, sig):

@@ -270,14 +270,17 @@ def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
     assert "4 trials (4 already finished)" in again.stderr
     assert {p: p.stat().st_mtime_ns for p in out.glob("*/checkpoints/last/*")} == before
     assert all(len(_commands(out, t)) == 1 for t in ("tau=0.05,seed=0", "tau=0.2,seed=1"))
-    different = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "500",
-                        "--out", str(out), *TINY_SET, timeout=60)
-    assert_clean_error(different, "differs in steps", "--resume")
+    different = run_cli("sweep", "--env", DRIFT, "--seeds", "2", "--grid", "tau=0.05,0.2", "--steps", "400",
+                        "--out", str(out), *TINY_SET, "gamma=0.9", timeout=60)
+    assert_clean_error(different, "differs in overrides", "--resume")
+    shorter = run_cli("sweep", "--resume", str(out), "--steps", "300", timeout=60)
+    assert_clean_error(shorter, "a sweep of 400 steps per trial; --steps 300 cannot shorten it")
 
 
 def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):
     """`--seeds 5` after `--seeds 3` continues the sweep with seeds 3 and 4 (its finished trials are kept,
-    as any rerun keeps them); fewer or other seeds, or a search's seed, are another sweep."""
+    as any rerun keeps them); fewer or other seeds, or a search's seed, are another sweep. (More steps:
+    test_a_sweeps_budget_may_grow_for_softacs_grid_only.)"""
     out = tmp_path / "s"
     three = sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0, 1, 2], grid={"tau": [0.1, 0.2]})
     sweep.prepare_out_dir(out, three)
@@ -288,8 +291,8 @@ def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):
     assert [t["name"] for t in sweep.grid_trials(sweep.load_spec(out))][-2:] == ["tau=0.2,seed=3", "tau=0.2,seed=4"]
     for seeds in ([0, 1, 2], [0, 1, 5, 6], [0, 1, 2, 3, 4, 5]):
         if seeds == [0, 1, 2, 3, 4, 5]:
-            changed = dataclasses.replace(five, seeds=seeds, steps=500)  # more seeds, but another budget too
-            fragment = "differs in seeds, steps"
+            changed = dataclasses.replace(five, seeds=seeds, overrides=["gamma=0.9"])  # more seeds, other settings
+            fragment = "differs in overrides, seeds"
         else:
             changed, fragment = dataclasses.replace(five, seeds=seeds), "may only gain seeds"
         with pytest.raises(SoftacError, match=fragment):
@@ -301,6 +304,28 @@ def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):
         sweep.prepare_out_dir(tmp_path / "search", dataclasses.replace(search, seeds=[0, 1]))
 
 
+def test_a_sweeps_budget_may_grow_for_softacs_grid_only(tmp_path):
+    """More steps per trial (`--resume DIR --steps N`, or the same command with a larger --steps): softac's
+    grid trials continue from their checkpoints, so the spec takes the new budget (with more seeds too). A
+    shorter budget, a peer's sweep (its checkpoint is tied to its budget) and a search (ASHA's schedule) are
+    refused in one line, and the spec stays as it was."""
+    grid = sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0, 1])
+    sweep.prepare_out_dir(tmp_path / "grid", grid)
+    longer = dataclasses.replace(grid, steps=900, seeds=[0, 1, 2])
+    sweep.prepare_out_dir(tmp_path / "grid", longer)
+    assert sweep.load_spec(tmp_path / "grid") == longer
+    with pytest.raises(SoftacError, match="a sweep of 900 steps per trial; --steps 500 cannot shorten it"):
+        sweep.prepare_out_dir(tmp_path / "grid", dataclasses.replace(longer, steps=500))
+    refused = {"peer": (dataclasses.replace(grid, framework="sb3"), "a peer's checkpoint is tied to its budget"),
+               "search": (sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0], search="random", samples=2),
+                          "its budget cannot be raised")}
+    for name, (spec, fragment) in refused.items():
+        sweep.prepare_out_dir(tmp_path / name, spec)
+        with pytest.raises(SoftacError, match=fragment):
+            sweep.prepare_out_dir(tmp_path / name, dataclasses.replace(spec, steps=800))
+        assert sweep.load_spec(tmp_path / name) == spec
+
+
 @pytest.mark.ray
 def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
     out, _ = grid_sweep
@@ -308,6 +333,35 @@ def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "figs" / "comparison.png").exists()
     assert (tmp_path / "figs" / "tau=0.2,seed=1" / "learning_curve.png").exists()
+
+
+@pytest.mark.ray
+def test_a_finished_sweep_given_more_steps_continues_its_trials_exactly(tmp_path):
+    """`softac sweep --resume DIR --steps N` past the sweep's budget: each finished trial continues from its
+    checkpoint to N (`softac train --resume --total-steps N`), and ends as one run of N steps would (same
+    CPU count), its evaluations on the same grid; the summary and sweep.json say N."""
+    out, straight = tmp_path / "s", tmp_path / "straight"
+    first = run_cli("sweep", "--env", DRIFT, "--seeds", "1", "--steps", "400", "--out", str(out), *TINY_SET,
+                    timeout=600)
+    assert first.returncode == 0, first.stderr
+    more = run_cli("sweep", "--resume", str(out), "--steps", "800", timeout=600)
+    assert more.returncode == 0, more.stderr
+    assert "1 trial (0 already finished)" in more.stderr and "800 steps each" in more.stderr
+    commands = _commands(out, "seed=0")
+    assert len(commands) == 2 and "--resume" in commands[1] and "--total-steps 800" in commands[1]
+    assert [(r["status"], r["steps"]) for r in _rows(out / "summary.csv")] == [("done", "800")]
+    assert sweep.load_spec(out).steps == 800
+    assert [int(e["step"]) for e in _rows(out / "seed=0" / "eval.csv")] == [200, 400, 600, 800]
+    one = run_cli("train", "--env", DRIFT, "--seed", "0", "--steps", "800", "--cpus", "1", "--out", str(straight),
+                  "--no-progress", *TINY_SET)
+    assert one.returncode == 0, one.stderr
+    a = np.load(next((straight / "checkpoints" / "last").glob("arrays-*.npz")))
+    b = np.load(next((out / "seed=0" / "checkpoints" / "last").glob("arrays-*.npz")))
+    assert set(a.files) == set(b.files)
+    for name in a.files:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    again = run_cli("sweep", "--resume", str(out), timeout=120)
+    assert again.returncode == 0 and "1 trial (1 already finished)" in again.stderr, again.stderr
 
 
 @pytest.mark.ray

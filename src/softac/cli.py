@@ -72,6 +72,8 @@ def _train_arguments(t: argparse.ArgumentParser) -> None:
     t.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                    help="override a config key (repeatable)")
     t.add_argument("--steps", type=_positive_int, help="env steps to train (with --resume: steps to add)")
+    t.add_argument("--total-steps", type=_positive_int, metavar="N",
+                   help="with --resume: train until the run has N steps (its budget becomes N)")
     t.add_argument("--seed", type=int)
     t.add_argument("--n-envs", type=_positive_int)
     t.add_argument("--env-workers", type=_positive_int, metavar="K",
@@ -107,7 +109,8 @@ def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
     sw.add_argument("--preset", help="preset name (default: the env's preset)")
     sw.add_argument("--set", dest="overrides", action="append", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override a config key in every trial")
-    sw.add_argument("--steps", type=_positive_int, help="env steps per trial (default: the preset's total_steps)")
+    sw.add_argument("--steps", type=_positive_int, help="env steps per trial (default: the preset's total_steps; with --resume, or "
+                    "the same command again: a larger budget, which finished trials continue to)")
     sw.add_argument("--out", help="sweep directory: one run directory per trial, summary.csv, summary.md, plots/")
     sw.add_argument("--resume", metavar="DIR", help="continue the sweep in DIR (finished trials are not redone)")
     sw.add_argument("--address", help="an existing Ray cluster (e.g. auto or ray://HEAD:10001); default: local Ray")
@@ -251,9 +254,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         run = Path(args.resume)
         if not run.exists():  # before the lock, which would make the directory
             raise SoftacError(f"no such run or checkpoint: {run}")
+        if args.steps is not None and args.total_steps is not None:
+            raise SoftacError("--steps (steps to add) and --total-steps (steps to reach) say the same; give one")
     else:
         if args.allow_new_bounds:
             raise SoftacError("--allow-new-bounds goes with --resume (a new run takes its env's bounds)")
+        if args.total_steps is not None:
+            raise SoftacError("--total-steps goes with --resume (a new run trains --steps steps)")
         config = _resolve_train_config(args)
         run = Path(args.out) if args.out else _default_run_dir(config)
     # one writer per run, from before the checks that read it until the last file is written: a second
@@ -298,7 +305,15 @@ def _resume_agent(run: Path, args: argparse.Namespace):
     # where metrics go is not part of the experiment: --logger may change it on resume
     agent = SAC.load(run, which="last", device=args.device, env_workers=args.env_workers,
                      allow_new_bounds=args.allow_new_bounds, loggers=args.logger)
-    steps = args.steps if args.steps is not None else max(agent.config.total_steps - agent.num_steps, 0)
+    if args.total_steps is not None:
+        if args.total_steps < agent.num_steps:
+            raise SoftacError(f"{run} is at step {agent.num_steps}, past --total-steps {args.total_steps}")
+        steps = args.total_steps - agent.num_steps
+    else:
+        steps = args.steps if args.steps is not None else max(agent.config.total_steps - agent.num_steps, 0)
+    # a raised budget is the run's own from now on: its checkpoints and summary.json carry it, so a plain
+    # --resume after a stop continues to it, and the end-of-run evaluation and resets follow it
+    agent.config.total_steps = max(agent.config.total_steps, agent.num_steps + steps)
     return agent, steps, f"resuming {run} at step {agent.num_steps}; training {steps} more steps", pinned
 
 
@@ -479,13 +494,14 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from softac import sweep
 
     if args.resume:
-        given = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--steps", args.steps),
-                                          ("--out", args.out), ("--space", args.space), ("--search", args.search))
+        given = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--out", args.out),
+                                          ("--space", args.space), ("--search", args.search))
                  if value is not None] + (["--grid"] if args.grid else []) + (["--set"] if args.overrides else [])
         if given:
             raise SoftacError(f"--resume continues a sweep with its own settings; drop {', '.join(given)}")
         out = Path(args.resume)
         spec = sweep.load_spec(out)
+        spec.steps = args.steps or spec.steps  # a raised budget: checked in run_sweep (prepare_out_dir)
     else:
         if not args.out:
             raise SoftacError("softac sweep needs --out DIR (or --resume DIR)")

@@ -243,7 +243,7 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
                 log(f"sweep {out}: all {spec.samples} sampled trials are finished")
         else:
             trials = grid_trials(spec)
-            todo = [t for t in trials if trial_state(out / t["name"]) != "done"]
+            todo = [t for t in trials if trial_state(out / t["name"], spec.steps) != "done"]
             log(f"sweep {out}: {len(trials)} trial{'s' * (len(trials) != 1)} ({len(trials) - len(todo)} already "
                 f"finished), {spec.framework} on {spec.env_id}, {spec.steps} steps each")
             if todo:

@@ -61,7 +61,7 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None,
         row["steps"] = summary.get("steps", int(float(progress[-1]["step"])) if progress else 0)
         row["wall_s"] = round(summary.get("train_time_s", float(progress[-1]["time_s"]) if progress else 0.0), 1)
         # a trial ASHA stops at its last milestone can miss its summary.json: its evals show it is complete
-        complete = trial_state(run) == "done" or (bool(evals) and evals[-1][0] >= spec.steps)
+        complete = trial_state(run, spec.steps) == "done" or (bool(evals) and evals[-1][0] >= spec.steps)
         row["status"] = "done" if complete else ("stopped early" if spec.asha else "incomplete")
         if threshold is not None:
             step, seconds = _threshold_crossing(evals, progress, threshold)
@@ -224,4 +224,4 @@ def unfinished_trials(out: Path, spec: SweepSpec) -> list[str]:
         rows = trial_rows(out, spec)
         missing = [f"(not started {i + 1})" for i in range(max(0, spec.samples - len(rows)))]
         return [r["trial"] for r in rows if r["status"] == "incomplete"] + missing
-    return [t["name"] for t in grid_trials(spec) if trial_state(out / t["name"]) != "done"]
+    return [t["name"] for t in grid_trials(spec) if trial_state(out / t["name"], spec.steps) != "done"]

@@ -278,7 +278,7 @@ def validate(spec: SweepSpec) -> SACConfig:
 def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
     """A new sweep takes an empty or missing DIR; an existing sweep continues only with the same spec, or,
     for a grid, with more seeds (the finished trials are kept: `--seeds 5` after `--seeds 3` runs seeds 3
-    and 4)."""
+    and 4) or, for softac's grid, more steps (finished trials continue from their last checkpoint)."""
     from softac.rundir import LOCK, write_atomic
 
     spec_path = out / SPEC_FILE
@@ -289,8 +289,11 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
             raise SoftacError(f"cannot read {spec_path}: {exc}") from None
         mine = spec.to_dict()
         differs = sorted(k for k in set(stored) | set(mine) if stored.get(k) != mine.get(k))
-        if differs == ["seeds"] and not spec.search and set(stored["seeds"]) < set(mine["seeds"]):
-            try:  # the sweep grows: its spec now names every seed, so --resume and the summaries see them all
+        if "steps" in differs and set(differs) <= {"seeds", "steps"}:
+            _check_budget_raise(out, stored, spec)
+        grows = not spec.search and set(stored["seeds"]) <= set(mine["seeds"]) and mine["steps"] >= stored["steps"]
+        if differs and set(differs) <= {"seeds", "steps"} and grows:
+            try:  # the sweep grows: its spec now names every seed and its budget, for --resume and the summaries
                 write_atomic(spec_path, (json.dumps(mine, indent=1) + "\n").encode())
             except OSError as exc:
                 raise SoftacError(f"cannot update {spec_path}: {exc.strerror or exc}") from None
@@ -308,6 +311,21 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
         write_atomic(spec_path, (json.dumps(spec.to_dict(), indent=1) + "\n").encode())
     except OSError as exc:
         raise SoftacError(f"cannot create sweep directory {out}: {exc.strerror or exc}") from None
+
+
+def _check_budget_raise(out: Path, stored: dict[str, Any], spec: SweepSpec) -> None:
+    """More steps per trial: softac's grid trials continue from their checkpoints (resume is exact). A peer's
+    checkpoint is tied to the budget it was started with, and a search's schedule (ASHA) to its own."""
+    old = stored.get("steps")
+    if not isinstance(old, int) or spec.steps < old:
+        raise SoftacError(f"{out} is a sweep of {old} steps per trial; --steps {spec.steps} cannot shorten it (its "
+                          "trials may have trained past that)")
+    if spec.search:
+        raise SoftacError(f"{out} is a {spec.search} search of {old} steps per trial; its budget cannot be raised "
+                          "(check the best configuration on more steps with the command in its summary.md)")
+    if spec.framework != "softac":
+        raise SoftacError(f"{out} is a sweep of {spec.framework} for {old} steps per trial; a peer's checkpoint is "
+                          f"tied to its budget, so --steps {spec.steps} needs a new sweep (another --out)")
 
 
 def load_spec(out: Path) -> SweepSpec:

@@ -33,11 +33,12 @@ class TrialLost(RuntimeError):
     or 3: bad settings, a diverging run) is reported instead and not retried: it would fail again."""
 
 
-def trial_state(run: Path) -> str:
-    """'done', 'partial' (a checkpoint to continue from) or 'new', from the run directory alone."""
+def trial_state(run: Path, steps: int | None = None) -> str:
+    """'done', 'partial' (a checkpoint to continue from) or 'new', from the run directory alone; `steps`: the
+    sweep's budget, where it was raised past the run's own (a run finished at its old budget is then partial)."""
     try:
         summary = json.loads((run / "summary.json").read_text())
-        if summary.get("stopped_early") or summary["steps"] >= summary["total_steps"]:
+        if summary.get("stopped_early") or summary["steps"] >= max(summary["total_steps"], steps or 0):
             return "done"
     except (OSError, ValueError, KeyError, TypeError):
         pass
@@ -51,8 +52,9 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
                 "--seed", str(trial["seed"]), "--steps", str(spec.steps), "--out", str(run),
                 "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
                 "--log-interval", str(base.log_interval), "--checkpoint-interval", str(base.checkpoint_interval)]
-    if trial_state(run) == "partial":
-        return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--no-progress"]
+    if trial_state(run, spec.steps) == "partial":  # also a run finished before the sweep's budget was raised
+        return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--total-steps", str(spec.steps),
+                "--no-progress"]
     pairs = list(spec.overrides) + [f"{k}={value_text(v)}" for k, v in trial["values"].items()]
     cmd = [sys.executable, "-m", "softac", "train", "--env", spec.env_id, "--seed", str(trial["seed"]),
            "--steps", str(spec.steps), "--out", str(run), "--no-progress"]
@@ -110,7 +112,7 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
             f"{trial['name']}: {node_label()} does not see the sweep directory {root} (no {SPEC_FILE} there); "
             f"{SHARED_DIR_HINT}")})
         return
-    if trial_state(run) == "done":
+    if trial_state(run, sweep.steps) == "done":
         return
     if not wait_released(run, LOCK_WAIT_S):
         raise TrialLost(f"{trial['name']}: its run directory is still locked by {holder(run)} after "
@@ -159,7 +161,7 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
                     proc.wait(60)
                 except subprocess.TimeoutExpired:
                     proc.kill()
-    if code is not None and (code < 0 or (code == 130 and trial_state(run) != "done")):
+    if code is not None and (code < 0 or (code == 130 and trial_state(run, sweep.steps) != "done")):
         # ended by a signal the sweep did not send (it stops a trial in the `finally` above, where code stays None)
         how = f"killed by {signal.Signals(-code).name}" if code < 0 else "stopped (SIGTERM or SIGINT)"
         raise TrialLost(f"{trial['name']}: its process was {how} (log: {log_path})")
