@@ -291,7 +291,8 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
         differs = sorted(k for k in set(stored) | set(mine) if stored.get(k) != mine.get(k))
         if "steps" in differs and set(differs) <= {"seeds", "steps"}:
             _check_budget_raise(out, stored, spec)
-        grows = not spec.search and set(stored["seeds"]) <= set(mine["seeds"]) and mine["steps"] >= stored["steps"]
+        grows = (not spec.search and set(stored.get("seeds") or []) <= set(mine["seeds"])
+                 and mine["steps"] >= (stored.get("steps") or 0))
         if differs and set(differs) <= {"seeds", "steps"} and grows:
             try:  # the sweep grows: its spec now names every seed and its budget, for --resume and the summaries
                 write_atomic(spec_path, (json.dumps(mine, indent=1) + "\n").encode())
