@@ -101,8 +101,9 @@ class SlowEnv(DriftEnv):
     SOFTAC_TEST_STOP_IN_EVAL=1: the first step of an episode seeded >= EVAL_SEED_OFFSET (in a seed-0 run,
     the first evaluation step), once logged, stops the process (SIGSTOP), so a test can act on it at that
     exact point and then let it go on (SIGCONT).
-    SOFTAC_TEST_SLOW_CLOSE_S=S: close() takes S seconds, as a simulator's teardown can: a stopped process then
-    winds down for that long after its checkpoint, before it says where it stopped.
+    SOFTAC_TEST_SLOW_CLOSE_S=S: close() of an env that has stepped takes S seconds, as a simulator's teardown
+    can: a stopped process then winds down for that long after its checkpoint, before it says where it stopped
+    (an env made only to read its spaces closes at once).
     """
 
     stopped_in_eval = False  # once per process
@@ -110,6 +111,7 @@ class SlowEnv(DriftEnv):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.episode_seed = -1
+        self.stepped = False
 
     def _log(self, event: str) -> None:
         import os
@@ -131,6 +133,7 @@ class SlowEnv(DriftEnv):
         from softac.evaluation import EVAL_SEED_OFFSET
 
         time.sleep(0.002)
+        self.stepped = True
         result = super().step(action)
         self._log("step")
         if (self.episode_seed >= EVAL_SEED_OFFSET and os.environ.get("SOFTAC_TEST_STOP_IN_EVAL")
@@ -146,7 +149,8 @@ class SlowEnv(DriftEnv):
         import os
         import time
 
-        time.sleep(float(os.environ.get("SOFTAC_TEST_SLOW_CLOSE_S", "0")))
+        if self.stepped:
+            time.sleep(float(os.environ.get("SOFTAC_TEST_SLOW_CLOSE_S", "0")))
         super().close()
 
 

@@ -159,6 +159,35 @@ def test_sigterm_during_evaluation_stops_it_within_the_step_under_way_and_exits_
 
 
 @pytest.mark.faults
+def test_a_stopped_sweep_trial_stuck_after_its_checkpoint_ends_itself_and_resumes(tmp_path):
+    """A sweep trial's process runs outside its Ray worker's process group, so nothing else would end it if it
+    hung after a stop: stopped, it ends itself (SIGALRM) once its deadline has passed, wherever it is stuck.
+    Here it is started as a trial would start it (its parent's pid in SOFTAC_TRIAL_PARENT), its eval env hangs
+    in close() (600 s) after the stop's checkpoint, and the deadline is 2 s: it dies by SIGALRM, and the
+    checkpoint it wrote resumes. Without a stop, the deadline plays no part (the run trains past it)."""
+    run = tmp_path / "run"
+    env = child_env(SOFTAC_TRIAL_PARENT=str(os.getpid()), SOFTAC_TRIAL_STOP_DEADLINE_S="2",
+                    SOFTAC_TEST_SLOW_CLOSE_S="600")
+    proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
+                        *TINY_SETS[:-1], "eval_interval=100", "eval_episodes=2", "checkpoint_interval=0", env=env)
+    evals = run / "eval.csv"
+    try:
+        _wait_for(lambda: evals.exists() and evals.read_text().count("\n") >= 4, proc)  # 3 evaluations: > 2 s
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=300)  # a hang guard: without the deadline it would sleep 600 s
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == -signal.SIGALRM, err
+    step = _checkpoint_step(run)
+    assert step >= 300
+    resumed = run_cli("train", "--resume", str(run), "--steps", "50", "--no-progress")
+    assert resumed.returncode == 0, resumed.stderr
+    assert _checkpoint_step(run) == step + 50
+
+
+@pytest.mark.faults
 def test_sigterm_during_a_checkpoint_write_finishes_it_then_exits(tmp_path, monkeypatch):
     from softac import checkpoint as ckpt
     from softac.agent import SAC

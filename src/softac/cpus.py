@@ -106,6 +106,9 @@ def claim_cpus(n: int) -> Claim:
 # set by a sweep trial (softac.sweep.trial) for the process it starts, which applies them itself when it starts
 TRIAL_CPUS_VAR = "SOFTAC_TRIAL_CPUS"  # the CPUs the trial claimed, e.g. "0,3"
 TRIAL_PARENT_VAR = "SOFTAC_TRIAL_PARENT"  # the pid of the trial's Ray worker
+# seconds a stopped trial's process may take to write its checkpoint and exit before it ends itself (SIGALRM)
+TRIAL_STOP_DEADLINE_VAR = "SOFTAC_TRIAL_STOP_DEADLINE_S"
+TRIAL_STOP_DEADLINE_S = 600
 
 
 def trial_settings_env(cpus: list[int], parent_pid: int) -> dict[str, str]:
@@ -131,6 +134,14 @@ def adopt_trial_settings() -> None:
         import ctypes
         import signal
 
+        from softac.stopsignal import end_within_after_stop
+
+        # a trial's process runs outside its Ray worker's process group (trial.py), which Ray would SIGKILL;
+        # so that one stuck after a stop (a simulator hung in a step) is not left behind holding its run's lock
+        try:
+            end_within_after_stop(float(os.environ.get(TRIAL_STOP_DEADLINE_VAR, TRIAL_STOP_DEADLINE_S)))
+        except ValueError:
+            end_within_after_stop(TRIAL_STOP_DEADLINE_S)
         # an ignored SIGTERM is inherited through exec (seen: from a process that had run a stopped training
         # in-process): the signal below must end this process until training installs its own handler
         signal.signal(signal.SIGTERM, signal.SIG_DFL)

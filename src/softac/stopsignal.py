@@ -3,11 +3,13 @@ checks between steps, so that it stops after writing a checkpoint (exit 130) ins
 
 from __future__ import annotations
 
+import math
 import signal
 import threading
 from typing import Any
 
 _finish_after_stop = False
+_end_within_s: float | None = None
 
 
 def finish_after_stop() -> None:
@@ -19,6 +21,15 @@ def finish_after_stop() -> None:
     callers (their handlers are restored as found), nor for main() called in-process."""
     global _finish_after_stop
     _finish_after_stop = True
+
+
+def end_within_after_stop(seconds: float) -> None:
+    """For a sweep trial's process: once a signal has stopped training, the process ends (SIGALRM, its default
+    action) if it is still alive `seconds` later, wherever it is stuck, C code included. Its checkpoints are
+    written atomically, so one cut short leaves the one before."""
+    global _end_within_s
+    _end_within_s = seconds
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
 
 
 class StopSignal:
@@ -37,6 +48,8 @@ class StopSignal:
     def _handle(self, signum: int, frame: Any) -> None:
         if self.requested and signum == signal.SIGINT:
             raise KeyboardInterrupt
+        if not self.requested and _end_within_s is not None:
+            signal.alarm(max(1, math.ceil(_end_within_s)))
         self.requested = True
 
     def __exit__(self, *exc: Any) -> None:
