@@ -160,6 +160,22 @@ def assert_same_learner(a, b) -> None:
                                       err_msg="state" + jax.tree_util.keystr(path))
 
 
+def assert_same_last_checkpoint(a: Path, b: Path) -> tuple[dict, dict]:
+    """Two run directories whose last checkpoints are bit-identical: the same arrays (weights, optimisers,
+    buffer, keys), each equal, the same NumPy RNG state and the same saved training envs. Any difference would
+    make their next steps differ. Returns a's (meta, arrays), for a test's further checks."""
+    import numpy as np
+
+    from softac import checkpoint as ckpt
+
+    (meta_a, arrays_a), (meta_b, arrays_b) = (ckpt.load(Path(run) / "checkpoints" / "last") for run in (a, b))
+    assert sorted(arrays_a) == sorted(arrays_b) and any(k.startswith("state") for k in arrays_a)
+    for key in arrays_a:
+        np.testing.assert_array_equal(arrays_a[key], arrays_b[key], err_msg=key)
+    assert meta_a["numpy_rng"] == meta_b["numpy_rng"] and meta_a.get("envs") == meta_b.get("envs")
+    return meta_a, arrays_a
+
+
 # RunState fields that differ between a straight run and a resumed one by design, so not compared:
 # run_dir (the directory each agent trained into), restored_from (the checkpoint a resumed agent was loaded
 # from; None for one never loaded) and train_time_s (wall-clock seconds).

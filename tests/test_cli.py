@@ -10,10 +10,9 @@ import sys
 import textwrap
 import time
 
-import numpy as np
 import pytest
 
-from conftest import assert_clean_error, child_env, run_cli, signal_when
+from conftest import assert_clean_error, assert_same_last_checkpoint, child_env, run_cli, signal_when
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "buffer_size=5000",
              "log_interval=100", "eval_episodes=2"]
@@ -58,11 +57,7 @@ def test_cli_resume_equals_one_run_on_mujoco(tmp_path):
     assert run_cli("train", "--steps", "600", "--out", str(split), "--no-progress", *sets).returncode == 0
     r = run_cli("train", "--resume", str(split), "--steps", "400", "--no-progress")
     assert r.returncode == 0, r.stderr
-    a = np.load(next((straight / "checkpoints" / "last").glob("arrays-*.npz")))
-    b = np.load(next((split / "checkpoints" / "last").glob("arrays-*.npz")))
-    assert set(a.files) == set(b.files)
-    for name in a.files:
-        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert_same_last_checkpoint(straight, split)
     r = run_cli("eval", str(straight), "--episodes", "2", "--json")  # MuJoCo envs split their reward in info
     out = json.loads(r.stdout)
     assert out["reward_terms"] == {"reward_survive": pytest.approx(out["mean_return"])}
@@ -96,11 +91,7 @@ def test_total_steps_raises_a_runs_budget_and_trains_as_one_longer_run(tmp_path)
     summary = json.loads((raised / "summary.json").read_text())
     assert (summary["steps"], summary["total_steps"]) == (500, 500)
     assert "total_steps: 500" in (raised / "config.yaml").read_text()
-    a = np.load(next((straight / "checkpoints" / "last").glob("arrays-*.npz")))
-    b = np.load(next(last.glob("arrays-*.npz")))
-    assert set(a.files) == set(b.files)
-    for name in a.files:
-        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert_same_last_checkpoint(straight, raised)
     r = run_cli("train", "--resume", str(raised), "--steps", "100", "--no-progress")  # --steps raises it too
     assert r.returncode == 0 and json.loads((last / "meta.json").read_text())["config"]["total_steps"] == 600
     assert "training 0 more steps" in run_cli("train", "--resume", str(raised), "--no-progress").stderr

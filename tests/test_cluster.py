@@ -17,10 +17,9 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from conftest import TESTS, run_cli
+from conftest import TESTS, assert_same_last_checkpoint, run_cli
 from softac import sweep
 
 pytest.importorskip("ray.tune", reason="the [ray] extra is not installed")
@@ -98,15 +97,9 @@ def undisturbed(cluster, tmp_path_factory):
 
 def _same_run(a: Path, b: Path) -> None:
     """Two runs of one trial that ended alike: evaluations, episodes, and the final weights, buffer and RNGs."""
-    from softac import checkpoint as ckpt
-
     for name in ("eval.csv", "episodes.csv"):
         assert (a / name).read_text() == (b / name).read_text(), name
-    (meta_a, arrays_a), (meta_b, arrays_b) = (ckpt.load(run / "checkpoints" / "last") for run in (a, b))
-    assert sorted(arrays_a) == sorted(arrays_b) and any(k.startswith("state") for k in arrays_a)
-    for key in arrays_a:
-        np.testing.assert_array_equal(arrays_a[key], arrays_b[key], err_msg=key)
-    assert meta_a["numpy_rng"] == meta_b["numpy_rng"]
+    assert_same_last_checkpoint(a, b)
 
 
 def test_trials_spread_over_the_nodes_and_one_lost_with_its_node_finishes_as_if_undisturbed(cluster, undisturbed,

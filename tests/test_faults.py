@@ -15,7 +15,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import assert_clean_error, assert_training_error, child_env, run_cli, tiny_config
+from conftest import (assert_clean_error, assert_same_last_checkpoint, assert_training_error, child_env, run_cli,
+                      tiny_config)
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "buffer_size=20000",
              "log_interval=100", "eval_interval=0"]
@@ -309,10 +310,7 @@ def test_same_seed_is_identical_across_processes(tmp_path):
     assert metrics(runs[0]) == metrics(runs[1])
     for name in ("episodes.csv", "eval.csv"):
         assert (runs[0] / name).read_text() == (runs[1] / name).read_text()
-    a = np.load(next((runs[0] / "checkpoints" / "last").glob("arrays-*.npz")))
-    b = np.load(next((runs[1] / "checkpoints" / "last").glob("arrays-*.npz")))
-    for key in a.files:
-        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert_same_last_checkpoint(runs[0], runs[1])
 
 
 # ---- fuzzing: any value runs or is refused with a ConfigError / exit 2, never a traceback ----
