@@ -144,7 +144,6 @@ class SlowEnv(DriftEnv):
             os.kill(os.getpid(), signal.SIGSTOP)
         return result
 
-
     def close(self):
         import os
         import time

@@ -139,9 +139,10 @@ def adopt_trial_settings() -> None:
         # a trial's process runs outside its Ray worker's process group (trial.py), which Ray would SIGKILL;
         # so that one stuck after a stop (a simulator hung in a step) is not left behind holding its run's lock
         try:
-            end_within_after_stop(float(os.environ.get(TRIAL_STOP_DEADLINE_VAR, TRIAL_STOP_DEADLINE_S)))
+            deadline = float(os.environ.get(TRIAL_STOP_DEADLINE_VAR, TRIAL_STOP_DEADLINE_S))
         except ValueError:
-            end_within_after_stop(TRIAL_STOP_DEADLINE_S)
+            deadline = TRIAL_STOP_DEADLINE_S
+        end_within_after_stop(deadline)
         # an ignored SIGTERM is inherited through exec (seen: from a process that had run a stopped training
         # in-process): the signal below must end this process until training installs its own handler
         signal.signal(signal.SIGTERM, signal.SIG_DFL)

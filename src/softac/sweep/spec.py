@@ -289,11 +289,11 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
             raise SoftacError(f"cannot read {spec_path}: {exc}") from None
         mine = spec.to_dict()
         differs = sorted(k for k in set(stored) | set(mine) if stored.get(k) != mine.get(k))
-        if "steps" in differs and set(differs) <= {"seeds", "steps"}:
-            _check_budget_raise(out, stored, spec)
-        grows = (not spec.search and set(stored.get("seeds") or []) <= set(mine["seeds"])
-                 and mine["steps"] >= (stored.get("steps") or 0))
-        if differs and set(differs) <= {"seeds", "steps"} and grows:
+        growable = bool(differs) and set(differs) <= {"seeds", "steps"}
+        if growable and "steps" in differs:
+            _check_budget_raise(out, stored, spec)  # a shorter budget, a search's or a peer's is refused here
+        more_seeds = "seeds" not in differs or set(stored.get("seeds") or []) < set(mine["seeds"])
+        if growable and more_seeds and not spec.search:
             try:  # the sweep grows: its spec now names every seed and its budget, for --resume and the summaries
                 write_atomic(spec_path, (json.dumps(mine, indent=1) + "\n").encode())
             except OSError as exc:
