@@ -288,7 +288,7 @@ def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):
     sweep.prepare_out_dir(out, five)
     assert sweep.load_spec(out) == five and (out / "seed=0").is_dir()
     assert [t["name"] for t in sweep.grid_trials(sweep.load_spec(out))][-2:] == ["tau=0.2,seed=3", "tau=0.2,seed=4"]
-    for seeds in ([0, 1, 2], [0, 1, 5, 6], [0, 1, 2, 3, 4, 5]):
+    for seeds in ([0, 1, 2], [0, 1, 5, 6], [4, 3, 2, 1, 0], [0, 1, 2, 3, 4, 5]):  # fewer, other, reordered
         if seeds == [0, 1, 2, 3, 4, 5]:
             changed = dataclasses.replace(five, seeds=seeds, overrides=["gamma=0.9"])  # more seeds, other settings
             fragment = "differs in overrides, seeds"
