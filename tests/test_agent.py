@@ -1,5 +1,7 @@
 """The Python API: save/load, exact resume, envs given as instances, asymmetric bounds."""
 
+import json
+
 import jax
 import numpy as np
 import pytest
@@ -203,8 +205,8 @@ def test_resets_happen_at_each_multiple_before_total_steps_and_resume_exactly(ti
 
     straight = SAC(cfg)
     calls = counting(straight)
-    straight.learn(1200, progress=False)  # past total_steps: no reset at 900 or later
-    assert calls == [1, 2]
+    straight.learn(1200, progress=False)  # past total_steps: the budget becomes 1200, as the CLI's --steps makes it
+    assert straight.config.total_steps == 1200 and calls == [1, 2, 3]  # and none at 1200, the end
 
     straight = SAC(cfg)
     straight.learn(900, run_dir=tmp_path / "straight", progress=False)
@@ -334,6 +336,28 @@ def test_loading_into_an_env_with_other_action_bounds_is_refused_unless_asked(ti
     # the same policy, scaled to the new bounds: a few float32 roundings of values below 4 in magnitude apart
     np.testing.assert_allclose(moved.learner.scaler.to_normalised(actions), agent.learner.scaler.to_normalised(agent.predict(obs)),
                                rtol=0, atol=1e-6)
+
+
+def test_learning_past_total_steps_raises_the_runs_budget_as_one_longer_run(tiny, tmp_path):
+    """learn(n) past config.total_steps kept the old total in the run's checkpoint, config.yaml and
+    summary.json, so a later resume to the budget trained nothing; the CLI's --steps raised it."""
+    straight = SAC(tiny(total_steps=500, eval_interval=100))
+    straight.learn(500, run_dir=tmp_path / "straight", progress=False)
+    split = SAC(tiny(total_steps=300, eval_interval=100))
+    split.learn(300, run_dir=tmp_path / "split", progress=False)
+    assert split.config.total_steps == 300
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(200, run_dir=tmp_path / "split", progress=False)
+    assert resumed.config.total_steps == 500
+    summary = json.loads((tmp_path / "split" / "summary.json").read_text())
+    assert summary["steps"] == summary["total_steps"] == 500
+    assert "total_steps: 500" in (tmp_path / "split" / "config.yaml").read_text()
+    assert SAC.load(tmp_path / "split", which="last").config.total_steps == 500
+    assert_same_training(straight, resumed)
+    steps = lambda run: [int(row["step"]) for row in read_csv(run / "eval.csv")]  # noqa: E731
+    assert steps(tmp_path / "split") == steps(tmp_path / "straight") == [100, 200, 300, 400, 500]
+    split.learn(100, progress=False)
+    assert split.config.total_steps == 400  # without a run directory, too
 
 
 def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):

@@ -91,10 +91,14 @@ class SAC:
               loggers: list | None = None, target_success: float | None = None) -> dict[str, Any]:
         """Train for `steps` more environment steps; returns a summary dict (its stop_reason: steps,
         target_return, target_success, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
-        softac.loggers.Logger objects that get every metrics record (softac does not close them)."""
+        softac.loggers.Logger objects that get every metrics record (softac does not close them). Training past
+        config.total_steps raises it to where this call ends, as `softac train --resume --steps` does."""
         from softac.rundir import run_lock
         from softac.loop import TrainingLoop
 
+        # a raised budget is the run's own from now on: its checkpoints and summary.json carry it, so a later
+        # resume continues to it, and the end-of-run evaluation and resets follow it
+        self.config.total_steps = max(self.config.total_steps, self.num_steps + steps)
         # one writer per run: a second process training into run_dir is refused (RunLocked, exit 2)
         with run_lock(run_dir) if run_dir is not None else contextlib.nullcontext():
             try:

@@ -311,9 +311,7 @@ def _resume_agent(run: Path, args: argparse.Namespace):
         steps = args.total_steps - agent.num_steps
     else:
         steps = args.steps if args.steps is not None else max(agent.config.total_steps - agent.num_steps, 0)
-    # a raised budget is the run's own from now on: its checkpoints and summary.json carry it, so a plain
-    # --resume after a stop continues to it, and the end-of-run evaluation and resets follow it
-    agent.config.total_steps = max(agent.config.total_steps, agent.num_steps + steps)
+    # (SAC.learn raises the run's total_steps where this goes past it)
     return agent, steps, f"resuming {run} at step {agent.num_steps}; training {steps} more steps", pinned
 
 
