@@ -258,6 +258,7 @@ def test_grid_sweep_writes_one_ordinary_run_per_trial_and_a_summary(grid_sweep):
     for name in ("comparison.png", "final_returns.png"):
         assert (out / "plots" / name).stat().st_size > 10_000
     assert "[4/4] finished" in result.stderr
+    assert "summary so far (1 of 4 trials ended)" in result.stderr  # written while the other trials ran
 
 
 @pytest.mark.ray
@@ -368,13 +369,25 @@ def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
     driver = subprocess.Popen([sys.executable, "-m", "softac", *args], env=env, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
 
+    summary_so_far = []
+
     def first_done_second_under_way() -> bool:  # the second trial with a checkpoint past step 0
         done = [sweep.trial_state(out / f"seed={s}") == "done" for s in range(3)]
         second = out / "seed=1" / "eval.csv"
-        return done[0] and second.exists() and len(second.read_text().splitlines()) >= 3 and not done[1]
+        if not (done[0] and second.exists() and len(second.read_text().splitlines()) >= 3 and not done[1]):
+            return False
+        # the summary shows the finished trial while the sweep runs, not only when it ends
+        if not (out / "summary.csv").exists():
+            return False
+        summary_so_far.append(_rows(out / "summary.csv"))
+        return True
 
     stderr = signal_when(driver, first_done_second_under_way, signal.SIGINT)
     assert driver.returncode == 130, stderr
+    rows = summary_so_far[0]
+    assert rows[0]["trial"] == "seed=0" and rows[0]["status"] == "done", stderr
+    assert all(row["status"] == "incomplete" for row in rows[1:])  # the second trial, if it had a row then
+    assert "summary so far (1 of 3 trials ended)" in stderr
     assert "--resume" in stderr.splitlines()[-1]
     assert sweep.trial_state(out / "seed=1") == "partial"  # the trial saved a checkpoint when it was stopped
     resumed = run_cli("sweep", "--resume", str(out), timeout=600)

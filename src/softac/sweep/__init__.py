@@ -7,7 +7,8 @@ directory (RUN/summary.json), so running the same command again, or `softac swee
 only what is missing and continues interrupted trials from their last checkpoint.
 
 When the trials are done, DIR/summary.csv (a row per trial), DIR/summary.md (mean +- std and 95% CI per
-configuration) and DIR/plots/ are written from the run directories.
+configuration) and DIR/plots/ are written from the run directories; while they run, also after trials end
+(at most every 30 s), so a long sweep shows its finished trials.
 
 The package, one module per job: `spec` (what a sweep is, parsing and checking it), `trial` (the process
 one Ray trial runs and watches), `driver` (Ray and Tune), `results` (rows, tables and summary files).

@@ -19,6 +19,10 @@ from softac.sweep.trial import run_trial, trial_state
 # a trial whose process is lost (its node died, it was killed by a signal) is retried this many times, each
 # retry continuing from the run's last checkpoint (Tune's FailureConfig.max_failures); `--max-retries`
 MAX_RETRIES = 3
+# while a sweep runs, its summary (summary.csv, summary.md, plots/) is rewritten after trials end, at most this
+# often: a long sweep shows its finished trials without waiting for the last one, and a sweep of many short
+# trials does not spend its driver's time on plots
+SUMMARY_REFRESH_S = 30.0
 
 
 def _require_ray() -> None:
@@ -149,10 +153,34 @@ def _sigterm_as_ctrl_c() -> Iterator[None]:
 
 
 class _Lines:
-    """Plain progress lines from Tune's callback hooks (Ray's own tables are switched off)."""
+    """Plain progress lines from Tune's callback hooks (Ray's own tables are switched off), and the summary
+    so far after trials end."""
 
-    def __init__(self, total: int, done: int, max_retries: int):
+    def __init__(self, total: int, done: int, max_retries: int, refresh=None):
         self.total, self.done, self.max_retries = total, done, max_retries
+        self.refresh = refresh  # writes the summary so far (returns the paths written)
+        self.pending, self.refreshed_at = False, None
+
+    def trial_ended(self) -> None:
+        self.done += 1
+        self.pending = self.refresh is not None and self.done < self.total  # (the last is summarised anyway)
+
+    def refresh_if_due(self) -> None:
+        """The summary so far, once a trial has ended since the last one and SUMMARY_REFRESH_S has passed;
+        a summary that cannot be written now is said in a line and left to the end of the sweep."""
+        now = time.monotonic()
+        if not self.pending or (self.refreshed_at is not None and now - self.refreshed_at < SUMMARY_REFRESH_S):
+            return
+        self.pending, self.refreshed_at = False, now
+        try:
+            paths = self.refresh()
+        except Exception as error:  # noqa: BLE001 (the trials go on; the final summary says what is wrong)
+            print(f"softac: could not write the summary so far: {type(error).__name__}: {error}", file=sys.stderr,
+                  flush=True)
+            return
+        if paths:
+            print(f"  summary so far ({self.done} of {self.total} trials ended): {paths[0].parent}/summary.md",
+                  file=sys.stderr, flush=True)
 
     def make(self):
         from ray.tune import Callback
@@ -160,13 +188,16 @@ class _Lines:
         lines = self
 
         class Printer(Callback):
+            def on_step_end(self, iteration, trials, **info):
+                lines.refresh_if_due()
+
             def on_trial_result(self, iteration, trials, trial, result, **info):
                 if "trial_error" not in result:
                     print(f"  {_trial_label(trial)}: step {result.get('step')}, "
                           f"eval {result.get(METRIC, float('nan')):.1f}", file=sys.stderr, flush=True)
 
             def on_trial_complete(self, iteration, trials, trial, **info):
-                lines.done += 1
+                lines.trial_ended()
                 error = (trial.last_result or {}).get("trial_error")
                 what = f"FAILED {error}" if error else f"finished {_trial_label(trial)}"
                 print(f"[{lines.done}/{lines.total}] {what}", file=sys.stderr, flush=True)
@@ -177,7 +208,7 @@ class _Lines:
                       flush=True)
 
             def on_trial_error(self, iteration, trials, trial, **info):  # lost once more than retried
-                lines.done += 1
+                lines.trial_ended()
                 print(f"[{lines.done}/{lines.total}] FAILED {_trial_label(trial)} after {lines.max_retries} "
                       f"retries: {_last_error(trial)}", file=sys.stderr, flush=True)
 
@@ -236,9 +267,13 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
         prepare_out_dir(out, spec)
         out = out.resolve()
         failed: list[str] = []
+
+        def summarise() -> list[Path]:
+            return write_summaries(out, spec, threshold, success_threshold)
+
         if spec.search:
             if unfinished_trials(out, spec):
-                failed = _run_search(spec, out, address, resources, max_concurrent, max_retries, log)
+                failed = _run_search(spec, out, address, resources, max_concurrent, max_retries, log, summarise)
             else:
                 log(f"sweep {out}: all {spec.samples} sampled trials are finished")
         else:
@@ -248,8 +283,8 @@ def run_sweep(spec: SweepSpec, out: Path, address: str | None = None, cpus_per_t
                 f"finished), {spec.framework} on {spec.env_id}, {spec.steps} steps each")
             if todo:
                 failed = _run_grid(spec, todo, len(trials), out, address, resources, max_concurrent, max_retries,
-                                   log)
-        files = write_summaries(out, spec, threshold, success_threshold)
+                                   log, summarise)
+        files = summarise()
     for path in files:
         log(f"wrote {path}")
     unfinished = unfinished_trials(out, spec)
@@ -290,11 +325,12 @@ def _failures(results: Any) -> list[str]:
 
 
 def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path, address: str | None,
-              resources: dict[str, float], max_concurrent: int | None, max_retries: int, log) -> list[str]:
+              resources: dict[str, float], max_concurrent: int | None, max_retries: int, log,
+              summarise) -> list[str]:
     import ray
     from ray import tune
 
-    printer = _Lines(total, total - len(todo), max_retries).make()
+    printer = _Lines(total, total - len(todo), max_retries, summarise).make()
     try:
         _connect(address, out, log)
         tuner = tune.Tuner(
@@ -320,12 +356,12 @@ def _wait_for_trials(runs: list[Path], log, timeout_s: float = 300.0) -> None:
 
 
 def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict[str, float],
-                max_concurrent: int | None, max_retries: int, log) -> list[str]:
+                max_concurrent: int | None, max_retries: int, log, summarise) -> list[str]:
     import ray
     from ray import tune
 
     path = out / RAY_DIR / "search"
-    printer = _Lines(spec.samples, 0, max_retries).make()
+    printer = _Lines(spec.samples, 0, max_retries, summarise).make()
     try:
         _connect(address, out, log)
         if tune.Tuner.can_restore(str(path)):

@@ -52,7 +52,8 @@ def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None,
             summary = json.loads((run / "summary.json").read_text())
         except (OSError, ValueError):
             summary = {}
-        progress = read_csv(run / "progress.csv")
+        # a running trial may be writing its last row (the summary so far is read while trials run)
+        progress = [line for line in read_csv(run / "progress.csv") if line.get("time_s")]
         row: dict[str, Any] = {"trial": run.name, "seed": config.get("seed")}
         for key in spec.swept_keys():
             row[key] = config.get(key)
