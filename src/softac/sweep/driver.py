@@ -156,14 +156,14 @@ class _Lines:
     """Plain progress lines from Tune's callback hooks (Ray's own tables are switched off), and the summary
     so far after trials end."""
 
-    def __init__(self, total: int, done: int, max_retries: int, refresh=None):
+    def __init__(self, total: int, done: int, max_retries: int, refresh):
         self.total, self.done, self.max_retries = total, done, max_retries
         self.refresh = refresh  # writes the summary so far (returns the paths written)
         self.pending, self.refreshed_at = False, None
 
     def trial_ended(self) -> None:
         self.done += 1
-        self.pending = self.refresh is not None and self.done < self.total  # (the last is summarised anyway)
+        self.pending = self.done < self.total  # (the last one is summarised when the sweep ends)
 
     def refresh_if_due(self) -> None:
         """The summary so far, once a trial has ended since the last one and SUMMARY_REFRESH_S has passed;
