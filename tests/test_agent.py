@@ -358,6 +358,9 @@ def test_learning_past_total_steps_raises_the_runs_budget_as_one_longer_run(tiny
     assert steps(tmp_path / "split") == steps(tmp_path / "straight") == [100, 200, 300, 400, 500]
     split.learn(100, progress=False)
     assert split.config.total_steps == 400  # without a run directory, too
+    with pytest.raises(SoftacError):  # another run's directory: refused before training, the budget as it was
+        split.learn(1000, run_dir=tmp_path / "straight", progress=False)
+    assert split.config.total_steps == 400
 
 
 def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):

@@ -96,9 +96,6 @@ class SAC:
         from softac.rundir import run_lock
         from softac.loop import TrainingLoop
 
-        # a raised budget is the run's own from now on: its checkpoints and summary.json carry it, so a later
-        # resume continues to it, and the end-of-run evaluation and resets follow it
-        self.config.total_steps = max(self.config.total_steps, self.num_steps + steps)
         # one writer per run: a second process training into run_dir is refused (RunLocked, exit 2)
         with run_lock(run_dir) if run_dir is not None else contextlib.nullcontext():
             try:

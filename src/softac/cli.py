@@ -311,7 +311,7 @@ def _resume_agent(run: Path, args: argparse.Namespace):
         steps = args.total_steps - agent.num_steps
     else:
         steps = args.steps if args.steps is not None else max(agent.config.total_steps - agent.num_steps, 0)
-    # (SAC.learn raises the run's total_steps where this goes past it)
+    # (training raises the run's total_steps where this goes past it: TrainingLoop)
     return agent, steps, f"resuming {run} at step {agent.num_steps}; training {steps} more steps", pinned
 
 

@@ -131,6 +131,9 @@ class TrainingLoop:
             raise SoftacError(str(exc)) from None
         if self.run_path is not None:
             self.run_state.check_may_write(self.run_path)
+        # a raised budget is the run's own from now on (set once every input is accepted): its checkpoints and
+        # summary.json carry it, so a later resume continues to it, and the end-of-run evaluation and resets follow it
+        self.config.total_steps = max(self.config.total_steps, self.end_step)
         self.extra_loggers = list(loggers or [])
         self.progress = progress
         self.writer: RunWriter | None = None

@@ -28,10 +28,11 @@ def trial_dirs(out: Path) -> list[Path]:
 
 def _threshold_crossing(evals: list[tuple[int, float]], progress: list[dict[str, str]],
                         threshold: float) -> tuple[int | None, float | None]:
-    """First eval step whose mean reaches the threshold, and the run's elapsed seconds at that step."""
+    """First eval step whose mean reaches the threshold, and the run's elapsed seconds at that step (from
+    progress rows that have their time_s, as trial_rows keeps them)."""
     for step, value in evals:
         if value >= threshold:
-            times = [(float(r["step"]), float(r["time_s"])) for r in progress if r.get("time_s") not in (None, "")]
+            times = [(float(r["step"]), float(r["time_s"])) for r in progress]
             seconds = float(np.interp(step, *zip(*times))) if times else None
             return step, seconds
     return None, None
