@@ -139,6 +139,40 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     assert sweep.trial_rows(tmp_path / "sweep", spec)[0]["status"] == "done"
 
 
+def test_a_resumed_sweeps_progress_counts_the_trials_that_ended_before_it(tmp_path):
+    """"[k/N]" counts the sweep's trials, those that ended before the driver started included (a resumed grid
+    or search), and a trial that Tune runs again after its run finished (the driver was killed in between)
+    counts once."""
+    from types import SimpleNamespace
+
+    from softac.sweep.driver import _Lines
+
+    def finished(run: Path, steps: int) -> None:
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text("seed: 0\ntau: 0.05\n")
+        (run / "summary.json").write_text(json.dumps({"steps": steps, "total_steps": steps}))
+
+    grid = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=1000, seeds=[0, 1, 2])
+    finished(tmp_path / "grid" / "seed=0", 1000)
+    (tmp_path / "grid" / "seed=1" / "checkpoints" / "last").mkdir(parents=True)  # interrupted: not ended
+    assert sweep.ended_trials(tmp_path / "grid", grid) == {"seed=0"}
+    lines = _Lines(grid, 3, sweep.ended_trials(tmp_path / "grid", grid), 3, refresh=lambda: [])
+    assert lines.done == 1
+    lines.trial_ended(SimpleNamespace(config={"trial": {"name": "seed=0"}}, trial_id="a"))  # Tune's rerun of it
+    assert lines.done == 1 and not lines.pending
+    lines.trial_ended(SimpleNamespace(config={"trial": {"name": "seed=1"}}, trial_id="b"))
+    assert lines.done == 2 and lines.pending  # one left: the summary so far is due
+
+    search = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=1000, seeds=[4], search="random", samples=3,
+                             space={"tau": {"uniform": [0.01, 0.1]}})
+    finished(tmp_path / "search" / "trial=a1,seed=4", 1000)
+    assert sweep.ended_trials(tmp_path / "search", search) == {"trial=a1,seed=4"}
+    lines = _Lines(search, 3, sweep.ended_trials(tmp_path / "search", search), 3, refresh=lambda: [])
+    lines.trial_ended(SimpleNamespace(config={"tau": 0.05}, trial_id="a1"))
+    lines.trial_ended(SimpleNamespace(config={"tau": 0.02}, trial_id="b2"))
+    assert lines.done == 2
+
+
 @pytest.mark.parametrize("args, fragment", [
     (["--grid", "taux=0.1,0.2"], "unknown config key 'taux'"),
     (["--grid", "gamma=0.9,2.0"], "gamma"),

@@ -11,9 +11,9 @@ from typing import Any, Iterator
 
 from softac.errors import SoftacError
 from softac.rundir import run_lock, wait_released
-from softac.sweep.results import SUCCESS_THRESHOLD, unfinished_trials, write_summaries
+from softac.sweep.results import SUCCESS_THRESHOLD, ended_trials, unfinished_trials, write_summaries
 from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, grid_trials,
-                               planned_trials, prepare_out_dir, validate)
+                               planned_trials, prepare_out_dir, search_trial_name, validate)
 from softac.sweep.trial import run_trial, trial_state
 
 # a trial whose process is lost (its node died, it was killed by a signal) is retried this many times, each
@@ -156,14 +156,23 @@ class _Lines:
     """Plain progress lines from Tune's callback hooks (Ray's own tables are switched off), and the summary
     so far after trials end."""
 
-    def __init__(self, total: int, done: int, max_retries: int, refresh):
-        self.total, self.done, self.max_retries = total, done, max_retries
+    def __init__(self, spec: SweepSpec, total: int, ended: set[str], max_retries: int, refresh):
+        # `ended`: the run names of the trials that ended before this driver started (a resumed sweep), so that
+        # "[k/N]" counts the sweep's trials, and a trial Tune runs again after it finished counts once
+        self.spec, self.total, self.ended, self.max_retries = spec, total, set(ended), max_retries
         self.refresh = refresh  # writes the summary so far (returns the paths written)
         self.pending, self.refreshed_at = False, None
 
-    def trial_ended(self) -> None:
-        self.done += 1
-        self.pending = self.done < self.total  # (the last one is summarised when the sweep ends)
+    @property
+    def done(self) -> int:
+        return len(self.ended)
+
+    def trial_ended(self, trial: Any) -> None:
+        config = trial.config or {}
+        name = config["trial"]["name"] if "trial" in config else search_trial_name(trial.trial_id, self.spec.seeds[0])
+        if name not in self.ended:
+            self.ended.add(name)
+            self.pending = self.done < self.total  # (the last one is summarised when the sweep ends)
 
     def refresh_if_due(self) -> None:
         """The summary so far, once a trial has ended since the last one and SUMMARY_REFRESH_S has passed;
@@ -197,7 +206,7 @@ class _Lines:
                           f"eval {result.get(METRIC, float('nan')):.1f}", file=sys.stderr, flush=True)
 
             def on_trial_complete(self, iteration, trials, trial, **info):
-                lines.trial_ended()
+                lines.trial_ended(trial)
                 error = (trial.last_result or {}).get("trial_error")
                 what = f"FAILED {error}" if error else f"finished {_trial_label(trial)}"
                 print(f"[{lines.done}/{lines.total}] {what}", file=sys.stderr, flush=True)
@@ -208,7 +217,7 @@ class _Lines:
                       flush=True)
 
             def on_trial_error(self, iteration, trials, trial, **info):  # lost once more than retried
-                lines.trial_ended()
+                lines.trial_ended(trial)
                 print(f"[{lines.done}/{lines.total}] FAILED {_trial_label(trial)} after {lines.max_retries} "
                       f"retries: {_last_error(trial)}", file=sys.stderr, flush=True)
 
@@ -330,7 +339,7 @@ def _run_grid(spec: SweepSpec, todo: list[dict[str, Any]], total: int, out: Path
     import ray
     from ray import tune
 
-    printer = _Lines(total, total - len(todo), max_retries, summarise).make()
+    printer = _Lines(spec, total, ended_trials(out, spec), max_retries, summarise).make()
     try:
         _connect(address, out, log)
         tuner = tune.Tuner(
@@ -361,7 +370,7 @@ def _run_search(spec: SweepSpec, out: Path, address: str | None, resources: dict
     from ray import tune
 
     path = out / RAY_DIR / "search"
-    printer = _Lines(spec.samples, 0, max_retries, summarise).make()
+    printer = _Lines(spec, spec.samples, ended_trials(out, spec), max_retries, summarise).make()
     try:
         _connect(address, out, log)
         if tune.Tuner.can_restore(str(path)):

@@ -220,6 +220,14 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None,
     return written
 
 
+def ended_trials(out: Path, spec: SweepSpec) -> set[str]:
+    """Names of the trials whose runs in `out` have ended (finished, or stopped early by ASHA): what a resumed
+    sweep's progress lines count as ended before it started."""
+    if spec.search:
+        return {r["trial"] for r in trial_rows(out, spec) if r["status"] != "incomplete"}
+    return {t["name"] for t in grid_trials(spec) if trial_state(out / t["name"], spec.steps) == "done"}
+
+
 def unfinished_trials(out: Path, spec: SweepSpec) -> list[str]:
     """Trials still to train: not started or interrupted (a trial ASHA stopped early is finished)."""
     if spec.search:

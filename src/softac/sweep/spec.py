@@ -180,6 +180,11 @@ def trial_name(values: dict[str, Any], seed: int) -> str:
     return ",".join([f"{k}={_name_part(v)}" for k, v in values.items()] + [f"seed={seed}"])
 
 
+def search_trial_name(trial_id: str, seed: int) -> str:
+    """The run directory of a search's trial (Tune's trial id: the sampled values are in its config.yaml)."""
+    return f"trial={trial_id},seed={seed}"
+
+
 def grid_trials(spec: SweepSpec) -> list[dict[str, Any]]:
     return [{"name": trial_name(values, seed), "seed": seed, "values": values}
             for values in grid_points(spec.grid) for seed in spec.seeds]

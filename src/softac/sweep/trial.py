@@ -18,7 +18,8 @@ from typing import Any
 from softac.config import SACConfig
 from softac.cpus import claim_cpus, trial_settings_env
 from softac.rundir import holder, wait_released
-from softac.sweep.spec import LOG_DIR, METRIC, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, value_text
+from softac.sweep.spec import (LOG_DIR, METRIC, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, search_trial_name,
+                               value_text)
 
 # how long a trial waits for the lock of its run directory, held by an earlier attempt's process that is still
 # writing its checkpoint (a stopped driver's trial), or by one on a lost node until the filesystem frees its lock
@@ -101,7 +102,7 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     sweep = SweepSpec.from_dict(spec)
     base = sweep.base_config()
     if sweep.search:
-        trial = {"name": f"trial={tune.get_context().get_trial_id()},seed={sweep.seeds[0]}", "seed": sweep.seeds[0],
+        trial = {"name": search_trial_name(tune.get_context().get_trial_id(), sweep.seeds[0]), "seed": sweep.seeds[0],
                  "values": {k: params[k] for k in sweep.space or {}}}
     else:
         trial = params["trial"]
