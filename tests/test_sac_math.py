@@ -135,19 +135,22 @@ def test_gradient_steps_fuse_in_one_call():
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, gradient_steps=5)
     functions = sac.build(cfg, 3, 2)
     state = functions.init(0)
-    state, metrics = functions.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
+    state, totals = functions.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
     assert int(state.n_updates) == 5
-    assert set(metrics) >= {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean"}
+    assert (float(totals["critic_steps"]), float(totals["actor_steps"])) == (5.0, 5.0)
+    assert set(sac.metric_means(totals)) == {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean",
+                                             "log_prob_mean"}
 
 
 def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     rng = np.random.default_rng(0)
     fixed = sac.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
-    state, metrics = fixed.update(fixed.init(0), _batch(rng, 3, 8, 3, 2))
-    assert float(metrics["alpha"]) == pytest.approx(0.2)
+    state, totals = fixed.update(fixed.init(0), _batch(rng, 3, 8, 3, 2))
+    assert sac.metric_means(totals)["alpha"] == pytest.approx(0.2)
+    assert float(jnp.exp(state.log_alpha)) == pytest.approx(0.2)
     tuned = sac.build(SACConfig().replace(hidden_sizes=[16], alpha=0.5), 3, 2)
-    state, metrics = tuned.update(tuned.init(0), _batch(rng, 3, 8, 3, 2))
-    assert float(metrics["alpha"]) != pytest.approx(0.5)
+    state, totals = tuned.update(tuned.init(0), _batch(rng, 3, 8, 3, 2))
+    assert float(jnp.exp(state.log_alpha)) != pytest.approx(0.5)
     assert tuned.target_entropy == -2.0
 
 
@@ -160,8 +163,8 @@ def test_terminated_transitions_do_not_bootstrap():
     batch = _batch(rng, 1, 16, 2, 1, terminated=1.0)
     batch = batch._replace(rewards=jnp.full((1, 16), 3.0), next_obs=batch.next_obs * 100.0)
     batches = sac.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
-    state, metrics = functions.update(state, batches)
-    assert float(metrics["q1_mean"]) == pytest.approx(3.0, abs=0.15)
+    state, totals = functions.update(state, batches)
+    assert sac.metric_means(totals)["q1_mean"] == pytest.approx(3.0, abs=0.15)
 
 
 def test_n_step_target_bootstraps_with_gamma_to_the_steps():

@@ -59,7 +59,9 @@ class TrainingInfo:
 
     @property
     def metrics(self) -> dict[str, float]:
-        """The last update's losses, alpha and Q means (empty before learning starts). Reading them waits
+        """The losses, alpha and Q means, each the mean over the gradient steps since the last progress row that
+        computed it (the actor's over actor steps; at a row's own step, that row's values; empty before learning
+        starts). Reading them waits
         for the device, so read them when needed rather than on every step."""
         return self.read_metrics()
 

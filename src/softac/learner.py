@@ -26,6 +26,7 @@ if TYPE_CHECKING:  # sac imports JAX, which loads only when a learner is made
 
 STATE_PREFIX = "state"  # checkpoint array names: state<path of the leaf in SACState>, obs_norm/<name>
 OBS_NORM_PREFIX = "obs_norm/"
+METRICS_PREFIX = "metric_totals/"  # the sums behind the next progress row (a resumed run's first row is whole)
 
 
 def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5) -> None:
@@ -60,6 +61,7 @@ class Learner:
         self.functions: SACFunctions = sac.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high)
         self.scaler = self.functions.scaler
         self.state: SACState = self.functions.init(config.seed)
+        self.totals: dict[str, Any] | None = None  # metric sums since the last take_metrics(), on the device
         # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
         self.obs_norm = RunningObsNorm(spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
 
@@ -127,12 +129,24 @@ class Learner:
 
     # ---- learning ----------------------------------------------------------------------------------
 
-    def update(self, batch: dict[str, np.ndarray]) -> dict[str, Any]:
+    def update(self, batch: dict[str, np.ndarray]) -> None:
         """All of a vector-env step's gradient steps in one jitted call, on a batch of raw observations
-        (normalised here with the current statistics); returns the last step's metrics, on the device."""
+        (normalised here with the current statistics); their metrics are added to the totals on the device."""
         batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
-        self.state, metrics = self.functions.update(self.state, self.Batch(**batch))
-        return metrics
+        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), self.totals)
+
+    def metrics(self) -> dict[str, float]:
+        """Each metric's mean over the gradient steps since the last `take_metrics()` that computed it (the
+        actor's over actor steps); {} before any. Reading them waits for the device."""
+        from softac.sac import metric_means
+
+        return metric_means(self.totals) if self.totals is not None else {}
+
+    def take_metrics(self) -> dict[str, float]:
+        """`metrics()`, and start the next interval's sums from zero (a progress row does this)."""
+        means = self.metrics()
+        self.totals = None
+        return means
 
     def reset_networks(self, seed: int, index: int) -> None:
         """The `index`-th periodic reset (reset_interval): fresh networks and optimisers, alpha kept."""
@@ -148,6 +162,8 @@ class Learner:
                   for path, leaf in jax.tree_util.tree_flatten_with_path(self.state)[0]}
         if self.obs_norm is not None:  # in every checkpoint, best too: predict() needs them
             arrays.update({OBS_NORM_PREFIX + k: v for k, v in self.obs_norm.state_dict().items()})
+        if self.totals is not None:
+            arrays.update({METRICS_PREFIX + k: np.asarray(v) for k, v in self.totals.items()})
         return arrays
 
     def load_arrays(self, arrays: dict[str, np.ndarray], where: Any = "") -> None:
@@ -166,6 +182,9 @@ class Learner:
             # the state's buffers (older jaxlibs then corrupt the heap; seen with jax 0.4.30 and 0.5.3)
             leaves.append(jnp.array(value, copy=True))
         self.state = jax.tree_util.tree_unflatten(treedef, leaves)
+        # a checkpoint written between progress rows holds the sums so far (none: one written at a row, or older)
+        totals = {k[len(METRICS_PREFIX):]: v for k, v in arrays.items() if k.startswith(METRICS_PREFIX)}
+        self.totals = {k: jnp.array(v, copy=True) for k, v in totals.items()} or None
         if self.obs_norm is not None:
             stats = {k[len(OBS_NORM_PREFIX):]: v for k, v in arrays.items() if k.startswith(OBS_NORM_PREFIX)}
             if set(stats) != {"count", "mean", "m2"}:

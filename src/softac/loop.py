@@ -139,9 +139,9 @@ class TrainingLoop:
         self.writer: RunWriter | None = None
         self.logs: Loggers | None = None
         self.eval_envs: list | None = None
-        self.last_metrics: dict[str, Any] | None = None  # the last update's, on the device until read
         self.stop_reason: str | None = None  # target_return, target_success or a callback's reason: stop now
         self.logged_at: int | None = None
+        self.logged_metrics: dict[str, float] = {}  # the last progress row's means
 
     def run(self) -> dict[str, Any]:
         self.collector.start(self.run_state.num_steps)
@@ -260,8 +260,9 @@ class TrainingLoop:
         return self.time0 + time.perf_counter() - self.wall0
 
     def metric_values(self) -> dict[str, float]:
-        """The last update's metrics as floats (reading them waits for the device); {} before learning."""
-        return {k: float(v) for k, v in self.last_metrics.items()} if self.last_metrics is not None else {}
+        """Each metric's mean over the updates since the last progress row, or at a row's own step that row's
+        (reading them waits for the device); {} before learning."""
+        return self.learner.metrics() or self.logged_metrics
 
     def reset_if_due(self) -> None:
         """reset_interval: at the first step past each multiple, so the evaluation and checkpoint at the
@@ -306,7 +307,7 @@ class TrainingLoop:
         cfg = self.config
         if after >= cfg.learning_starts and cfg.gradient_steps > 0 and self.collector.can_sample():
             batch = self.collector.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
-            self.last_metrics = self.learner.update(batch)
+            self.learner.update(batch)
 
     def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training
@@ -340,7 +341,7 @@ class TrainingLoop:
     def log_row(self, step: int) -> None:
         self.logged_at = step
         row = self.rows.row(step, self.elapsed(), self.run_state.num_episodes)
-        values = self.metric_values()
+        values = self.logged_metrics = self.learner.take_metrics()
         _check_finite(values, step)
         row.update(values)
         if self.logs is not None:

@@ -112,13 +112,42 @@ def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: Upd
     return state, {"actor_loss": loss, "alpha_loss": a_loss, "log_prob_mean": jnp.mean(log_prob)}
 
 
-def policy_round(state: SACState, obs: jax.Array, key: jax.Array, s: UpdateSettings) -> tuple[SACState, dict]:
+# ---- metrics over many updates ------------------------------------------------------------------------
+# Each metric is summed over the gradient steps that computed it and divided once, when a progress row is
+# written (issue 42): the actor's over actor steps only, so a row under policy_delay never shows a step that
+# did not update the actor, and each row is the interval's mean as SB3 and CleanRL log it.
+CRITIC_METRICS = ("critic_loss", "q1_mean", "q2_mean", "alpha")
+POLICY_METRICS = ("actor_loss", "alpha_loss", "log_prob_mean")
+CRITIC_STEPS, ACTOR_STEPS = "critic_steps", "actor_steps"
+
+
+def zero_totals() -> dict[str, jax.Array]:
+    """Sums of every metric and the counts of critic and actor steps behind them, all zero."""
+    return {name: jnp.zeros((), jnp.float32) for name in (*CRITIC_METRICS, *POLICY_METRICS, CRITIC_STEPS, ACTOR_STEPS)}
+
+
+def add_to_totals(totals: dict, metrics: dict, counter: str) -> dict:
+    return {**totals, **{k: totals[k] + v for k, v in metrics.items()}, counter: totals[counter] + 1.0}
+
+
+def metric_means(totals: dict[str, Any]) -> dict[str, float]:
+    """The mean of each metric over the steps that computed it; a metric no step computed is left out."""
+    means = {}
+    for names, counter in ((CRITIC_METRICS, CRITIC_STEPS), (POLICY_METRICS, ACTOR_STEPS)):
+        count = float(totals[counter])
+        if count > 0:
+            means.update({k: float(totals[k]) / count for k in names})
+    return means
+
+
+def policy_round(state: SACState, totals: dict, obs: jax.Array, key: jax.Array,
+                 s: UpdateSettings) -> tuple[SACState, dict]:
     """CleanRL's delayed policy update: every `policy_frequency` critic steps, that many actor steps (same
     batch, fresh noise), so actor and critic take the same number of steps overall."""
-    metrics = None
     for k in jax.random.split(key, s.policy_frequency):
         state, metrics = actor_and_alpha_step(state, obs, k, s)
-    return state, metrics
+        totals = add_to_totals(totals, metrics, ACTOR_STEPS)
+    return state, totals
 
 
 def update_targets(state: SACState, n_updates: jax.Array, s: UpdateSettings) -> SACState:
@@ -129,34 +158,33 @@ def update_targets(state: SACState, n_updates: jax.Array, s: UpdateSettings) -> 
     return state._replace(target_critic=target)
 
 
-def gradient_step(s: UpdateSettings, carry: tuple[SACState, dict], batch: Batch) -> tuple[tuple[SACState, dict], dict]:
-    """One critic step; a policy round when due; the target update. TD3's policy delay (Fujimoto et al.
-    2018, sec. 5.2) spaces the policy rounds `policy_delay` times further apart with no catch-up: the actor
-    takes 1/policy_delay of the steps, and the update costs less."""
-    state, policy_metrics = carry
+def gradient_step(s: UpdateSettings, carry: tuple[SACState, dict], batch: Batch) -> tuple[tuple[SACState, dict], None]:
+    """One critic step; a policy round when due; the target update; their metrics added to the totals. TD3's
+    policy delay (Fujimoto et al. 2018, sec. 5.2) spaces the policy rounds `policy_delay` times further apart
+    with no catch-up: the actor takes 1/policy_delay of the steps, and the update costs less."""
+    state, totals = carry
     key, critic_key, actor_key = jax.random.split(state.key, 3)
+    alpha = alpha_of(state, s)
     state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key, s)
+    totals = add_to_totals(totals, {**critic_metrics, "alpha": alpha}, CRITIC_STEPS)
     n = state.n_updates + 1
     period = s.policy_frequency * s.policy_delay
     if period == 1:
-        state, policy_metrics = policy_round(state, batch.obs, actor_key, s)
+        state, totals = policy_round(state, totals, batch.obs, actor_key, s)
     else:
-        state, policy_metrics = jax.lax.cond(n % period == 0, lambda st: policy_round(st, batch.obs, actor_key, s),
-                                             lambda st: (st, policy_metrics), state)
+        state, totals = jax.lax.cond(n % period == 0, lambda st, tot: policy_round(st, tot, batch.obs, actor_key, s),
+                                     lambda st, tot: (st, tot), state, totals)
     if s.has_targets:
         state = update_targets(state, n, s)
-    return (state._replace(n_updates=n), policy_metrics), critic_metrics
+    return (state._replace(n_updates=n), totals), None
 
 
-def update(s: UpdateSettings, state: SACState, batches: Batch) -> tuple[SACState, dict]:
-    """`batches` has a leading axis of gradient steps; all of them run in this one call."""
-    zero = jnp.zeros((), jnp.float32)
-    start = {"actor_loss": zero, "alpha_loss": zero, "log_prob_mean": zero}
-    (state, policy_metrics), critic_metrics = jax.lax.scan(partial(gradient_step, s), (state, start), batches)
-    metrics = {k: jnp.mean(v) for k, v in critic_metrics.items()}
-    metrics.update(policy_metrics)
-    metrics["alpha"] = alpha_of(state, s)
-    return state, metrics
+def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | None = None) -> tuple[SACState, dict]:
+    """`batches` has a leading axis of gradient steps; all of them run in this one call. Returns the new state
+    and `totals` (zero_totals() when None) with this call's metrics added (`metric_means` reads them)."""
+    totals = zero_totals() if totals is None else totals
+    (state, totals), _ = jax.lax.scan(partial(gradient_step, s), (state, totals), batches)
+    return state, totals
 
 
 # ---- acting ------------------------------------------------------------------------------------------
@@ -223,7 +251,7 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> Updat
 class SACFunctions(NamedTuple):
     init: Callable[[int], SACState]
     reset: Callable[[SACState, int, int], SACState]
-    update: Callable[[SACState, Batch], tuple[SACState, dict]]
+    update: Callable[..., tuple[SACState, dict]]  # (state, batches, totals=None) -> (state, totals)
     act: Callable[[Any, Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]]  # (actor, its stats, ...)
     act_deterministic: Callable[[Any, Any, jax.Array], jax.Array]
     policy: Policy
@@ -258,7 +286,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     return SACFunctions(
         init=init,
         reset=reset,
-        update=jax.jit(partial(update, s), donate_argnums=0),
+        update=jax.jit(partial(update, s), donate_argnums=(0, 2)),
         act=jax.jit(partial(act, s.policy, scaler)),
         act_deterministic=jax.jit(s.policy.deterministic),
         policy=s.policy,

@@ -1,0 +1,87 @@
+"""Digests of what each preset trains: one short run per preset, hashed, to check that a change to the learner
+leaves today's presets bit-identical (issue 42: new variants must not move the runs users already have).
+
+    python benchmarks/preset_identity.py --out /tmp/after.json
+    PYTHONPATH=/path/to/old/checkout/src python benchmarks/preset_identity.py --out /tmp/before.json
+    python benchmarks/preset_identity.py --compare /tmp/before.json /tmp/after.json
+
+Each run trains `--steps` env steps past its preset's learning_starts (so the update runs) on the preset's own
+env, in-process on one CPU, and hashes every leaf of the learner's state (networks, targets, optimisers, alpha,
+key, batch-renormalisation statistics) and the progress rows' metric columns. Equal digests at two commits
+mean the presets compute the same numbers, bit for bit, on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+# (preset, env): the env presets extend these, so each family is covered once; the goal env covers HER
+CASES = [
+    ("default", "InvertedPendulum-v5"),
+    ("sb3", "InvertedPendulum-v5"),
+    ("cleanrl", "InvertedPendulum-v5"),
+    ("sac-100k", "Hopper-v5"),
+    ("crossq", "Hopper-v5"),
+    ("crossq-wn", "Hopper-v5"),
+    ("Humanoid-v5", "Humanoid-v5"),
+    ("FetchReach-v4", "FetchReach-v4"),
+]
+METRIC_COLUMNS = ("critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean")
+
+
+def digest(preset: str, env_id: str, steps: int) -> dict[str, str]:
+    import jax
+    import numpy as np
+
+    from softac import SAC, SACConfig
+    from softac.logs import read_csv
+
+    config = SACConfig.preset(preset, env_id=env_id)
+    config = config.replace(total_steps=config.learning_starts + steps, eval_interval=0, loggers="none",
+                            checkpoint_interval=0, buffer_size=min(config.buffer_size, 100_000))
+    with tempfile.TemporaryDirectory() as tmp:
+        agent = SAC(config)
+        agent.learn(config.total_steps, run_dir=Path(tmp) / "run", progress=False)
+        state = hashlib.sha256()
+        for path, leaf in jax.tree_util.tree_flatten_with_path(agent.learner.state)[0]:
+            state.update(jax.tree_util.keystr(path).encode())
+            state.update(np.ascontiguousarray(np.array(leaf, copy=True)).tobytes())
+        rows = [[row.get(c, "") for c in ("step", *METRIC_COLUMNS)] for row in read_csv(Path(tmp) / "run" / "progress.csv")]
+    return {"state": state.hexdigest(), "progress": hashlib.sha256(json.dumps(rows).encode()).hexdigest(),
+            "matmul_dtype": agent.learner.matmul_dtype}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", help="write the digests here (JSON)")
+    p.add_argument("--steps", type=int, default=1000, help="env steps past learning_starts per preset")
+    p.add_argument("--only", nargs="*", help="presets to run (default: all cases)")
+    p.add_argument("--compare", nargs=2, metavar=("BEFORE", "AFTER"), help="compare two digest files")
+    a = p.parse_args(argv)
+    if a.compare:
+        before, after = (json.loads(Path(f).read_text()) for f in a.compare)
+        differ = False
+        for name in sorted(set(before) & set(after)):
+            same = before[name]["state"] == after[name]["state"]
+            rows_note = "" if before[name].get("progress") == after[name].get("progress") else " (progress rows differ)"
+            print(f"{name}: {'identical' if same else 'DIFFERENT'}{rows_note}")
+            differ |= not same
+        return 1 if differ else 0
+    results = {}
+    for preset, env_id in CASES:
+        if a.only and preset not in a.only:
+            continue
+        results[f"{preset}@{env_id}"] = digest(preset, env_id, a.steps)
+        print(preset, env_id, results[f"{preset}@{env_id}"], flush=True)
+    if a.out:
+        Path(a.out).write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
