@@ -62,13 +62,22 @@ class SACConfig:
     policy_delay: int = _f(1, "critic updates per actor/alpha update, with no catch-up (TD3's policy_delay): 2 halves the actor's steps and takes ~20% off the update's compute")
     reset_interval: int = _f(0, "environment steps between resets of actor, critics and their optimisers (the buffer and alpha stay; none at or past total_steps; Nikishin et al. 2022); 0 = never")
     n_step: int = _f(1, "rewards summed before bootstrapping (n-step returns, as RLlib's n_step; the walk stops at episode ends); 1 = plain SAC")
-    n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum")
+    n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (TQC: pools their quantiles)")
+    target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")
+    n_quantiles: int = _f(0, "TQC (Kuznetsov et al. 2020): quantiles each critic predicts (25 in the paper), trained with the quantile Huber loss on the pooled, truncated next-state atoms; 0 = one Q-value per critic (SAC)")
+    top_quantiles_to_drop_per_net: int = _f(2, "with n_quantiles: the largest next-state atoms dropped, per critic (TQC's d: n_critics * d of the pool)")
     critic_layer_norm: bool = _f(False, "LayerNorm before each hidden activation of the critics (RLPD; for high gradient_steps)")
+    critic_dropout: float = _f(0.0, "dropout rate on the critics' hidden units in every critic pass (DroQ, Hiraoka et al. 2022: 0.01, with critic_layer_norm, at high gradient_steps)")
+    network: str = _f("mlp", "actor and critic networks: mlp, or simba (Lee et al. 2024): a linear embedding, one pre-LayerNorm residual block (inner width 4x) per hidden width, a final LayerNorm; use with obs_norm")
+    actor_hidden_sizes: list = _f([], "the actor's hidden widths when they differ from hidden_sizes (empty: hidden_sizes)")
+    critic_hidden_sizes: list = _f([], "the critics' hidden widths when they differ from hidden_sizes (empty: hidden_sizes)")
     crossq: bool = _f(False, "CrossQ (Bhatt et al. 2024): no target critics (tau unused); batch renormalisation in actor and critics, the critics seeing (s, a) and (s', a') as one batch")
     batch_norm_momentum: float = _f(0.99, "with crossq: momentum of the running mean and variance")
     batch_renorm_warmup: int = _f(100_000, "with crossq: gradient steps of plain batch normalisation before batch renormalisation's corrections (Ioffe 2017)")
     weight_norm: bool = _f(False, "with crossq: each hidden unit's weights and bias kept at unit norm after every optimiser step (CrossQ+WN, Palenicek et al. 2025): batch renormalisation makes the next layer blind to their scale, whose growth would shrink the effective learning rate")
     adam_b1: float = _f(0.9, "Adam's first-moment decay, for actor, critics and alpha (CrossQ uses 0.5)")
+    weight_decay: float = _f(0.0, "AdamW's decoupled weight decay for actor and critics (Loshchilov & Hutter 2019); 0 = Adam")
+    weight_decay_layers: str = _f("all", "with weight_decay: all (every parameter, as SimBa) or output (the output layers only, as CrossQ+WN)")
     hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
     activation: str = _f("relu", "hidden activation: relu, tanh, elu or gelu")
     init: str = _f("default", "weight init: default (fan-in uniform, as PyTorch) or orthogonal")
@@ -78,7 +87,8 @@ class SACConfig:
     alpha_lr: float = _f(3e-4, "Adam learning rate of log(alpha)")
     autotune_alpha: bool = _f(True, "learn the entropy coefficient on log(alpha) (Haarnoja et al. 2018b)")
     alpha: float = _f(1.0, "entropy coefficient: fixed value, or the initial one when autotuned")
-    target_entropy: Any = _f("auto", "entropy target when autotuned; auto = -|A|")
+    target_entropy: Any = _f("auto", "entropy target when autotuned; auto = -target_entropy_scale * |A|")
+    target_entropy_scale: float = _f(1.0, "with target_entropy auto: the target is -scale * |A| (SAC 1; SimBa and CrossQ+WN 0.5)")
     log_std_min: float = _f(-20.0, "lower bound of the actor's log std")
     log_std_max: float = _f(2.0, "upper bound of the actor's log std")
     log_std_mode: str = _f("clamp", "how log std is bounded: clamp (SB3) or tanh (CleanRL's squash)")
@@ -193,6 +203,27 @@ class SACConfig:
         need(1 <= self.n_critics <= 100, "n_critics", "must be between 1 and 100")
         need(not (self.crossq and self.critic_layer_norm), "critic_layer_norm",
              "cannot be combined with crossq, which normalises with batch renormalisation")
+        need(self.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
+        need(0 <= self.n_quantiles <= 1000, "n_quantiles", "must be between 0 (SAC's critics) and 1000")
+        need(self.top_quantiles_to_drop_per_net >= 0 and (
+            self.n_quantiles == 0 or self.top_quantiles_to_drop_per_net < self.n_quantiles),
+            "top_quantiles_to_drop_per_net", f"must be >= 0 and below n_quantiles={self.n_quantiles}")
+        need(0.0 <= self.critic_dropout < 1.0, "critic_dropout", "must be in [0, 1)")
+        need(not (self.critic_dropout > 0 and self.crossq), "critic_dropout",
+             "cannot be combined with crossq (dropout inside batch renormalisation's statistics is not CrossQ)")
+        need(self.network in ("mlp", "simba"), "network", "must be mlp or simba")
+        if self.network == "simba":
+            need(not self.crossq, "network", "simba cannot be combined with crossq (SimBa normalises with LayerNorm)")
+            need(not self.critic_layer_norm, "critic_layer_norm", "is built into network=simba (pre-LayerNorm blocks)")
+            need(self.critic_dropout == 0, "critic_dropout", "applies to mlp critics (network=mlp)")
+            for key in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+                need(len(set(getattr(self, key))) <= 1, key,
+                     "with network=simba every entry is a residual block of the one width (e.g. 512,512)")
+        for key in ("actor_hidden_sizes", "critic_hidden_sizes"):
+            need(all(1 <= h <= 65_536 for h in getattr(self, key)), key, "widths must be between 1 and 65536")
+        need(self.weight_decay >= 0.0, "weight_decay", "must be >= 0")
+        need(self.weight_decay_layers in ("all", "output"), "weight_decay_layers", "must be all or output")
+        need(self.target_entropy_scale > 0.0, "target_entropy_scale", "must be > 0 (target_entropy sets any other target)")
         need(not self.crossq or self.batch_size >= 2, "batch_size", "must be >= 2 with crossq (batch statistics)")
         need(self.crossq or not self.weight_norm, "weight_norm",
              "needs crossq (its batch renormalisation is what makes the weights' scale free)")
@@ -225,7 +256,7 @@ class SACConfig:
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
-GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-wn", "sac-100k")
+GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-wn", "sac-100k", "tqc", "simba", "droq")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
                     "buffer_bytes_per_transition", "cpus", "machine", "segments")
@@ -260,7 +291,7 @@ def _unknown_key_message(key: str, known: list[str]) -> str:
 def _coerce(key: str, f: dataclasses.Field, value: Any) -> Any:
     default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
     bad = ConfigError(f"{key}={value!r}: expected {_type_name(default)}")
-    if key == "her" and isinstance(value, bool):  # YAML reads on/off/true/false as booleans
+    if key in ("her", "target_critics") and isinstance(value, bool):  # YAML reads on/off/true/false as booleans
         return "on" if value else "off"
     if key == "target_entropy":
         if isinstance(value, str) and value.strip().lower() == "auto" or value is None:

@@ -257,6 +257,9 @@ def export_policy(agent_or_path: Any, path: str | Path | None = None, format: st
         learner, step = load_learner(agent_or_path, which, device="cpu", allow_new_bounds=allow_new_bounds)
     else:
         learner, step = agent_or_path.learner, agent_or_path.num_steps
+    if learner.config.network != "mlp":
+        raise SoftacError(f"export covers MLP actors; this agent's are network={learner.config.network} "
+                          "(load it with softac.SAC.load and call predict instead)")
     arrays = policy_arrays(learner, step)
     data = numpy_bytes(arrays) if format == "numpy" else onnx_model(arrays).SerializeToString()
     path.parent.mkdir(parents=True, exist_ok=True)

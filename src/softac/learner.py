@@ -29,18 +29,30 @@ OBS_NORM_PREFIX = "obs_norm/"
 METRICS_PREFIX = "metric_totals/"  # the sums behind the next progress row (a resumed run's first row is whole)
 
 
+def network_parameters(in_dim: int, hidden: list[int], out_dim: int, network: str) -> int:
+    """Parameters of one network: an MLP, or SimBa's embedding, residual blocks (inner width 4x) and head."""
+    if network == "simba":
+        w = hidden[0]
+        block = 2 * w + (w + 1) * 4 * w + (4 * w + 1) * w
+        return (in_dim + 1) * w + len(hidden) * block + 2 * w + (w + 1) * out_dim
+    sizes = [in_dim, *hidden, out_dim]
+    return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
+
+
 def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5) -> None:
     """Refuse networks and batches the machine cannot hold, before allocating anything."""
     from softac.buffer import _human, available_memory_bytes
 
-    def mlp_params(sizes: list[int]) -> int:
-        return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
-
-    actor = mlp_params([obs_dim, *config.hidden_sizes, 2 * act_dim])
-    critics = config.n_critics * mlp_params([obs_dim + act_dim, *config.hidden_sizes, 1])
+    actor_hidden = config.actor_hidden_sizes or config.hidden_sizes
+    critic_hidden = config.critic_hidden_sizes or config.hidden_sizes
+    actor = network_parameters(obs_dim, actor_hidden, 2 * act_dim, config.network)
+    critics = config.n_critics * network_parameters(obs_dim + act_dim, critic_hidden, config.n_quantiles or 1,
+                                                    config.network)
     parameters = 4 * (3 * actor + 4 * critics)  # weights + Adam moments; critics also have targets
-    # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases)
-    activations = 4 * config.batch_size * sum(config.hidden_sizes) * (4 * config.n_critics + 4)
+    # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
+    # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides
+    widths = sum(actor_hidden) + sum(critic_hidden) * config.n_critics
+    activations = 4 * config.batch_size * widths * 4 * (6 if config.network == "simba" else 1)
     batch = config.batch_size * config.gradient_steps * ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
     need, have = parameters + activations + batch, available_memory_bytes()
     if need > fraction * have:

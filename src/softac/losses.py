@@ -1,11 +1,14 @@
-"""The losses of SAC (Haarnoja et al. 2018a, 2018b) and CrossQ (Bhatt et al. 2024): pure functions of
-(parameters, running statistics, batch, key, settings).
+"""The losses of SAC (Haarnoja et al. 2018a, 2018b) and its family: pure functions of (parameters, running
+statistics, batch, key, settings).
 
-One critic loss and one actor loss serve both algorithms. CrossQ differs from SAC in two places, each
-written once: its critics normalise their inputs with batch renormalisation (`Critics.batch_renorm`),
-and it computes the next-state value with the online critics in one joint pass over (s, a) and (s', a')
-instead of with target critics (`q_and_next_q`). `critic_loss` and `actor_loss` are SAC's form of the two (no
-running statistics), as the loss tests pin them.
+One critic loss and one actor loss serve every variant; each differs from SAC where its paper does, written
+once and chosen by `Critics`: CrossQ (Bhatt et al. 2024) normalises the critics' inputs with batch
+renormalisation and computes the next-state value in one joint pass over (s, a) and (s', a') (`q_and_next_q`),
+with or without target critics (CrossQ+WN, Palenicek et al. 2025, keeps them); TQC (Kuznetsov et al. 2020)
+has quantile critics, a truncated pool of next-state atoms and the quantile Huber loss
+(`truncated_target_atoms`, `quantile_huber_error`); DroQ (Hiraoka et al. 2022) drops critic units in every
+pass (`dropout_keys`); SimBa (Lee et al. 2024) changes only the networks. `critic_loss` and `actor_loss` are
+SAC's form of the two (no running statistics), as the loss tests pin them.
 """
 
 from __future__ import annotations
@@ -31,45 +34,84 @@ class Batch(NamedTuple):
 
 @dataclass(frozen=True)
 class Critics:
-    """How the critic ensemble is evaluated (its settings; parameters and statistics are passed in)."""
+    """How the critic ensemble is evaluated and what its next-state value is (its settings; parameters and
+    statistics are passed in)."""
     activation: str
     matmul_dtype: str = "float32"
     layer_norm: bool = False
     unroll: bool = False  # critic by critic (faster on CPU, see critics_apply) instead of vmap
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
+    network: str = "mlp"  # or simba (networks.simba)
+    dropout: float = 0.0  # DroQ: hidden units dropped in every critic pass
+    n_quantiles: int = 0  # TQC: quantiles per critic; 0 = one Q-value each (SAC)
+    drop_per_critic: int = 0  # TQC: the largest target atoms dropped, per critic
+    # Polyak-averaged target critics give the next-state value (off: the online ones); None: SAC's yes, CrossQ's no
+    targets: bool | None = None
 
-    def q_values(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array) -> jax.Array:
-        """Q-values of every critic, shape [n_critics, batch] (with batch renormalisation: normalised with
-        its running statistics)."""
+    @property
+    def has_targets(self) -> bool:
+        return self.batch_renorm is None if self.targets is None else self.targets
+
+    @property
+    def outputs(self) -> int:
+        return self.n_quantiles or 1
+
+    def q_values(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
+                 key: jax.Array | None = None) -> jax.Array:
+        """Q-values of every critic, shape [n_critics, batch] (TQC: [n_critics, batch, n_quantiles]); with
+        batch renormalisation normalised with its running statistics; with dropout, drawn from `key`."""
         if self.batch_renorm is not None:
             return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm,
-                                              False, matmul_dtype=self.matmul_dtype, unroll=self.unroll)[0]
-        return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll)
+                                              False, matmul_dtype=self.matmul_dtype, unroll=self.unroll,
+                                              outputs=self.outputs)[0]
+        return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll,
+                             self.network, self.dropout, key, self.outputs)
 
     def q_values_training(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                           renorm: jax.Array | bool) -> tuple[jax.Array, Any]:
         """Q-values normalised with this batch's statistics, and the updated running statistics."""
         return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm, True,
-                                          renorm, self.matmul_dtype, self.unroll)
+                                          renorm, self.matmul_dtype, self.unroll, self.outputs)
+
+    def for_actor(self, q: jax.Array) -> jax.Array:
+        """The value the actor climbs, per row: the smallest critic's Q (clipped double Q), or with TQC the
+        mean of every critic's quantiles (Kuznetsov et al. 2020, eq. 9: no truncation for the actor)."""
+        return jnp.mean(q, axis=(0, 2)) if self.n_quantiles else jnp.min(q, axis=0)
+
+
+def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, jax.Array | None]:
+    """Two keys for the critics' dropout (the online and the next-state pass), none without dropout: the
+    policy's key stays as it was, so configs without dropout draw the numbers they always drew."""
+    if critics.dropout <= 0:
+        return None, None
+    return tuple(jax.random.split(jax.random.fold_in(key, 0xD70), 2))
 
 
 # ---- the critics' loss --------------------------------------------------------------------------
 
 def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batch, next_actions: jax.Array,
-                 critics: Critics, renorm: jax.Array | bool) -> tuple[jax.Array, jax.Array, Any]:
+                 critics: Critics, renorm: jax.Array | bool, target_stats: Any = (),
+                 key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, Any]:
     """Q(s, a) of every critic, Q(s', a') of every critic the next-state value comes from, and the critics'
     new running statistics.
 
-    SAC: the target critics give Q(s', a'). CrossQ (Bhatt et al. 2024, sec. 3) has none: the online
-    critics see (s, a) and (s', a') in one batch, so that batch renormalisation normalises both with the
-    same statistics (with separate passes the next pair is out of distribution for the normalisation);
-    the target is held fixed by stop_gradient alone."""
+    SAC: the target critics give Q(s', a') (without targets, the online critics; the loss holds the target
+    fixed either way). CrossQ (Bhatt et al. 2024, sec. 3): the critics see (s, a) and (s', a') in one batch,
+    so that batch renormalisation normalises both with the same statistics (with separate passes the next
+    pair is out of distribution for the normalisation); with target critics (CrossQ+WN, Palenicek et al.
+    2025) the target critics make the same joint pass in training mode, with their own running statistics
+    for the renormalisation, and Q(s', a') is taken from their half."""
+    online_key, next_key = dropout_keys(key, critics) if key is not None else (None, None)
     if critics.batch_renorm is None:
-        q = critics.q_values(critic, critic_stats, batch.obs, batch.actions)
-        return q, critics.q_values(target_critic, critic_stats, batch.next_obs, next_actions), critic_stats
-    both, critic_stats = critics.q_values_training(critic, critic_stats, jnp.concatenate([batch.obs, batch.next_obs]),
-                                                   jnp.concatenate([batch.actions, next_actions]), renorm)
+        q = critics.q_values(critic, critic_stats, batch.obs, batch.actions, online_key)
+        source = target_critic if critics.has_targets else critic
+        return q, critics.q_values(source, critic_stats, batch.next_obs, next_actions, next_key), critic_stats
+    obs = jnp.concatenate([batch.obs, batch.next_obs])
+    actions = jnp.concatenate([batch.actions, next_actions])
+    both, critic_stats = critics.q_values_training(critic, critic_stats, obs, actions, renorm)
     q, next_q = jnp.split(both, 2, axis=1)
+    if critics.has_targets:
+        next_q = jnp.split(critics.q_values_training(target_critic, target_stats, obs, actions, renorm)[0], 2, axis=1)[1]
     return q, next_q, critic_stats
 
 
@@ -78,17 +120,47 @@ def soft_bellman_error(q: jax.Array, next_q: jax.Array, next_log_prob: jax.Array
     """0.5 * sum over critics of the mean squared error of q [n_critics, batch] to the soft target
     r + gamma^steps (1 - terminated) (next_q - alpha log pi(a'|s')), held fixed."""
     next_v = next_q - alpha * next_log_prob
-    discount = gamma ** batch.steps if n_step > 1 else gamma
-    target = jax.lax.stop_gradient(batch.rewards + discount * (1.0 - batch.terminated) * next_v)
+    target = jax.lax.stop_gradient(batch.rewards + discount(batch, gamma, n_step) * (1.0 - batch.terminated) * next_v)
     loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
+    return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
+
+
+def discount(batch: Batch, gamma: float, n_step: int) -> jax.Array | float:
+    return gamma ** batch.steps if n_step > 1 else gamma
+
+
+def truncated_target_atoms(next_q: jax.Array, drop_per_critic: int) -> jax.Array:
+    """TQC's next-state atoms (Kuznetsov et al. 2020, sec. 3.2): every critic's quantiles [n, batch, M] pooled
+    per row, sorted, and the n * drop_per_critic largest dropped: [batch, n * (M - drop_per_critic)]."""
+    n, rows, m = next_q.shape
+    pooled = jnp.sort(jnp.transpose(next_q, (1, 0, 2)).reshape(rows, n * m), axis=-1)
+    return pooled[:, : n * (m - drop_per_critic)]
+
+
+def quantile_huber_error(q: jax.Array, next_atoms: jax.Array, next_log_prob: jax.Array, alpha: jax.Array,
+                         batch: Batch, gamma: float, n_step: int) -> tuple[jax.Array, dict]:
+    """TQC's critic loss: each critic's M quantiles [n, batch, M] (at tau_i = (i + 1/2) / M) regressed on every
+    soft target atom z_j = r + gamma^steps (1 - terminated) (atom_j - alpha log pi(a'|s')), held fixed, with the
+    quantile Huber loss |tau_i - 1{z_j < q_i}| * Huber_1(z_j - q_i); the mean over rows, quantiles and atoms,
+    summed over critics (as SBX's TQC sums its two critics' losses)."""
+    target = jax.lax.stop_gradient(
+        batch.rewards[:, None] + (discount(batch, gamma, n_step) * (1.0 - batch.terminated))[..., None]
+        * (next_atoms - alpha * next_log_prob[:, None]))
+    m = q.shape[-1]
+    taus = (jnp.arange(m, dtype=jnp.float32) + 0.5) / m
+    delta = target[None, :, None, :] - q[..., None]  # [n, batch, M, atoms]
+    abs_delta = jnp.abs(delta)
+    huber = jnp.where(abs_delta > 1.0, abs_delta - 0.5, 0.5 * delta**2)
+    loss = jnp.sum(jnp.mean(jnp.abs(taus[:, None] - (delta < 0.0)) * huber, axis=(1, 2, 3)))
     return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
 
 
 def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, actor_stats: Any, alpha: jax.Array,
                 batch: Batch, key: jax.Array, policy: Policy, critics: Critics, gamma: float, n_step: int = 1,
-                renorm: jax.Array | bool = False) -> tuple[jax.Array, tuple[dict, Any]]:
+                renorm: jax.Array | bool = False, target_stats: Any = ()) -> tuple[jax.Array, tuple[dict, Any]]:
     """Soft Bellman error with the minimum over the next-state critics (clipped double Q, Fujimoto et al.
-    2018); returns the loss and (metrics, the critics' new running statistics).
+    2018), or with TQC quantile critics the quantile Huber loss to the truncated atoms; returns the loss and
+    (metrics, the critics' new running statistics).
 
     Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps. With n-step returns
     the buffer has summed `steps` discounted rewards (no entropy terms in between, as RLlib and SB3 do),
@@ -96,8 +168,13 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     drawn with the actor's running statistics.
     """
     next_actions, next_log_prob = policy.sample(actor, actor_stats, batch.next_obs, key)
-    q, next_q, critic_stats = q_and_next_q(critic, critic_stats, target_critic, batch, next_actions, critics, renorm)
-    loss, metrics = soft_bellman_error(q, jnp.min(next_q, axis=0), next_log_prob, alpha, batch, gamma, n_step)
+    q, next_q, critic_stats = q_and_next_q(critic, critic_stats, target_critic, batch, next_actions, critics, renorm,
+                                           target_stats, key)
+    if critics.n_quantiles:
+        atoms = truncated_target_atoms(next_q, critics.drop_per_critic)
+        loss, metrics = quantile_huber_error(q, atoms, next_log_prob, alpha, batch, gamma, n_step)
+    else:
+        loss, metrics = soft_bellman_error(q, jnp.min(next_q, axis=0), next_log_prob, alpha, batch, gamma, n_step)
     return loss, (metrics, critic_stats)
 
 
@@ -115,11 +192,12 @@ def policy_loss(actor: Any, actor_stats: Any, critic: Any, critic_stats: Any, al
                 key: jax.Array, policy: Policy, critics: Critics,
                 renorm: jax.Array | bool = False) -> tuple[jax.Array, tuple[jax.Array, Any]]:
     """Maximise E[min_i Q_i(s, a) - alpha log pi(a|s)] over reparameterised actions (Haarnoja et al.
-    2018a, eq. 12). The actor runs in training mode (with batch renormalisation: the batch's statistics),
+    2018a, eq. 12; TQC: the mean of all quantiles in place of the minimum). The actor runs in training mode (with batch renormalisation: the batch's statistics),
     the critics in evaluation mode (their running statistics), as CrossQ does. Returns the loss and (the
     actions' log-probabilities, which the alpha loss reuses; the actor's new running statistics)."""
     actions, log_prob, actor_stats = policy.sample_training(actor, actor_stats, obs, key, renorm)
-    q = jnp.min(critics.q_values(critic, critic_stats, obs, actions), axis=0)
+    dropout_key = dropout_keys(key, critics)[0]
+    q = critics.for_actor(critics.q_values(critic, critic_stats, obs, actions, dropout_key))
     return jnp.mean(alpha * log_prob - q), (log_prob, actor_stats)
 
 

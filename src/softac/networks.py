@@ -188,36 +188,110 @@ def batch_renorm_mlp(params: Params, stats: Params, x: jax.Array, activation: st
     return x, new_stats
 
 
+def dropout(x: jax.Array, rate: float, key: jax.Array) -> jax.Array:
+    """Inverted dropout: each unit zeroed with probability `rate`, the rest scaled by 1/(1 - rate)."""
+    keep = jax.random.bernoulli(key, 1.0 - rate, x.shape)
+    return jnp.where(keep, x / (1.0 - rate), 0.0)
+
+
 def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
-        normalize: bool = False) -> jax.Array:
+        normalize: bool = False, dropout_rate: float = 0.0, key: jax.Array | None = None) -> jax.Array:
     """`normalize` puts a LayerNorm (no affine) before each hidden activation (Ball et al. 2023, RLPD):
-    it keeps critics stable at high update-to-data ratios."""
+    it keeps critics stable at high update-to-data ratios. `dropout_rate` drops hidden units before it (DroQ,
+    Hiraoka et al. 2022: dense, dropout, LayerNorm, activation), drawn from `key`."""
     act = ACTIVATIONS[activation]
-    for layer in params[:-1]:
+    keys = jax.random.split(key, len(params) - 1) if dropout_rate > 0 else [None] * (len(params) - 1)
+    for layer, layer_key in zip(params[:-1], keys):
         h = dense(x, layer, matmul_dtype)
+        if dropout_rate > 0:
+            h = dropout(h, dropout_rate, layer_key)
         x = act(layer_norm(h) if normalize else h)
     return dense(x, params[-1], matmul_dtype)
+
+
+# ---- SimBa (Lee et al. 2024, "SimBa: Simplicity Bias for Scaling Up Parameters in Deep RL") ---------------
+# A linear embedding, then per block x + W2 act(W1 LayerNorm(x)) with an inner width 4x the block's, then a
+# final LayerNorm before the output layer; the LayerNorms learn their scale and bias. Initialised as the
+# authors' code does (SonyResearch/simba, scale_rl/networks): orthogonal (gain 1) embedding and output
+# layers, He-normal (truncated) block layers, zero biases.
+SIMBA_EXPANSION = 4
+SIMBA_LN_EPS = 1e-6  # flax.linen.LayerNorm's, which the authors' networks use
+
+
+def _he_normal(rng: np.random.Generator, fan_in: int, fan_out: int) -> np.ndarray:
+    """He-normal as jax.nn.initializers.he_normal: a normal truncated at 2 std, scaled to variance 2/fan_in."""
+    z = rng.standard_normal((fan_in, fan_out))
+    while np.any(outside := np.abs(z) > 2.0):
+        z[outside] = rng.standard_normal(int(outside.sum()))
+    return (z * math.sqrt(2.0 / fan_in) / 0.87962566103423978).astype(np.float32)
+
+
+def _orthogonal(rng: np.random.Generator, fan_in: int, fan_out: int, gain: float) -> np.ndarray:
+    return _init_layer(rng, fan_in, fan_out, "orthogonal", gain)["w"]
+
+
+def init_simba(rng: np.random.Generator, in_dim: int, widths: list[int], out_dim: int) -> Params:
+    """A SimBa network: one residual block per entry of `widths` (all equal: the residual stream's width)."""
+    width = widths[0]
+    inner = SIMBA_EXPANSION * width
+    zeros, ones = (lambda n: np.zeros(n, np.float32)), (lambda n: np.ones(n, np.float32))
+    blocks = [{"ln_scale": ones(width), "ln_bias": zeros(width), "w1": _he_normal(rng, width, inner),
+               "b1": zeros(inner), "w2": _he_normal(rng, inner, width), "b2": zeros(width)} for _ in widths]
+    return {"embed": {"w": _orthogonal(rng, in_dim, width, 1.0), "b": zeros(width)}, "blocks": blocks,
+            "head": {"ln_scale": ones(width), "ln_bias": zeros(width), "w": _orthogonal(rng, width, out_dim, 1.0),
+                     "b": zeros(out_dim)}}
+
+
+def _affine_layer_norm(x: jax.Array, scale: jax.Array, bias: jax.Array) -> jax.Array:
+    return layer_norm(x, SIMBA_LN_EPS) * scale + bias
+
+
+def simba(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32") -> jax.Array:
+    act = ACTIVATIONS[activation]
+    x = dense(x, params["embed"], matmul_dtype)
+    for block in params["blocks"]:
+        h = _affine_layer_norm(x, block["ln_scale"], block["ln_bias"])
+        h = act(dense(h, {"w": block["w1"], "b": block["b1"]}, matmul_dtype))
+        x = x + dense(h, {"w": block["w2"], "b": block["b2"]}, matmul_dtype)
+    head = params["head"]
+    return dense(_affine_layer_norm(x, head["ln_scale"], head["ln_bias"]), head, matmul_dtype)
+
+
+def output_layer_mask(params: Params) -> Params:
+    """True on the output layer's weights and bias, False elsewhere: where CrossQ+WN decays weights (its
+    hidden units are kept at unit norm instead). Works on an MLP, a SimBa network or a stacked ensemble."""
+    if isinstance(params, dict):  # SimBa
+        mask = jax.tree_util.tree_map(lambda _: False, params)
+        mask["head"] = {k: k in ("w", "b") for k in params["head"]}
+        return mask
+    return [{k: (i == len(params) - 1 and k in ("w", "b")) for k in layer} for i, layer in enumerate(params)]
 
 
 def actor_sizes(obs_dim: int, act_dim: int, hidden: list[int]) -> list[int]:
     return [obs_dim, *hidden, 2 * act_dim]
 
 
-def critic_sizes(obs_dim: int, act_dim: int, hidden: list[int]) -> list[int]:
-    return [obs_dim + act_dim, *hidden, 1]
+def critic_sizes(obs_dim: int, act_dim: int, hidden: list[int], out_dim: int = 1) -> list[int]:
+    return [obs_dim + act_dim, *hidden, out_dim]
 
 
 def init_actor(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,
-               norm: bool = False) -> Params:
+               norm: bool = False, network: str = "mlp") -> Params:
     """The actor outputs [mean, log_std] for each action dimension."""
+    if network == "simba":
+        return init_simba(rng, obs_dim, hidden, 2 * act_dim)
     # with orthogonal init a small last layer starts the policy near zero mean (Andrychowicz et al. 2021)
     return init_mlp(rng, actor_sizes(obs_dim, act_dim, hidden), init, out_gain=0.01, norm=norm)
 
 
 def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,
-                 n: int, norm: bool = False) -> Params:
-    """n critics Q(s, a), parameters stacked on a leading axis of size n."""
-    critics = [init_mlp(rng, critic_sizes(obs_dim, act_dim, hidden), init, norm=norm) for _ in range(n)]
+                 n: int, norm: bool = False, network: str = "mlp", out_dim: int = 1) -> Params:
+    """n critics Q(s, a) (each with `out_dim` outputs: TQC's quantiles), parameters stacked on a leading axis
+    of size n."""
+    if network == "simba":
+        critics = [init_simba(rng, obs_dim + act_dim, hidden, out_dim) for _ in range(n)]
+    else:
+        critics = [init_mlp(rng, critic_sizes(obs_dim, act_dim, hidden, out_dim), init, norm=norm) for _ in range(n)]
     return stack(critics)
 
 
@@ -232,7 +306,8 @@ def _each_critic(params: Params, i: int) -> Params:
 
 def batch_renorm_critics_apply(params: Params, stats: Params, obs: jax.Array, actions: jax.Array, activation: str,
                              norm: BatchRenorm, train: bool, renorm: jax.Array | bool = False,
-                             matmul_dtype: str = "float32", unroll: bool = False) -> tuple[jax.Array, Params]:
+                             matmul_dtype: str = "float32", unroll: bool = False,
+                             outputs: int = 1) -> tuple[jax.Array, Params]:
     """`critics_apply` for critics with batch renormalisation: Q-values [n_critics, batch] and the new
     running statistics (each critic keeps its own)."""
     x = jnp.concatenate([obs, actions], axis=-1)
@@ -247,21 +322,33 @@ def batch_renorm_critics_apply(params: Params, stats: Params, obs: jax.Array, ac
         new_stats = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *[s for _, s in outs])
     else:
         q, new_stats = jax.vmap(one)(params, stats)
-    return q[..., 0], new_stats
+    return (q[..., 0] if outputs == 1 else q), new_stats
 
 
 def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
-                  matmul_dtype: str = "float32", normalize: bool = False, unroll: bool = False) -> jax.Array:
-    """Q-values of every critic: shape [n_critics, batch].
+                  matmul_dtype: str = "float32", normalize: bool = False, unroll: bool = False,
+                  network: str = "mlp", dropout_rate: float = 0.0, key: jax.Array | None = None,
+                  outputs: int = 1) -> jax.Array:
+    """Q-values of every critic: shape [n_critics, batch], or [n_critics, batch, outputs] for critics with
+    several outputs (TQC's quantiles). With `dropout_rate`, each critic drops units with its own key.
 
     The parameters are one stacked ensemble either way. `unroll` evaluates it critic by critic as
     plain 2-D matmuls, which XLA's CPU backend runs faster than the batched matmuls of `vmap`
     (sb3-preset update: 4.6 ms vs 5.6 ms, medians of 6 interleaved runs; docs/performance.md).
     """
     x = jnp.concatenate([obs, actions], axis=-1)
+
+    def one(p: Params, k: jax.Array | None) -> jax.Array:
+        if network == "simba":
+            return simba(p, x, activation, matmul_dtype)
+        return mlp(p, x, activation, matmul_dtype, normalize, dropout_rate, k)
+
+    n = jax.tree_util.tree_leaves(params)[0].shape[0]
+    keys = jax.random.split(key, n) if dropout_rate > 0 else None
     if unroll:
-        n = jax.tree_util.tree_leaves(params)[0].shape[0]
-        q = jnp.stack([mlp(_each_critic(params, i), x, activation, matmul_dtype, normalize) for i in range(n)])
+        q = jnp.stack([one(_each_critic(params, i), None if keys is None else keys[i]) for i in range(n)])
+    elif keys is None:
+        q = jax.vmap(lambda p: one(p, None))(params)
     else:
-        q = jax.vmap(lambda p: mlp(p, x, activation, matmul_dtype, normalize))(params)
-    return q[..., 0]
+        q = jax.vmap(one)(params, keys)
+    return q[..., 0] if outputs == 1 else q

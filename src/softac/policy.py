@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softac.networks import BatchRenorm, mlp, batch_renorm_mlp
+from softac.networks import BatchRenorm, batch_renorm_mlp, mlp, simba
 
 LOG_2 = float(np.log(2.0))
 LOG_SQRT_2PI = float(0.5 * np.log(2.0 * np.pi))
@@ -59,10 +59,13 @@ class Policy:
     log_std_mode: str
     matmul_dtype: str = "float32"
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
+    network: str = "mlp"  # or simba (networks.simba)
 
     def _outputs(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
                  renorm: jax.Array | bool = False) -> tuple[jax.Array, jax.Array, Any]:
-        if self.batch_renorm is None:
+        if self.network == "simba":
+            out = simba(actor, obs, self.activation, self.matmul_dtype)
+        elif self.batch_renorm is None:
             out = mlp(actor, obs, self.activation, self.matmul_dtype)
         else:
             out, stats = batch_renorm_mlp(actor, stats, obs, self.activation, self.batch_renorm, train, renorm,

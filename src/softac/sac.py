@@ -23,7 +23,7 @@ from softac.cpus import cpu_has_bf16
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
-                             stack, unit_norm_hidden_units)
+                             output_layer_mask, stack, unit_norm_hidden_units)
 from softac.policy import (ActionScaler, Policy, bound_log_std, log_one_minus_tanh_sq,  # noqa: F401
                            squashed_gaussian_log_prob)
 
@@ -40,6 +40,7 @@ class SACState(NamedTuple):
     n_updates: jax.Array  # gradient steps taken so far
     actor_stats: Any = ()  # running statistics of batch renormalisation (CrossQ); () without it
     critic_stats: Any = ()
+    target_critic_stats: Any = ()  # the target critics' (CrossQ with target critics, as CrossQ+WN); () without
 
 
 @dataclass(frozen=True)
@@ -64,7 +65,7 @@ class UpdateSettings:
 
     @property
     def has_targets(self) -> bool:
-        return self.critics.batch_renorm is None  # CrossQ, with batch-renormalised critics, has no target critics
+        return self.critics.has_targets
 
 
 # ---- one gradient step ---------------------------------------------------------------------------
@@ -86,7 +87,7 @@ def renorm_active(state: SACState, s: UpdateSettings) -> jax.Array:
 def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings) -> tuple[SACState, dict]:
     grads, (metrics, critic_stats) = jax.grad(soft_q_loss, has_aux=True)(
         state.critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
-        batch, key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s))
+        batch, key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s), state.target_critic_stats)
     updates, critic_opt = s.critic_tx.update(grads, state.critic_opt, state.critic)
     critic = optax.apply_updates(state.critic, updates)
     if s.weight_norm:
@@ -151,11 +152,15 @@ def policy_round(state: SACState, totals: dict, obs: jax.Array, key: jax.Array,
 
 
 def update_targets(state: SACState, n_updates: jax.Array, s: UpdateSettings) -> SACState:
-    """Polyak averaging every `target_update_interval` gradient steps."""
+    """Polyak averaging every `target_update_interval` gradient steps (of the running statistics too, where
+    the critics have them, as SBX averages its target batch statistics)."""
     due = (n_updates % s.target_update_interval) == 0
-    target = jax.tree_util.tree_map(lambda new, old: jnp.where(due, new, old),
-                                    polyak(state.target_critic, state.critic, s.tau), state.target_critic)
-    return state._replace(target_critic=target)
+
+    def averaged(target: Any, online: Any) -> Any:
+        return jax.tree_util.tree_map(lambda new, old: jnp.where(due, new, old), polyak(target, online, s.tau), target)
+
+    return state._replace(target_critic=averaged(state.target_critic, state.critic),
+                          target_critic_stats=averaged(state.target_critic_stats, state.critic_stats))
 
 
 def gradient_step(s: UpdateSettings, carry: tuple[SACState, dict], batch: Batch) -> tuple[tuple[SACState, dict], None]:
@@ -199,28 +204,47 @@ def act(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs:
 
 # ---- the state: fresh, and reset -----------------------------------------------------------------------
 
+def actor_hidden(config: SACConfig) -> list[int]:
+    return list(config.actor_hidden_sizes or config.hidden_sizes)
+
+
+def critic_hidden(config: SACConfig) -> list[int]:
+    return list(config.critic_hidden_sizes or config.hidden_sizes)
+
+
+def uses_target_critics(config: SACConfig) -> bool:
+    """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
+    return config.target_critics == "on" or (config.target_critics == "auto" and not config.crossq)
+
+
 def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random.Generator) -> tuple[Any, ...]:
     """New actor and critics, and (with batch renormalisation) their running statistics."""
     c, norm = config, config.crossq
-    actor = init_actor(rng, obs_dim, act_dim, c.hidden_sizes, c.init, norm=norm)
-    critic = init_critics(rng, obs_dim, act_dim, c.hidden_sizes, c.init, c.n_critics, norm=norm)
+    actor = init_actor(rng, obs_dim, act_dim, actor_hidden(c), c.init, norm=norm, network=c.network)
+    critic = init_critics(rng, obs_dim, act_dim, critic_hidden(c), c.init, c.n_critics, norm=norm, network=c.network,
+                          out_dim=c.n_quantiles or 1)
     if c.weight_norm:  # on the sphere from the start, so the running statistics see one scale throughout
         actor, critic = unit_norm_hidden_units(actor, np), unit_norm_hidden_units(critic, np)
     if not norm:
         return actor, critic, (), ()
-    return (actor, critic, init_norm_stats(actor_sizes(obs_dim, act_dim, c.hidden_sizes)),
-            stack([init_norm_stats(critic_sizes(obs_dim, act_dim, c.hidden_sizes))] * c.n_critics))
+    critic_sizes_ = critic_sizes(obs_dim, act_dim, critic_hidden(c), c.n_quantiles or 1)
+    return (actor, critic, init_norm_stats(actor_sizes(obs_dim, act_dim, actor_hidden(c))),
+            stack([init_norm_stats(critic_sizes_)] * c.n_critics))
 
 
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
              critic_stats: Any) -> SACState:
-    """A state around fresh networks: targets copied from the critics, fresh optimisers."""
+    """A state around fresh networks: targets copied from the critics (and their statistics), fresh optimisers."""
     log_alpha = jnp.asarray(np.log(max(initial_alpha, 1e-30)), jnp.float32)
+
+    def copy(tree: Any) -> Any:
+        return jax.tree_util.tree_map(jnp.copy, tree) if s.has_targets else ()
+
     return SACState(
-        actor=actor, critic=critic, target_critic=jax.tree_util.tree_map(jnp.copy, critic) if s.has_targets else (),
+        actor=actor, critic=critic, target_critic=copy(critic),
         log_alpha=log_alpha, actor_opt=s.actor_tx.init(actor), critic_opt=s.critic_tx.init(critic),
         alpha_opt=s.alpha_tx.init(log_alpha), key=key, n_updates=jnp.zeros((), jnp.int32),
-        actor_stats=actor_stats, critic_stats=critic_stats,
+        actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats),
     )
 
 
@@ -232,17 +256,35 @@ def resolve_matmul_dtype(setting: str) -> str:
     return "bfloat16" if jax.default_backend() != "cpu" or cpu_has_bf16() else "float32"
 
 
+def optimizer(config: SACConfig, lr: float) -> optax.GradientTransformation:
+    """Adam, or AdamW (Loshchilov & Hutter 2019) with weight_decay: on every parameter (SimBa) or on the
+    output layers only (CrossQ+WN, whose hidden units weight_norm keeps on the unit sphere)."""
+    if config.weight_decay == 0:
+        return optax.adam(lr, b1=config.adam_b1)
+    mask = output_layer_mask if config.weight_decay_layers == "output" else None
+    return optax.adamw(lr, b1=config.adam_b1, weight_decay=config.weight_decay, mask=mask)
+
+
+def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
+    """`auto` is -target_entropy_scale * |A| (Haarnoja et al. 2018b: -|A|; SimBa and CrossQ+WN: -|A|/2)."""
+    if config.target_entropy == "auto":
+        return -config.target_entropy_scale * float(act_dim)
+    return float(config.target_entropy)
+
+
 def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> UpdateSettings:
     c = config
     norm = BatchRenorm(c.batch_norm_momentum) if c.crossq else None
     # critics with batch renormalisation stay vmapped: unrolled, they were no faster (docs/performance.md)
     unroll = jax.default_backend() == "cpu" and c.n_critics <= 8 and norm is None
     return UpdateSettings(
-        policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm),
-        critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm),
-        actor_tx=optax.adam(c.actor_lr, b1=c.adam_b1), critic_tx=optax.adam(c.critic_lr, b1=c.adam_b1),
+        policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm, c.network),
+        critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
+                        network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
+                        drop_per_critic=c.top_quantiles_to_drop_per_net, targets=uses_target_critics(c)),
+        actor_tx=optimizer(c, c.actor_lr), critic_tx=optimizer(c, c.critic_lr),
         alpha_tx=optax.adam(c.alpha_lr, b1=c.adam_b1),
-        target_entropy=-float(act_dim) if c.target_entropy == "auto" else float(c.target_entropy),
+        target_entropy=resolve_target_entropy(c, act_dim),
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
         alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm)

@@ -1,0 +1,307 @@
+"""The SAC family's variants (issue 42), each pinned on a hand computation where its paper differs from SAC:
+TQC's truncated atoms and quantile Huber loss (Kuznetsov et al. 2020), CrossQ with target critics (CrossQ+WN,
+Palenicek et al. 2025), AdamW's decay on all or only the output layers, DroQ's critic dropout (Hiraoka et al.
+2022), SimBa's residual networks (Lee et al. 2024); and each resumes exactly.
+
+Float bounds as in test_sac_losses: the losses run in float32, the hand computations in float64; rel=1e-5 is
+~170 float32 roundings of the result for a few dozen operations on terms no larger than it."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softac import SAC, losses, sac
+from softac.config import SACConfig
+from softac.networks import (BatchRenorm, critics_apply, dropout, init_critics, init_norm_stats, init_simba,
+                             output_layer_mask, simba)
+
+from conftest import assert_clean_error, assert_same_training, run_cli
+from test_crossq import _batches
+from test_sac_losses import ACT, BATCH, OBS, POLICY, batch, constant_actor, hand_sample
+
+pytestmark = pytest.mark.numerics
+
+M = 3  # quantiles per critic in the hand cases
+
+
+def constant_quantile_critics(*rows):
+    """Critics whose quantiles are rows[i] (M values) for every (s, a): zero weights, the last bias set."""
+    critics = init_critics(np.random.default_rng(0), OBS, ACT, [4], "default", len(rows), out_dim=M)
+    critics = jax.tree_util.tree_map(np.zeros_like, critics)
+    critics[-1]["b"] = np.asarray(rows, np.float32)
+    return critics
+
+
+def _hand_quantile_huber(q, target):
+    """The quantile Huber loss in float64: q [n, B, M], target [B, K]; mean over B, M, K, summed over n."""
+    q, target = np.asarray(q, np.float64), np.asarray(target, np.float64)
+    taus = (np.arange(q.shape[-1]) + 0.5) / q.shape[-1]
+    delta = target[None, :, None, :] - q[..., None]
+    huber = np.where(np.abs(delta) > 1, np.abs(delta) - 0.5, 0.5 * delta**2)
+    return float(np.sum(np.mean(np.abs(taus[:, None] - (delta < 0)) * huber, axis=(1, 2, 3))))
+
+
+# ---- TQC -------------------------------------------------------------------------------------------------
+
+def test_tqc_pools_sorts_and_drops_the_largest_atoms_per_critic():
+    next_q = jnp.asarray([[[5.0, 1.0, 3.0]], [[2.0, 9.0, 0.5]]])  # 2 critics, 1 row, 3 quantiles
+    atoms = losses.truncated_target_atoms(next_q, drop_per_critic=1)
+    np.testing.assert_array_equal(np.asarray(atoms), [[0.5, 1.0, 2.0, 3.0]])  # 6 pooled, the 2 largest dropped
+    np.testing.assert_array_equal(np.asarray(losses.truncated_target_atoms(next_q, 0)),
+                                  [[0.5, 1.0, 2.0, 3.0, 5.0, 9.0]])
+
+
+def test_tqc_critic_loss_is_the_quantile_huber_loss_to_the_truncated_soft_atoms():
+    key = jax.random.PRNGKey(11)
+    mean, log_std = [0.3, -0.2], [-0.5, 0.1]
+    rewards, terminated, alpha, gamma = [1.0, -2.0, 0.5, 3.0], [0.0, 1.0, 0.0, 0.0], 0.5, 0.9
+    critic = constant_quantile_critics([0.0, 1.0, 2.5], [-1.0, 0.5, 20.0])
+    target_critic = constant_quantile_critics([3.0, 4.0, 6.0], [2.0, 5.0, 8.0])
+    critics = sac.Critics("relu", unroll=True, n_quantiles=M, drop_per_critic=1)
+    b = batch(rewards, terminated)
+
+    loss, (metrics, _) = sac.soft_q_loss(critic, (), target_critic, constant_actor(mean, log_std), (),
+                                         jnp.float32(alpha), b, key, POLICY, critics, gamma)
+
+    _, next_log_prob = hand_sample(key, mean, log_std)
+    kept = np.asarray([2.0, 3.0, 4.0, 5.0])  # pooled 2,3,4,5,6,8; the two largest dropped (1 per critic)
+    target = (np.asarray(rewards)[:, None] + gamma * (1 - np.asarray(terminated))[:, None]
+              * (kept[None, :] - alpha * next_log_prob[:, None]))
+    rows = np.asarray([[0.0, 1.0, 2.5], [-1.0, 0.5, 20.0]])
+    q = np.broadcast_to(rows[:, None, :], (2, BATCH, M))
+    assert float(loss) == pytest.approx(_hand_quantile_huber(q, target), rel=1e-5)
+    assert float(metrics["q1_mean"]) == pytest.approx(3.5 / 3) and float(metrics["q2_mean"]) == pytest.approx(19.5 / 3)
+
+    # d loss / d q_i = mean over rows and atoms of -|tau_i - 1{u < 0}| * Huber'(u), u = z - q_i, over M
+    grads = jax.grad(lambda c: sac.soft_q_loss(c, (), target_critic, constant_actor(mean, log_std), (),
+                                               jnp.float32(alpha), b, key, POLICY, critics, gamma)[0])(critic)
+    g = np.asarray(grads[-1]["b"])
+    for n in range(2):
+        for i in range(M):
+            u = target - rows[n, i]
+            tau = (i + 0.5) / M
+            want = np.mean(-np.abs(tau - (u < 0)) * np.clip(u, -1.0, 1.0)) / M
+            assert g[n, i] == pytest.approx(want, rel=1e-5, abs=1e-7), (n, i)
+    # a quantile above every atom (critic 2's top one, 20) comes down; critic 1's top one (2.5, tau 5/6) sits
+    # below most of the atoms of the three rows that bootstrap, so it goes up
+    assert g[1, 2] > 0 and g[0, 2] < 0
+
+
+def test_tqc_actor_climbs_the_mean_of_all_quantiles():
+    key = jax.random.PRNGKey(3)
+    mean, log_std, alpha = [0.3, -0.2], [-0.5, 0.1], 0.2
+    critics = sac.Critics("relu", unroll=True, n_quantiles=M, drop_per_critic=1)
+    obs = batch([0.0] * BATCH, [0.0] * BATCH).obs
+    loss, (log_prob, _) = sac.policy_loss(constant_actor(mean, log_std), (),
+                                          constant_quantile_critics([0.0, 1.0, 2.0], [-3.0, 4.0, 8.0]), (),
+                                          jnp.float32(alpha), obs, key, POLICY, critics)
+    _, want_log_prob = hand_sample(key, mean, log_std)
+    assert float(loss) == pytest.approx(alpha * np.mean(want_log_prob) - 12.0 / 6, rel=1e-5)
+
+
+# ---- CrossQ with target critics (CrossQ+WN) ----------------------------------------------------------------
+
+def _with_norm_layers(critic):
+    return [{**layer, "norm_scale": np.ones((2, layer["w"].shape[1]), np.float32),
+             "norm_bias": np.zeros((2, layer["w"].shape[1]), np.float32)} for layer in critic]
+
+
+def test_crossq_with_targets_bootstraps_from_the_target_critics_joint_pass():
+    """The next-state value comes from the target critics (here constant 5 and 7: the target takes 5), while the
+    online critics' joint pass alone moves the running statistics."""
+    from test_sac_losses import constant_critics
+
+    norm = BatchRenorm(momentum=0.9)
+    policy = sac.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=norm)
+    critics = sac.Critics("relu", unroll=True, batch_renorm=norm, targets=True)
+    actor = [{**layer, "norm_scale": np.ones(layer["w"].shape[0], np.float32),
+              "norm_bias": np.zeros(layer["w"].shape[0], np.float32)} for layer in constant_actor([0.1, 0.2], [-1, -1])]
+    actor_stats = init_norm_stats([OBS, 4, 2 * ACT])
+    stats = jax.tree_util.tree_map(lambda *x: np.stack(x), *[init_norm_stats([OBS + ACT, 4, 1])] * 2)
+    target_stats = jax.tree_util.tree_map(lambda x: x + 3.0, stats)  # apart, to see which moves
+    critic, target = _with_norm_layers(constant_critics(1.0, 2.0)), _with_norm_layers(constant_critics(5.0, 7.0))
+    key, alpha, gamma = jax.random.PRNGKey(4), 0.3, 0.9
+    b = batch([1.0, -2.0, 0.5, 3.0], [0.0, 0.0, 1.0, 0.0])
+    loss, (metrics, new_stats) = sac.soft_q_loss(critic, stats, target, actor, actor_stats, jnp.float32(alpha), b,
+                                                 key, policy, critics, gamma, target_stats=target_stats)
+    _, log_prob = policy.sample(actor, actor_stats, b.next_obs, key)
+    y = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (5.0 - alpha * np.asarray(log_prob))
+    assert float(loss) == pytest.approx(0.5 * (np.mean((1.0 - y) ** 2) + np.mean((2.0 - y) ** 2)), rel=1e-5)
+    rows = np.concatenate([np.asarray(b.obs), np.asarray(b.next_obs)])
+    np.testing.assert_allclose(np.asarray(new_stats[0]["mean"])[0, :OBS], 0.1 * rows.mean(0), rtol=1e-4, atol=1e-6)
+
+
+def test_crossq_with_targets_keeps_and_averages_target_statistics():
+    cfg = SACConfig().replace(crossq=True, target_critics="on", tau=0.5, hidden_sizes=[16, 16], batch_size=8,
+                              policy_delay=1)
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(0)
+    assert state.target_critic != () and len(state.target_critic_stats) == 3
+    before = np.array(state.target_critic_stats[1]["var"], copy=True)
+    state, _ = fns.update(state, _batches(np.random.default_rng(0), 1, 8))
+    # target statistics = 0.5 * online (after the step) + 0.5 * old target
+    np.testing.assert_allclose(np.asarray(state.target_critic_stats[1]["var"]),
+                               0.5 * np.asarray(state.critic_stats[1]["var"]) + 0.5 * before, rtol=1e-6)
+    assert sac.build(cfg.replace(target_critics="auto"), 3, 2).init(0).target_critic == ()  # CrossQ's default
+
+
+# ---- AdamW ---------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("layers", ["all", "output"])
+def test_adamw_decays_all_or_only_the_output_layers(layers):
+    """With zero gradients Adam's step is zero, so one step is the decay alone: p <- p - lr * wd * p where the
+    mask says, p unchanged elsewhere."""
+    cfg = SACConfig().replace(weight_decay=0.1, weight_decay_layers=layers, critic_lr=0.01, hidden_sizes=[8, 8])
+    params = init_critics(np.random.default_rng(0), 3, 2, [8, 8], "default", 2)
+    tx = sac.optimizer(cfg, cfg.critic_lr)
+    updates, _ = tx.update(jax.tree_util.tree_map(jnp.zeros_like, params), tx.init(params), params)
+    for i, (layer, update) in enumerate(zip(params, updates)):
+        decayed = layers == "all" or i == len(params) - 1
+        for name in ("w", "b"):
+            want = -0.01 * 0.1 * layer[name] if decayed else np.zeros_like(layer[name])
+            np.testing.assert_allclose(np.asarray(update[name]), want, rtol=1e-6, atol=1e-12)
+    assert isinstance(sac.optimizer(cfg.replace(weight_decay=0.0), 1e-3), type(__import__("optax").adam(1e-3)))
+
+
+def test_output_layer_mask_of_mlp_and_simba():
+    mlp_mask = output_layer_mask([{"w": 0, "b": 0, "norm_scale": 0}, {"w": 0, "b": 0, "norm_scale": 0}])
+    assert mlp_mask == [{"w": False, "b": False, "norm_scale": False}, {"w": True, "b": True, "norm_scale": False}]
+    mask = output_layer_mask(init_simba(np.random.default_rng(0), 3, [8], 1))
+    assert mask["head"] == {"ln_scale": False, "ln_bias": False, "w": True, "b": True}
+    assert not any(jax.tree_util.tree_leaves(mask["blocks"])) and not any(jax.tree_util.tree_leaves(mask["embed"]))
+
+
+# ---- DroQ ---------------------------------------------------------------------------------------------------
+
+def test_dropout_zeroes_units_at_the_rate_and_keeps_the_mean():
+    x = jnp.ones((200, 500))
+    y = np.asarray(dropout(x, 0.1, jax.random.PRNGKey(0)))
+    zero = np.mean(y == 0.0)
+    # 100,000 Bernoulli(0.1) draws: the share's std is ~0.00095; 5 std either side
+    assert abs(zero - 0.1) < 0.005
+    np.testing.assert_allclose(y[y != 0], 1 / 0.9, rtol=1e-6)
+
+
+def test_droq_critics_drop_units_in_every_pass_with_their_own_keys():
+    params = init_critics(np.random.default_rng(0), OBS, ACT, [64, 64], "default", 2)
+    obs, act = jnp.ones((5, OBS)), jnp.zeros((5, ACT))
+    plain = np.asarray(critics_apply(params, obs, act, "relu", normalize=True))
+    one = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2, key=jax.random.PRNGKey(1)))
+    again = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2,
+                                     key=jax.random.PRNGKey(1), unroll=True))
+    other = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2,
+                                     key=jax.random.PRNGKey(2)))
+    assert not np.allclose(one, plain) and not np.allclose(one, other)
+    np.testing.assert_allclose(one, again, rtol=1e-5)  # vmapped and unrolled draw the same masks
+    # the same input rows in one call get different masks (each unit, each row)
+    assert not np.allclose(one[:, 0], one[:, 1])
+    # the critic loss and the actor loss both see dropout: two keys, two losses
+    critics = sac.Critics("relu", unroll=True, layer_norm=True, dropout=0.2)
+    b = batch([1.0, -2.0, 0.5, 3.0], [0.0] * BATCH)
+    actor = constant_actor([0.1, 0.2], [-1.0, -1.0])
+    losses = {float(sac.critic_loss(params, params, actor, jnp.float32(0.1), b, jax.random.PRNGKey(k), POLICY,
+                                    critics, 0.9)[0]) for k in range(3)}
+    assert len(losses) == 3
+
+
+# ---- SimBa ---------------------------------------------------------------------------------------------------
+
+def _hand_simba(params, x, eps=1e-6):
+    """SimBa's forward in float64: embedding, x + W2 relu(W1 LN(x)) per block, LN, head."""
+    p = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), params)
+
+    def ln(h, scale, bias):
+        mu = h.mean(-1, keepdims=True)
+        return (h - mu) / np.sqrt(((h - mu) ** 2).mean(-1, keepdims=True) + eps) * scale + bias
+
+    h = x @ p["embed"]["w"] + p["embed"]["b"]
+    for blk in p["blocks"]:
+        h = h + np.maximum(ln(h, blk["ln_scale"], blk["ln_bias"]) @ blk["w1"] + blk["b1"], 0) @ blk["w2"] + blk["b2"]
+    return ln(h, p["head"]["ln_scale"], p["head"]["ln_bias"]) @ p["head"]["w"] + p["head"]["b"]
+
+
+def test_simba_network_is_pre_layer_norm_residual_blocks_and_a_final_layer_norm():
+    rng = np.random.default_rng(0)
+    params = init_simba(rng, 5, [16, 16], 3)
+    assert params["blocks"][0]["w1"].shape == (16, 64) and params["blocks"][0]["w2"].shape == (64, 16)
+    # perturb the LayerNorms' affine parts so that they take part in the check
+    for blk in params["blocks"]:
+        blk["ln_scale"] = rng.uniform(0.5, 1.5, 16).astype(np.float32)
+        blk["ln_bias"] = rng.normal(0, 0.1, 16).astype(np.float32)
+    x = rng.normal(size=(7, 5)).astype(np.float32)
+    got = np.asarray(simba(params, jnp.asarray(x), "relu"))
+    want = _hand_simba(params, x.astype(np.float64))
+    # float32 through two residual blocks and three LayerNorms of 16 units: each output ~1, a few hundred
+    # roundings of terms of size ~1-10
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_simba_init_follows_the_authors_code():
+    params = init_simba(np.random.default_rng(1), 30, [256], 4)
+    w1 = params["blocks"][0]["w1"]  # He normal: variance 2 / fan_in, truncated at 2 std
+    assert np.var(w1) == pytest.approx(2.0 / 256, rel=0.05)
+    embed = params["embed"]["w"]  # orthogonal, gain 1: orthonormal rows (30 <= 256)
+    np.testing.assert_allclose(embed @ embed.T, np.eye(30), atol=1e-5)
+    assert not np.any(params["blocks"][0]["b1"]) and not np.any(params["head"]["b"])
+
+
+def test_simba_agent_acts_and_its_update_learns(tiny):
+    cfg = tiny(network="simba", hidden_sizes=[16], critic_hidden_sizes=[32, 32], obs_norm=True)
+    agent = SAC(cfg)
+    assert list(agent.learner.state.critic) == ["blocks", "embed", "head"]
+    assert agent.learner.state.critic["blocks"][1]["w1"].shape == (2, 32, 128)  # two critics stacked
+    assert agent.learner.state.actor["embed"]["w"].shape[1] == 16
+    agent.learn(300, progress=False)
+    assert np.all(np.isfinite(agent.predict(np.zeros(agent.learner.spaces.obs_dim))))
+
+
+def test_exporting_a_simba_actor_is_refused_in_one_line(tiny, tmp_path):
+    SAC(tiny(network="simba", hidden_sizes=[16])).learn(250, run_dir=tmp_path / "run", progress=False)
+    r = run_cli("export", str(tmp_path / "run"), "--format", "numpy")
+    assert_clean_error(r, "network=simba")
+    assert not (tmp_path / "run" / "export").exists()
+
+
+# ---- the config and target entropy ------------------------------------------------------------------------
+
+def test_target_entropy_scale():
+    assert sac.build(SACConfig().replace(hidden_sizes=[8], target_entropy_scale=0.5), 3, 6).target_entropy == -3.0
+    assert sac.build(SACConfig().replace(hidden_sizes=[8], target_entropy=-1.5), 3, 6).target_entropy == -1.5
+
+
+@pytest.mark.parametrize("sets,fragment", [
+    (["network=simba", "crossq=true"], "network"),
+    (["network=simba", "hidden_sizes=256,128"], "hidden_sizes"),
+    (["n_quantiles=5", "top_quantiles_to_drop_per_net=5"], "top_quantiles_to_drop_per_net"),
+    (["crossq=true", "critic_dropout=0.01"], "critic_dropout"),
+    (["weight_decay_layers=hidden"], "weight_decay_layers"),
+    (["target_critics=maybe"], "target_critics"),
+])
+def test_variant_settings_that_do_not_compose_are_refused_in_one_line(tmp_path, sets, fragment):
+    r = run_cli("train", "--steps", "10", "--out", str(tmp_path / "run"), "--set", *sets)
+    assert_clean_error(r, fragment)
+    assert not (tmp_path / "run").exists()
+
+
+# ---- exact resume ------------------------------------------------------------------------------------------
+
+VARIANTS = {
+    "tqc": dict(n_quantiles=5, top_quantiles_to_drop_per_net=1, n_critics=3),
+    "crossq-targets-adamw": dict(crossq=True, target_critics="on", weight_norm=True, weight_decay=0.01,
+                                 weight_decay_layers="output", batch_renorm_warmup=400),
+    "droq": dict(critic_dropout=0.01, critic_layer_norm=True, gradient_steps=3, policy_delay=3),
+    "simba": dict(network="simba", hidden_sizes=[16], obs_norm=True, weight_decay=0.01, target_entropy_scale=0.5),
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_each_variant_resumes_exactly(tiny, tmp_path, variant):
+    cfg = tiny(n_envs=2, eval_interval=300, **VARIANTS[variant])
+    straight = SAC(cfg)
+    straight.learn(900, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(500, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(400, run_dir=tmp_path / "split", progress=False)
+    assert_same_training(straight, resumed)
+    assert (tmp_path / "straight" / "eval.csv").read_text() == (tmp_path / "split" / "eval.csv").read_text()
