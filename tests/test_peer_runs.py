@@ -108,6 +108,49 @@ def test_the_crossq_settings_carry_every_setting_or_refuse():
             crossq_settings(preset.replace(**change))
 
 
+def test_sbx_tqc_runs_at_the_sweeps_own_settings(tmp_path):
+    """`sbx-tqc-softac` takes the sweep's --preset and --set: SBX's TQC made with those settings, recorded."""
+    import yaml
+
+    run = tmp_path / "tqc"
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-tqc-softac", "--env", DRIFT, "--seed", "1",
+                        "--steps", "300", "--out", str(run), "--eval-interval", "100", "--eval-episodes", "2",
+                        "--log-interval", "100", "--preset", "tqc", "--set", "n_critics=2",
+                        "critic_hidden_sizes=64,64", "target_entropy_scale=0.5"], capture_output=True, text=True,
+                       timeout=300, env=child_env(FAKE_PEERS))
+    assert r.returncode == 0, r.stderr
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert (config["framework"], config["algorithm"], config["settings"]) == ("sbx-tqc-softac", "TQC", "sweep")
+    assert config["softac_settings"] == {"preset": "tqc", "overrides": ["n_critics=2", "critic_hidden_sizes=64,64",
+                                                                        "target_entropy_scale=0.5"]}
+    assert (config["batch_size"], config["learning_starts"], config["tau"], config["target_entropy"]) == (
+        256, 5000, 0.005, -0.5)  # Drift-v0 has one action dimension
+    for expected in ("'pi': [256, 256]", "'qf': [64, 64]", "'n_quantiles': 25"):
+        assert expected in config["policy_kwargs"]
+    assert [int(row["step"]) for row in read_csv(run / "eval.csv")] == [100, 200, 300]
+
+
+def test_the_tqc_settings_carry_every_setting_or_refuse():
+    import optax
+
+    from softac.config import SACConfig
+    from softac.peer_settings import tqc_settings
+
+    preset = SACConfig.preset("tqc").replace(n_critics=2)
+    settings = tqc_settings(preset, act_dim=6)
+    assert (settings["top_quantiles_to_drop_per_net"], settings["target_entropy"], settings["ent_coef"]) == (2, -6.0,
+                                                                                                         "auto_1.0")
+    assert settings["policy_kwargs"]["net_arch"] == {"pi": [256, 256], "qf": [512, 512, 512]}
+    decayed = tqc_settings(preset.replace(weight_decay=0.01), act_dim=6)["policy_kwargs"]
+    assert decayed["optimizer_class"] is optax.adamw and decayed["optimizer_kwargs"]["weight_decay"] == 0.01
+    for change, name in (({"n_critics": 5}, "n_critics"), ({"n_quantiles": 0}, "n_quantiles"),
+                         ({"obs_norm": True}, "obs_norm"), ({"alpha_lr": 1e-4}, "alpha_lr"),
+                         ({"weight_decay": 0.01, "weight_decay_layers": "output"}, "output layers"),
+                         ({"network": "simba", "hidden_sizes": [64]}, "network")):
+        with pytest.raises(ValueError, match=name):
+            tqc_settings(preset.replace(**change), act_dim=6)
+
+
 def _peer_command(run, steps="1200", seed="0"):
     return [sys.executable, "-m", "softac.peers", "run", "sbx-crossq", "--env", DRIFT, "--seed", seed, "--steps", steps,
             "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2", "--log-interval", "100",

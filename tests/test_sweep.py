@@ -226,6 +226,17 @@ def test_peers_need_the_bench_extra_and_take_no_softac_settings(tmp_path):
     assert_clean_error(result, "CrossQ at softac's crossq preset settings", "not softac's settings")
 
 
+def test_a_peer_at_the_sweeps_settings_refuses_what_it_cannot_take(tmp_path):
+    """sbx-tqc-softac takes --preset and --set; the tqc preset's five critics are more than SBX's TQC has."""
+    result = run_cli("sweep", "--framework", "sbx-tqc-softac", "--env", "InvertedPendulum-v5", "--preset", "tqc",
+                     "--out", str(tmp_path / "s"), timeout=60)
+    assert_clean_error(result, "--framework sbx-tqc-softac: settings SBX's TQC cannot take: n_critics != 2")
+    result = run_cli("sweep", "--framework", "sbx-tqc-softac", "--env", "InvertedPendulum-v5", "--preset", "tqc",
+                     "--grid", "tau=0.1,0.2", "--out", str(tmp_path / "s"), timeout=60)
+    assert_clean_error(result, "--grid and --search are for softac")
+    assert not (tmp_path / "s" / "_ray").exists()
+
+
 @pytest.mark.parametrize("framework", ["sb3", "sbx", "sbx-crossq", "sbx-crossq-softac"])
 def test_peers_take_eval_settings_spelled_either_way(framework):
     for pair in ("eval-interval=5000", "eval_interval=5000", " eval_episodes=5"):

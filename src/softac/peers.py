@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from softac.peer_settings import SWEEP_TRANSLATORS, crossq_settings  # noqa: F401  (crossq_settings: its old home)
+
 if TYPE_CHECKING:
     from softac.config import SACConfig
 
@@ -31,7 +33,7 @@ class Peer:
     package: str  # the module to import (the [bench] extra installs it)
     distribution: str  # its name on PyPI, for the version in config.yaml
     algorithm: str  # the class trained: SAC or CrossQ
-    settings: str  # "defaults" (the peer's own), or the softac preset whose settings it runs at
+    settings: str  # "defaults" (the peer's own), "sweep" (the sweep's --preset/--set), or the softac preset it runs at
     about: str
     label: str  # the configuration's name in tables and legends
     her: bool = False  # with SB3's HerReplayBuffer: for goal envs only
@@ -48,6 +50,12 @@ PEERS = {
                               "SBX's CrossQ at softac's crossq preset settings (256x256, batch 128, learning_starts "
                               "5000, lr 1e-3, Adam b1 0.5, policy delay 3)",
                               "SBX CrossQ, crossq preset's settings"),
+    "sbx-tqc": Peer("sbx", "sbx-rl", "TQC", "defaults",
+                    "SBX's TQC at its defaults (2 critics of 25 quantiles, 2 dropped per critic, 256x256, batch 256)",
+                    "SBX TQC, its defaults"),
+    "sbx-tqc-softac": Peer("sbx", "sbx-rl", "TQC", "sweep",
+                           "SBX's TQC at the sweep's own settings (its --preset and --set, e.g. --preset tqc; what "
+                           "SBX cannot take is refused)", "SBX TQC, same settings"),
     "sb3-her": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults",
                     "Stable-Baselines3's SAC at its defaults with its HerReplayBuffer (future, 4 goals) and "
                     "learning_starts 1000, for goal envs", "SB3 SAC + HER, its defaults", her=True),
@@ -64,28 +72,6 @@ THROUGHPUT_LEARNING_STARTS = 100
 def missing_peers(names: list[str]) -> list[str]:
     """The peers among `names` whose package is not installed (the [bench] extra)."""
     return [name for name in names if name in PEERS and importlib.util.find_spec(PEERS[name].package) is None]
-
-
-def crossq_settings(c: SACConfig) -> dict[str, Any]:
-    """A softac config's settings in SBX's CrossQ keywords. Every setting that changes what is computed is
-    carried over or checked to be SBX's own already (ReLU, autotuned alpha from 1.0, target entropy -act_dim,
-    one update per env step, one env); one that SBX cannot take is refused, so "same settings" stays true
-    when the preset changes."""
-    untranslatable = {"actor_lr != alpha_lr": c.actor_lr != c.alpha_lr, "obs_norm": c.obs_norm,
-                      "n_step": c.n_step != 1, "critic_layer_norm": c.critic_layer_norm, "not crossq": not c.crossq,
-                      "policy_frequency": c.policy_frequency != 1, "reset_interval": c.reset_interval > 0,
-                      "activation": c.activation != "relu", "fixed alpha": not c.autotune_alpha,
-                      "gradient_steps": c.gradient_steps != 1, "n_envs": c.n_envs != 1,
-                      "target_entropy": c.target_entropy != "auto", "initial alpha": c.alpha != 1.0}
-    bad = [name for name, differs in untranslatable.items() if differs]
-    if bad:
-        raise ValueError(f"settings SBX's CrossQ cannot take: {', '.join(bad)}")
-    return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
-            "learning_starts": c.learning_starts, "batch_size": c.batch_size, "gamma": c.gamma,
-            "policy_delay": c.policy_delay,
-            "policy_kwargs": {"net_arch": {"pi": list(c.hidden_sizes), "qf": list(c.hidden_sizes)},
-                              "n_critics": c.n_critics, "batch_norm_momentum": c.batch_norm_momentum,
-                              "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1}}}
 
 
 def _peer_algorithm(framework: str) -> tuple[Any, dict[str, Any]]:
@@ -125,24 +111,50 @@ def peer_env(framework: str, env_id: str):
     return env
 
 
-def peer_model(framework: str, env_id: str, seed: int, **overrides: Any):
-    """The peer's model on a fresh env, at its settings (`overrides`, e.g. learning_starts for a throughput
-    probe, replace them)."""
+def sweep_config(env_id: str, preset: str | None, overrides: list[str] | None) -> SACConfig:
+    """The softac config a sweep's --preset and --set make (default: the env's own preset): what a peer whose
+    settings are "sweep" runs at."""
+    from softac.config import SACConfig
+
+    config = SACConfig.preset(preset, env_id=env_id) if preset else SACConfig.for_env(env_id)
+    return config.with_overrides(list(overrides or []))
+
+
+def peer_settings(framework: str, config: SACConfig | None, act_dim: int) -> dict[str, Any]:
+    """The keywords a peer is made with besides its library's defaults (ValueError for settings it cannot take)."""
+    from softac.config import SACConfig
+
+    peer = PEERS[framework]
+    if peer.settings == "defaults":
+        return {}
+    if peer.settings == "sweep":
+        if config is None:
+            raise ValueError(f"{framework} runs at a sweep's settings: give its config")
+        return SWEEP_TRANSLATORS[peer.algorithm](config, act_dim)
+    return crossq_settings(SACConfig.preset(peer.settings))
+
+
+def peer_model(framework: str, env_id: str, seed: int, config: SACConfig | None = None, **overrides: Any):
+    """The peer's model on a fresh env, at its settings (a "sweep" peer's from `config`; `overrides`, e.g.
+    learning_starts for a throughput probe, replace them)."""
     import gymnasium as gym
+    import numpy as np
+
+    from softac.errors import SoftacError
 
     algorithm, kwargs = _peer_algorithm(framework)
     peer = PEERS[framework]
-    if peer.settings != "defaults":
-        from softac.config import SACConfig
-
-        kwargs.update(crossq_settings(SACConfig.preset(peer.settings)))
+    env = peer_env(framework, env_id)
+    try:
+        kwargs.update(peer_settings(framework, config, int(np.prod(env.action_space.shape))))
+    except ValueError as exc:
+        raise SoftacError(f"{framework}: {exc}") from None
     if peer.her:
         from stable_baselines3 import HerReplayBuffer
 
         kwargs.update(replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(HER_SETTINGS),
                       learning_starts=HER_LEARNING_STARTS)
     kwargs.update(overrides)
-    env = peer_env(framework, env_id)
     policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else "MlpPolicy"
     return without_log_dir(algorithm(policy, env, seed=seed, verbose=0, **kwargs))
 
@@ -287,21 +299,24 @@ def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps:
 
 
 def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
-             eval_episodes: int, log_interval: int, checkpoint_interval: int = 0) -> dict[str, Any]:
+             eval_episodes: int, log_interval: int, checkpoint_interval: int = 0, preset: str | None = None,
+             overrides: list[str] | None = None) -> dict[str, Any]:
     """Train a peer and write a softac-style run directory (config.yaml, progress.csv, episodes.csv,
     eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions, episode i of
     every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what softac's mean
     (softac.logs.TrainRows). The run directory is locked as softac's are (one writer). Every
     `checkpoint_interval` steps, and when Ctrl-C or SIGTERM stops it (TrainingInterrupted, exit 130), the run
     saves checkpoints/last; the same call on the same directory continues from there, so a peer's run that
-    takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes."""
+    takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes. A peer
+    whose settings are a sweep's runs at the config `preset` and `overrides` make (sweep_config)."""
     from softac.errors import TrainingInterrupted
     from softac.rundir import run_lock
 
+    sweep = {"preset": preset, "overrides": list(overrides or [])}
     with run_lock(out):
         try:
             return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
-                           checkpoint_interval).run()
+                           checkpoint_interval, sweep).run()
         except TrainingInterrupted as exc:
             # said before the lock goes: a stopped sweep waits for the lock, then its user reads the trial's log
             print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr,
@@ -328,13 +343,15 @@ class PeerRun:
     same numbers, unlike softac's exact resume."""
 
     def __init__(self, framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
-                 eval_episodes: int, log_interval: int, checkpoint_interval: int):
+                 eval_episodes: int, log_interval: int, checkpoint_interval: int,
+                 sweep: dict[str, Any] | None = None):
         from softac import checkpoint as ckpt
         from softac.rundir import checkpoint_path
 
         self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
         self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
         self.checkpoint_interval = checkpoint_interval
+        self.sweep = sweep if PEERS[framework].settings == "sweep" else None  # the softac settings it runs at
         self.checkpoint = checkpoint_path(out, "last")
         self.identity = {"framework": framework, "env_id": env_id, "seed": seed, "total_steps": steps}
         self.resumed = ckpt.is_checkpoint(self.checkpoint)
@@ -342,7 +359,8 @@ class PeerRun:
             self.model, meta = load_peer_checkpoint(framework, env_id, self.checkpoint, self.identity)
             self.record = meta["record"]
         else:
-            self.model = peer_model(framework, env_id, seed)
+            config = sweep_config(env_id, **self.sweep) if self.sweep is not None else None
+            self.model = peer_model(framework, env_id, seed, config)
             self.record = {"step": 0, "episodes": 0, "best": None, "best_step": None, "last": None,
                            "elapsed_s": 0.0, "recent_returns": []}
 
@@ -364,6 +382,8 @@ class PeerRun:
                   **_hyperparameters(self.model)}
         if peer.her:
             config["her"] = {"replay_buffer_class": "HerReplayBuffer", **HER_SETTINGS}
+        if self.sweep is not None:
+            config["softac_settings"] = self.sweep
         write_config(self.out, config, {"versions": {self.framework: peer_version(self.framework)}},
                      start_step=start, continuing=self.resumed)
         # the same files as a softac run (plots, reports and sweep tables read both); on resume, rows past the
@@ -476,6 +496,8 @@ def arguments() -> argparse.ArgumentParser:
     p.add_argument("--log-interval", type=int, default=1000)
     p.add_argument("--checkpoint-interval", type=int, default=0,
                    help="run: steps between checkpoints (0: only when stopped by a signal); run again to continue")
+    p.add_argument("--preset", help="a peer that runs at a sweep's settings: softac's preset (default: the env's)")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="... and its overrides")
     return p
 
 
@@ -492,7 +514,7 @@ def main(argv: list[str]) -> None:
             if not a.out:
                 parser.error("run needs --out")
             out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
-                           a.log_interval, a.checkpoint_interval)
+                           a.log_interval, a.checkpoint_interval, a.preset, a.set)
         elif a.kind == "throughput":
             out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
         else:

@@ -86,8 +86,11 @@ class SweepSpec:
     def describe(self) -> str:
         """The configuration by framework and preset, for tables and legends: "softac, crossq preset",
         "softac, env preset + obs_norm=true", "SBX CrossQ, its defaults" (a peer's own settings are fixed)."""
-        if self.framework in PEERS:
+        if self.framework in PEERS and PEERS[self.framework].settings != "sweep":
             return PEERS[self.framework].label
+        if self.framework in PEERS:
+            name = f"{PEERS[self.framework].label} as softac's {self.preset or 'env'} preset"
+            return f"{name} + {' '.join(self.overrides)}" if self.overrides else name
         name = f"softac, {self.preset or 'env'} preset"
         return f"{name} + {' '.join(self.overrides)}" if self.overrides else name
 
@@ -233,6 +236,38 @@ def default_threshold(env_id: str) -> float | None:
     return None if threshold is None else float(threshold)
 
 
+def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
+    """A peer's sweep: softac's settings only where the peer runs at them (a "sweep" peer: --preset and --set,
+    each one it cannot take refused here), the goal env a HER peer needs, its package installed."""
+    from softac.envs import make_env
+    from softac.peers import check_her_env, missing_peers, peer_settings
+
+    peer = PEERS[spec.framework]
+    if peer.settings == "sweep":
+        if spec.grid or spec.search:
+            raise SoftacError(f"--framework {spec.framework} runs at one config (--preset and --set): --grid and "
+                              "--search are for softac")
+    else:
+        allowed = {"eval_interval", "eval_episodes", "log_interval"}
+        own = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in allowed]
+        if spec.grid or spec.search or spec.preset or own:
+            raise SoftacError(f"--framework {spec.framework} runs {peer.about}, not softac's "
+                              "settings: --grid, --search, --preset and --set (other than eval_interval/"
+                              "eval_episodes/log_interval) are for softac")
+    if peer.her or peer.settings == "sweep":  # checked now, not in every trial after Ray starts
+        env = make_env(spec.env_id)
+        try:
+            check_her_env(spec.framework, env, spec.env_id, named=f"--framework {spec.framework}")
+            peer_settings(spec.framework, base, int(env.action_space.shape[0]))
+        except ValueError as exc:
+            raise SoftacError(f"--framework {spec.framework}: {exc}") from None
+        finally:
+            env.close()
+    if missing_peers([spec.framework]):
+        raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
+                          "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
+
+
 def validate(spec: SweepSpec) -> SACConfig:
     """Every trial's config, checked before Ray starts (bad input fails in a second, with one line)."""
     from softac.envs import resolve_env_id
@@ -242,25 +277,7 @@ def validate(spec: SweepSpec) -> SACConfig:
     resolve_env_id(spec.env_id)
     base = spec.base_config()
     if spec.framework != "softac":
-        allowed = {"eval_interval", "eval_episodes", "log_interval"}
-        own = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in allowed]
-        if spec.grid or spec.search or spec.preset or own:
-            raise SoftacError(f"--framework {spec.framework} runs {PEERS[spec.framework].about}, not softac's "
-                              "settings: --grid, --search, --preset and --set (other than eval_interval/"
-                              "eval_episodes/log_interval) are for softac")
-        from softac.peers import check_her_env, missing_peers
-
-        if PEERS[spec.framework].her:  # checked now, not in every trial after Ray starts
-            from softac.envs import make_env
-
-            env = make_env(spec.env_id)
-            try:
-                check_her_env(spec.framework, env, spec.env_id, named=f"--framework {spec.framework}")
-            finally:
-                env.close()
-        if missing_peers([spec.framework]):
-            raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
-                              "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
+        check_peer_spec(spec, base)
     if spec.search:
         if spec.grid:
             raise SoftacError("--grid and --search are alternatives: a grid sweeps listed values, a search samples")

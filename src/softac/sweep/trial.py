@@ -17,6 +17,7 @@ from typing import Any
 
 from softac.config import SACConfig
 from softac.cpus import claim_cpus, trial_settings_env
+from softac.peers import PEERS
 from softac.rundir import holder, wait_released
 from softac.sweep.spec import (LOG_DIR, METRIC, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, search_trial_name,
                                value_text)
@@ -46,13 +47,21 @@ def trial_state(run: Path, steps: int | None = None) -> str:
     return "partial" if (run / "checkpoints" / "last").exists() else "new"
 
 
+def sweep_settings(spec: SweepSpec) -> list[str]:
+    """A peer that runs at the sweep's settings gets its --preset and --set (softac.peers)."""
+    if PEERS[spec.framework].settings != "sweep":
+        return []
+    return [*(["--preset", spec.preset] if spec.preset else []), *(["--set", *spec.overrides] if spec.overrides else [])]
+
+
 def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: Path) -> list[str]:
     if spec.framework != "softac":
         # the same command continues a peer's run from its last checkpoint
         return [sys.executable, "-m", "softac.peers", "run", spec.framework, "--env", spec.env_id,
                 "--seed", str(trial["seed"]), "--steps", str(spec.steps), "--out", str(run),
                 "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
-                "--log-interval", str(base.log_interval), "--checkpoint-interval", str(base.checkpoint_interval)]
+                "--log-interval", str(base.log_interval), "--checkpoint-interval", str(base.checkpoint_interval),
+                *sweep_settings(spec)]
     if trial_state(run, spec.steps) == "partial":  # also a run finished before the sweep's budget was raised
         return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--total-steps", str(spec.steps),
                 "--no-progress"]

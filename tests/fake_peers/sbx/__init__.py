@@ -138,3 +138,14 @@ class CrossQ(SAC):
         self.policy_delay, self.buffer_size = 3, 1_000_000
         for key, value in kwargs.items():
             setattr(self, key, value)
+
+
+class TQC(SAC):
+    """A stand-in for sbx.TQC: SBX's defaults, replaced by the keywords it is given (kept to be read back)."""
+
+    def __init__(self, policy, env, seed=None, verbose=0, **kwargs):
+        super().__init__(policy, env, seed, verbose)
+        self.learning_rate, self.qf_learning_rate, self.batch_size, self.learning_starts = 3e-4, None, 256, 100
+        self.policy_delay, self.buffer_size, self.top_quantiles_to_drop_per_net = 1, 1_000_000, 2
+        for key, value in kwargs.items():
+            setattr(self, key, value)

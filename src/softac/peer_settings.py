@@ -1,0 +1,74 @@
+"""A softac config's settings in a peer's keywords, for the peers that run "at the same settings" (softac.peers):
+SBX's CrossQ at the `crossq` preset's, SBX's TQC at a sweep's own (`--framework sbx-tqc-softac`). Every setting
+that changes what is computed is carried over or checked to be the peer's own already; one the peer cannot take
+is refused (ValueError naming it), so "same settings" stays true when a preset or a sweep's --set changes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from softac.config import SACConfig
+
+
+def _refuse(algorithm: str, untranslatable: dict[str, bool]) -> None:
+    bad = [name for name, differs in untranslatable.items() if differs]
+    if bad:
+        raise ValueError(f"settings SBX's {algorithm} cannot take: {', '.join(bad)}")
+
+
+def _common(c: SACConfig) -> dict[str, bool]:
+    """What none of SBX's SAC family takes: SBX's own is on the right of each test."""
+    return {"actor_lr != alpha_lr": c.actor_lr != c.alpha_lr, "obs_norm": c.obs_norm, "n_step": c.n_step != 1,
+            "policy_frequency": c.policy_frequency != 1, "reset_interval": c.reset_interval > 0,
+            "activation": c.activation != "relu", "fixed alpha": not c.autotune_alpha, "n_envs": c.n_envs != 1,
+            "log_std bounds": (c.log_std_mode, c.log_std_min, c.log_std_max) != ("clamp", -20.0, 2.0),
+            "network": c.network != "mlp", "her": c.her == "on", "random_action_prob": c.random_action_prob > 0}
+
+
+def crossq_settings(c: SACConfig) -> dict[str, Any]:
+    """SBX's CrossQ keywords (ReLU, autotuned alpha from 1.0, target entropy -act_dim, one update per env step,
+    one env are SBX's own)."""
+    _refuse("CrossQ", {**_common(c), "critic_layer_norm": c.critic_layer_norm, "not crossq": not c.crossq,
+                       "gradient_steps": c.gradient_steps != 1, "target_entropy": c.target_entropy != "auto"
+                       or c.target_entropy_scale != 1.0, "initial alpha": c.alpha != 1.0,
+                       "target_critics": c.target_critics == "on", "weight_norm": c.weight_norm,
+                       "weight_decay": c.weight_decay > 0, "n_quantiles": c.n_quantiles > 0,
+                       "critic_dropout": c.critic_dropout > 0,
+                       "actor and critic widths differ": (c.actor_hidden_sizes or c.hidden_sizes)
+                       != (c.critic_hidden_sizes or c.hidden_sizes)})
+    return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
+            "learning_starts": c.learning_starts, "batch_size": c.batch_size, "gamma": c.gamma,
+            "policy_delay": c.policy_delay,
+            "policy_kwargs": {"net_arch": {"pi": list(c.hidden_sizes), "qf": list(c.hidden_sizes)},
+                              "n_critics": c.n_critics, "batch_norm_momentum": c.batch_norm_momentum,
+                              "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1}}}
+
+
+def tqc_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
+    """SBX's TQC keywords: two critics (SBX's TQC has two), their quantiles and the atoms dropped, the widths,
+    rates, batch, UTD, policy delay, tau, gamma, the entropy target and initial alpha, Adam's b1 and AdamW's
+    decay on every parameter (optax.adamw; SBX cannot mask it to the output layers)."""
+    import optax
+
+    _refuse("TQC", {**_common(c), "n_quantiles 0 (not TQC)": c.n_quantiles == 0,
+                    "n_critics != 2": c.n_critics != 2, "crossq": c.crossq,
+                    "target_critics off": c.target_critics == "off",
+                    "target_update_interval": c.target_update_interval != 1,
+                    "critic_layer_norm (SBX's LayerNorm learns scale and bias)": c.critic_layer_norm,
+                    "weight_decay on the output layers only": c.weight_decay > 0 and c.weight_decay_layers == "output"})
+    optimizer: dict[str, Any] = {"optimizer_kwargs": {"b1": c.adam_b1}}
+    if c.weight_decay > 0:
+        optimizer = {"optimizer_class": optax.adamw, "optimizer_kwargs": {"b1": c.adam_b1, "weight_decay": c.weight_decay}}
+    target_entropy = (-c.target_entropy_scale * act_dim if c.target_entropy == "auto" else float(c.target_entropy))
+    return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
+            "learning_starts": c.learning_starts, "batch_size": c.batch_size, "tau": c.tau, "gamma": c.gamma,
+            "gradient_steps": c.gradient_steps, "policy_delay": c.policy_delay,
+            "top_quantiles_to_drop_per_net": c.top_quantiles_to_drop_per_net,
+            "ent_coef": f"auto_{c.alpha}", "target_entropy": target_entropy,
+            "policy_kwargs": {"net_arch": {"pi": list(c.actor_hidden_sizes or c.hidden_sizes),
+                                           "qf": list(c.critic_hidden_sizes or c.hidden_sizes)},
+                              "n_quantiles": c.n_quantiles, "dropout_rate": c.critic_dropout, **optimizer}}
+
+
+# the algorithms whose peers can run at a sweep's own settings, and how their keywords are made
+SWEEP_TRANSLATORS = {"TQC": tqc_settings}
