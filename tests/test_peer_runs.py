@@ -130,6 +130,44 @@ def test_sbx_tqc_runs_at_the_sweeps_own_settings(tmp_path):
     assert [int(row["step"]) for row in read_csv(run / "eval.csv")] == [100, 200, 300]
 
 
+def test_sbx_simba_normalises_observations_as_softac_and_keeps_the_statistics_across_a_stop(tmp_path):
+    """`sbx-simba-softac` with obs_norm: SBX's SAC with its SimbaPolicy behind VecNormalize (the stand-ins); the
+    statistics go into the checkpoint and come back when the same command continues after SIGTERM."""
+    import signal
+
+    import yaml
+
+    from softac import checkpoint as ckpt
+
+    run = tmp_path / "simba"
+    cmd = [sys.executable, "-m", "softac.peers", "run", "sbx-simba-softac", "--env", DRIFT, "--seed", "0", "--steps",
+           "1200", "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2", "--log-interval", "100",
+           "--checkpoint-interval", "200", "--preset", "simba", "--set", "critic_hidden_sizes=32,32",
+           "actor_hidden_sizes=16", "log_std_mode=clamp", "log_std_min=-20"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env(FAKE_PEERS))
+    stderr = signal_when(proc, lambda: len(read_csv(run / "eval.csv")) >= 3, signal.SIGTERM)
+    assert proc.returncode == 130, stderr
+    stopped_at = int(stderr.split("interrupted at step ")[1].split(";")[0])
+    meta, arrays = ckpt.load(run / "checkpoints" / "last")
+    # VecNormalize's count: its 1e-4 start and one per step (the stand-in counts step observations only)
+    assert float(arrays["obs_rms_count"]) == pytest.approx(stopped_at + 1e-4)
+    assert meta["sweep"]["preset"] == "simba"
+    resumed = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+    assert resumed.returncode == 0, resumed.stderr
+    _, arrays = ckpt.load(run / "checkpoints" / "last")
+    # the statistics went on from the checkpoint's
+    assert float(arrays["obs_rms_count"]) == pytest.approx(1200 + 1e-4)
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    assert (config["algorithm"], config["settings"]) == ("SAC", "sweep")
+    assert "'qf': [32, 32]" in config["policy_kwargs"] and "'n_critics': 2" in config["policy_kwargs"]
+    # what SBX's SAC with SimbaPolicy cannot take: MLP networks; SimBa's own tanh-squashed log std (SBX clamps)
+    other = [str(tmp_path / "other") if arg == str(run) else arg for arg in cmd[:-2]]  # without the clamp
+    for extra, name in ((["log_std_mode=clamp", "log_std_min=-20", "network=mlp"], "cannot take: network != simba"),
+                        ([], "cannot take: log_std bounds")):
+        r = subprocess.run([*other, *extra], capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+        assert r.returncode == 2 and name in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
 def test_the_tqc_settings_carry_every_setting_or_refuse():
     import optax
 

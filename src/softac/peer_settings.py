@@ -48,27 +48,49 @@ def tqc_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
     """SBX's TQC keywords: two critics (SBX's TQC has two), their quantiles and the atoms dropped, the widths,
     rates, batch, UTD, policy delay, tau, gamma, the entropy target and initial alpha, Adam's b1 and AdamW's
     decay on every parameter (optax.adamw; SBX cannot mask it to the output layers)."""
-    import optax
-
     _refuse("TQC", {**_common(c), "n_quantiles 0 (not TQC)": c.n_quantiles == 0,
                     "n_critics != 2": c.n_critics != 2, "crossq": c.crossq,
                     "target_critics off": c.target_critics == "off",
                     "target_update_interval": c.target_update_interval != 1,
                     "critic_layer_norm (SBX's LayerNorm learns scale and bias)": c.critic_layer_norm,
                     "weight_decay on the output layers only": c.weight_decay > 0 and c.weight_decay_layers == "output"})
+    settings = _sac_family(c, act_dim)
+    settings["top_quantiles_to_drop_per_net"] = c.top_quantiles_to_drop_per_net
+    settings["policy_kwargs"].update(n_quantiles=c.n_quantiles, dropout_rate=c.critic_dropout)
+    return settings
+
+
+def _sac_family(c: SACConfig, act_dim: int) -> dict[str, Any]:
+    """The keywords SBX's SAC and TQC share: rates, buffer, batch, UTD, delay, tau, gamma, entropy, optimiser."""
+    import optax
+
     optimizer: dict[str, Any] = {"optimizer_kwargs": {"b1": c.adam_b1}}
     if c.weight_decay > 0:
         optimizer = {"optimizer_class": optax.adamw, "optimizer_kwargs": {"b1": c.adam_b1, "weight_decay": c.weight_decay}}
     target_entropy = (-c.target_entropy_scale * act_dim if c.target_entropy == "auto" else float(c.target_entropy))
     return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
             "learning_starts": c.learning_starts, "batch_size": c.batch_size, "tau": c.tau, "gamma": c.gamma,
-            "gradient_steps": c.gradient_steps, "policy_delay": c.policy_delay,
-            "top_quantiles_to_drop_per_net": c.top_quantiles_to_drop_per_net,
-            "ent_coef": f"auto_{c.alpha}", "target_entropy": target_entropy,
+            "gradient_steps": c.gradient_steps, "policy_delay": c.policy_delay, "ent_coef": f"auto_{c.alpha}",
+            "target_entropy": target_entropy,
             "policy_kwargs": {"net_arch": {"pi": list(c.actor_hidden_sizes or c.hidden_sizes),
-                                           "qf": list(c.critic_hidden_sizes or c.hidden_sizes)},
-                              "n_quantiles": c.n_quantiles, "dropout_rate": c.critic_dropout, **optimizer}}
+                                           "qf": list(c.critic_hidden_sizes or c.hidden_sizes)}, **optimizer}}
 
 
-# the algorithms whose peers can run at a sweep's own settings, and how their keywords are made
-SWEEP_TRANSLATORS = {"TQC": tqc_settings}
+def simba_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
+    """SBX's SAC with its SimbaPolicy (residual blocks, one per width; LayerNorms): the SAC family's keywords and
+    the number of critics. Observation normalisation goes to SB3's VecNormalize around the peer's env (the same
+    running mean and variance, epsilon 1e-8 and clip as softac's obs_norm; softac.peers.peer_model)."""
+    common = {k: v for k, v in _common(c).items() if k not in ("obs_norm", "network")}
+    _refuse("SAC with SimbaPolicy", {**common, "network != simba": c.network != "simba", "crossq": c.crossq,
+                                     "n_quantiles": c.n_quantiles > 0, "target_critics off": c.target_critics == "off",
+                                     "target_update_interval": c.target_update_interval != 1,
+                                     "critic_dropout": c.critic_dropout > 0,
+                                     "weight_decay on the output layers only":
+                                     c.weight_decay > 0 and c.weight_decay_layers == "output"})
+    settings = _sac_family(c, act_dim)
+    settings["policy_kwargs"]["n_critics"] = c.n_critics
+    return settings
+
+
+# the peers that run at a sweep's own settings, and how their keywords are made
+SWEEP_TRANSLATORS = {"sbx-tqc-softac": tqc_settings, "sbx-simba-softac": simba_settings}

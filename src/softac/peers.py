@@ -37,6 +37,7 @@ class Peer:
     about: str
     label: str  # the configuration's name in tables and legends
     her: bool = False  # with SB3's HerReplayBuffer: for goal envs only
+    policy: str = "MlpPolicy"  # the policy class's name in the library (MultiInputPolicy for dict observations)
 
 
 PEERS = {
@@ -56,6 +57,10 @@ PEERS = {
     "sbx-tqc-softac": Peer("sbx", "sbx-rl", "TQC", "sweep",
                            "SBX's TQC at the sweep's own settings (its --preset and --set, e.g. --preset tqc; what "
                            "SBX cannot take is refused)", "SBX TQC, same settings"),
+    "sbx-simba-softac": Peer("sbx", "sbx-rl", "SAC", "sweep",
+                             "SBX's SAC with its SimbaPolicy at the sweep's own settings (its --preset and --set, e.g. "
+                             "--preset simba; obs_norm through SB3's VecNormalize; what SBX cannot take is refused)",
+                             "SBX SAC + SimBa, same settings", policy="SimbaPolicy"),
     "sb3-her": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults",
                     "Stable-Baselines3's SAC at its defaults with its HerReplayBuffer (future, 4 goals) and "
                     "learning_starts 1000, for goal envs", "SB3 SAC + HER, its defaults", her=True),
@@ -130,7 +135,7 @@ def peer_settings(framework: str, config: SACConfig | None, act_dim: int) -> dic
     if peer.settings == "sweep":
         if config is None:
             raise ValueError(f"{framework} runs at a sweep's settings: give its config")
-        return SWEEP_TRANSLATORS[peer.algorithm](config, act_dim)
+        return SWEEP_TRANSLATORS[framework](config, act_dim)
     return crossq_settings(SACConfig.preset(peer.settings))
 
 
@@ -155,8 +160,23 @@ def peer_model(framework: str, env_id: str, seed: int, config: SACConfig | None 
         kwargs.update(replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(HER_SETTINGS),
                       learning_starts=HER_LEARNING_STARTS)
     kwargs.update(overrides)
-    policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else "MlpPolicy"
+    policy = "MultiInputPolicy" if isinstance(env.observation_space, gym.spaces.Dict) else peer.policy
+    if config is not None and config.obs_norm:
+        env = normalized_env(env, config)
     return without_log_dir(algorithm(policy, env, seed=seed, verbose=0, **kwargs))
+
+
+def normalized_env(env: Any, config: SACConfig) -> Any:
+    """The peer's env behind SB3's VecNormalize: observations normalised by their running mean and variance,
+    updated on each training step, clipped at obs_norm_clip, epsilon 1e-8, as softac's obs_norm (rewards left
+    alone); SB3's Monitor inside, as SB3 adds it to an env it wraps itself, so that episodes are reported."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from softac.normalization import EPSILON
+
+    return VecNormalize(DummyVecEnv([lambda: Monitor(env)]), norm_obs=True, norm_reward=False,
+                        clip_obs=config.obs_norm_clip, gamma=config.gamma, epsilon=EPSILON)
 
 
 def without_log_dir(model):
@@ -217,6 +237,11 @@ def save_peer_checkpoint(model: Any, directory: Path, meta: dict[str, Any]) -> N
     buffer = model.replay_buffer
     filled = buffer.buffer_size if buffer.full else buffer.pos
     arrays = {"model_zip": np.frombuffer(zipped.getvalue(), np.uint8)}
+    normalizer = model.get_vec_normalize_env()
+    if normalizer is not None:  # VecNormalize's statistics: the model's zip leaves them out
+        stats = normalizer.obs_rms
+        arrays.update(obs_rms_mean=np.asarray(stats.mean), obs_rms_var=np.asarray(stats.var),
+                      obs_rms_count=np.asarray(stats.count, np.float64))
     arrays.update(_buffer_arrays(buffer, filled))
     ckpt.save(directory, {**meta, "buffer_pos": int(buffer.pos), "buffer_full": bool(buffer.full)}, arrays)
 
@@ -236,8 +261,12 @@ def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
         raise SoftacError(f"{directory} holds the checkpoint of another run ({meta.get('peer') or 'softac'}), not "
                           f"of {identity}; pick another --out")
     algorithm, kwargs = _peer_algorithm(framework)
-    model = without_log_dir(algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=peer_env(framework, env_id),
-                                           **kwargs))
+    env = peer_env(framework, env_id)
+    if "obs_rms_mean" in arrays:
+        env = normalized_env(env, sweep_config(env_id, **meta["sweep"]))
+        env.obs_rms.mean, env.obs_rms.var = arrays["obs_rms_mean"].copy(), arrays["obs_rms_var"].copy()
+        env.obs_rms.count = float(arrays["obs_rms_count"])
+    model = without_log_dir(algorithm.load(io.BytesIO(arrays["model_zip"].tobytes()), env=env, **kwargs))
     buffer = model.replay_buffer
     _refill_buffer(buffer, arrays)
     buffer.pos, buffer.full = int(meta["buffer_pos"]), bool(meta["buffer_full"])
@@ -447,7 +476,11 @@ class PeerRun:
         return not self.stop.requested
 
     def policy(self, obs: Any) -> Any:
-        """The peer's deterministic actions for a batch of flat observations (as a dict, for a dict env)."""
+        """The peer's deterministic actions for a batch of flat observations (as a dict, for a dict env), normalised
+        by the training statistics where it has them (VecNormalize), as softac's predict() normalises."""
+        normalizer = self.model.get_vec_normalize_env()
+        if normalizer is not None:
+            obs = normalizer.normalize_obs(obs)
         if self.layout is not None:
             obs = {key: obs[:, self.layout.slices[key]] for key in self.layout.keys}
         return self.model.predict(obs, deterministic=True)[0]
@@ -472,7 +505,8 @@ class PeerRun:
         self.record.update(step=step, elapsed_s=time.perf_counter() - self.t0, recent_returns=list(self.rows.recent),
                            recent_successes=list(self.rows.successes))
         try:
-            save_peer_checkpoint(self.model, self.checkpoint, {"peer": self.identity, "record": self.record})
+            save_peer_checkpoint(self.model, self.checkpoint, {"peer": self.identity, "record": self.record,
+                                                               "sweep": self.sweep})
         except OSError as exc:
             raise RunFailed(f"could not write checkpoint {self.checkpoint}: {exc.strerror or exc}; "
                             "the previous checkpoint is kept") from None

@@ -41,9 +41,12 @@ class SAC:
     BUFFER = 500  # rows: small, so that the tests' runs fill it and wrap around
 
     def __init__(self, policy, env, seed=None, verbose=0, **kwargs):
-        self.env, self.seed = env, seed
+        # a VecNormalize (its stand-in) in front of the env: SB3 keeps it as _vec_normalize_env
+        self.vec_normalize = env if hasattr(env, "obs_rms") else None
+        self.env = env.venv.envs[0] if self.vec_normalize is not None else env
+        self.seed, self.policy = seed, policy
         self.learning_rate, self.batch_size, self.gamma = 3e-4, 256, 0.99
-        self.policy_kwargs = {}
+        self.policy_kwargs = kwargs.get("policy_kwargs", {})
         self.num_timesteps = 0
         self.rng = np.random.default_rng(seed)
         self.her = kwargs.get("replay_buffer_class") is not None  # SB3's HerReplayBuffer (its stand-in)
@@ -56,12 +59,17 @@ class SAC:
             self.replay_buffer = ReplayBuffer(self.BUFFER, env)
         self._custom_logger = False
 
+    def get_vec_normalize_env(self):
+        return self.vec_normalize
+
     def set_logger(self, logger):
         self._logger, self._custom_logger = logger, True
 
     def save(self, file):
+        # as SB3's zip: the settings (policy_kwargs as its text: it may hold functions)
         file.write(json.dumps({"num_timesteps": self.num_timesteps, "seed": self.seed, "her": self.her,
-                               "settings": {k: v for k, v in vars(self).items() if isinstance(v, (int, float))}}).encode())
+                               "settings": {**{k: v for k, v in vars(self).items() if isinstance(v, (int, float))},
+                                            "policy_kwargs": str(self.policy_kwargs)}}).encode())
 
     @classmethod
     def load(cls, file, env, **kwargs):
@@ -114,6 +122,8 @@ class SAC:
             time.sleep(STEP_S)
             action = self.rng.uniform(space.low, space.high).astype(np.float32)
             next_obs, reward, terminated, truncated, info = self.env.step(action)
+            if self.vec_normalize is not None:  # as VecNormalize: statistics of every observation while training
+                self.vec_normalize.obs_rms.update(np.asarray(next_obs)[None])
             episode_return, length = episode_return + float(reward), length + 1
             self.num_timesteps += 1
             if terminated or truncated:  # SB3's Monitor wrapper puts the finished episode in info
