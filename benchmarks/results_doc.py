@@ -22,7 +22,7 @@ import numpy as np
 
 from softac.cpus import machine_description
 from softac.peers import PEERS
-from softac.plots import plot_aggregate, plot_comparison
+from softac.plots import plot_aggregate, plot_comparison, plot_front
 from softac.stats import stratified_bootstrap_iqm
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
@@ -31,8 +31,13 @@ ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulu
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
                                  "Humanoid-v5": None, "Swimmer-v5": None, "Reacher-v5": None,
                                  "InvertedDoublePendulum-v5": None, "FetchReach-v4": None, "FetchPush-v4": None,
-                                 "PointMaze_UMaze-v3": None}
+                                 "PointMaze_UMaze-v3": None, "HalfCheetah-v4": None, "Hopper-v4": None,
+                                 "Walker2d-v4": None, "Ant-v4": None, "Humanoid-v4": None}
 SUITE = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
+# the published tables' version of the suite (issue 42): the front of return against one-core wall time
+SUITE_V4 = [env.replace("-v5", "-v4") for env in SUITE]
+FRONT = "MuJoCo v4 at 100k steps: return against one-core wall time"
+PUBLISHED = Path(__file__).resolve().parent / "published-100k.yaml"
 AGGREGATE = "MuJoCo suite: one aggregate"
 OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
 # ENV-softac-NAME: another preset or options on the env (benchmarks/results.sh's `options` and `fallback`, #18)
@@ -102,7 +107,7 @@ def kept_sections(results_md: Path) -> dict[str, list[str]]:
     for line in results_md.read_text().splitlines():
         if line.startswith("## "):
             heading = line[3:].strip()
-            current = heading if heading in ENVS or heading == AGGREGATE else None
+            current = heading if heading in ENVS or heading in (AGGREGATE, FRONT) else None
             if current:
                 sections[current] = []
         if current:
@@ -290,6 +295,61 @@ def suite_aggregate(sweeps: Path, figures: Path, kept: dict[str, list[str]],
     return lines + ["", f"![aggregate](results/{figure.name})", ""]
 
 
+def published_means(path: Path = PUBLISHED) -> dict[str, dict[str, tuple[float, float, int]]]:
+    """{method: {env: (mean, sd, seeds)}} of the published 100k-step returns (benchmarks/published-100k.yaml)."""
+    import yaml
+
+    methods = yaml.safe_load(path.read_text())["methods"]
+    return {name: {env: tuple(v) for env, v in envs.items() if env.endswith("-v4")} for name, envs in methods.items()}
+
+
+def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
+    """Per v4 env, every configuration's final return (mean and spread over seeds) against its median one-core wall
+    time (trials whose wall time is comparable), beside the published 100k-step means: the front users choose
+    from (issue 42). A table per env and one figure."""
+    excluded = timing_excluded(sweeps)
+    published = published_means()
+    points: dict[str, dict[str, tuple[float, float, float | None]]] = {}
+    lines = [f"## {FRONT}", "",
+             "Gym MuJoCo v4 (the published tables' version), 100k env steps, final deterministic evaluation (10 "
+             "episodes), one pinned CPU per trial. Each configuration is a point: the mean final return over its "
+             "seeds (± their standard deviation) against its median wall seconds per run on one CPU, from the "
+             "trials whose wall time is comparable (benchmarks/sweeps/timing-excluded.yaml lists the others; their "
+             "returns count). Published: the mean (± sd, seeds) at 100k steps of the result files of "
+             "dojeon-ai/SimbaV2 (benchmarks/published-100k.yaml), run on GPUs; best published per env in bold.", ""]
+    for env in SUITE_V4:
+        present = env_sweeps(env, sweeps)
+        rows = []
+        for name, d in present.items():
+            trials = finished_trials(d, excluded)
+            if not trials:
+                continue
+            finals = [r["final_eval_mean"] for r in trials]
+            timed = [r["wall_s"] for r in trials if r["timed"] and r["wall_s"]]
+            seconds = float(np.median(timed)) if timed else None
+            sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
+            points.setdefault(env, {})[name] = (float(np.mean(finals)), sd, seconds)
+            rows.append(f"| {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
+                        f"{', '.join(f'{v:.0f}' for v in finals)} | {'-' if seconds is None else f'{seconds:.0f}'} |")
+        if not rows:
+            continue
+        best = max(published, key=lambda m: published[m].get(env, (-np.inf,))[0])
+        lines += [f"### {env}", "", "| configuration | seeds | final return (mean ± sd) | each seed | one-core s |",
+                  "|---|---|---|---|---|", *rows, "", "| published | mean ± sd (seeds) |", "|---|---|"]
+        for method, envs in published.items():
+            if env in envs:
+                mean, sd, n = envs[env]
+                text = f"{mean:.0f} ± {sd:.0f} ({n})"
+                lines.append(f"| {method} | {f'**{text}**' if method == best else text} |")
+        lines.append("")
+    if not points:
+        return kept.get(FRONT, [])
+    shown = ("CrossQ", "SAC", "SimBa UTD 2", "SimBaV2 UTD 2")
+    figure = plot_front(points, {env: {m: published[m][env][0] for m in shown if env in published[m]} for env in points},
+                        figures / "front-v4.png", "Gym MuJoCo v4, 100k steps: final return against one-core wall time")
+    return lines + [f"![front](results/{figure.name})", ""]
+
+
 def machines_of(runs: list[Path]) -> str:
     """The machines the trials' config.yaml name, every segment of a resumed trial's (runs made before it was
     recorded: this machine)."""
@@ -317,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
     for env, threshold in ENVS.items():
         if env == SUITE[0]:
             text.extend(suite_aggregate(a.sweeps, figures, kept))
+        if env == SUITE_V4[0]:
+            text.extend(front(a.sweeps, figures, kept))
         text.extend(section(env, threshold, a.sweeps, figures, kept))
     notes = a.docs / "results-notes.md"
     if notes.exists():

@@ -118,3 +118,30 @@ def test_plotting_several_sweeps_names_each_by_framework_and_preset(tmp_path):
     r = run_cli("plot", str(KEPT / "Hopper-v5-softac"), str(KEPT / "Hopper-v5-sbx"), "--out", str(tmp_path / "figs"))
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "figs" / "comparison.png").stat().st_size > 10_000
+
+
+@pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
+def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_beside_the_published(tmp_path):
+    """The Hopper-v5 trials stand in for v4 ones: the front's row is their mean ± sd over seeds and the median
+    wall time of the trials whose time is comparable; the published table marks the best method in bold."""
+    import numpy as np
+    import yaml
+
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / "Hopper-v4-softac")
+    (sweeps / "timing-excluded.yaml").write_text(yaml.safe_dump({"Hopper-v4-softac/seed=0": "shared its core"}))
+    docs.mkdir()
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    text = (docs / "results.md").read_text()
+    front = text.split("## MuJoCo v4 at 100k steps")[1].split("\n## ")[0]
+    finals, walls = [], []
+    for seed in range(5):
+        run = sweeps / "Hopper-v4-softac" / f"seed={seed}"
+        finals.append(float((run / "eval.csv").read_text().splitlines()[-1].split(",")[1]))
+        if seed:
+            walls.append(round(json.loads((run / "summary.json").read_text())["train_time_s"], 1))
+    row = next(line for line in front.splitlines() if line.startswith("| softac, crossq preset |"))
+    assert row == (f"| softac, crossq preset | 5 | {np.mean(finals):.0f} ± {np.std(finals, ddof=1):.0f} | "
+                   f"{', '.join(f'{v:.0f}' for v in finals)} | {np.median(walls):.0f} |")
+    assert "| SimBa UTD 8 | **3116 ± 64 (5)** |" in front and "| CrossQ | 2764 ± 823 (10) |" in front
+    assert (docs / "results" / "front-v4.png").stat().st_size > 10_000

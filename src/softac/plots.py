@@ -344,6 +344,42 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     return out
 
 
+def plot_front(points: dict[str, dict[str, tuple[float, float, float | None]]], published: dict[str, dict[str, float]],
+               out: Path, title: str) -> Path:
+    """Return against wall time, one panel per env: each configuration a point at (median wall seconds, mean final
+    return) with its spread over seeds as a vertical bar ({env: {name: (mean, sd, seconds or None)}}; a point without
+    seconds is left out), and each published method's mean as a dashed line ({env: {method: mean}})."""
+    plt = _pyplot()
+    envs = list(points)
+    cols = min(3, len(envs))
+    rows = (len(envs) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows), squeeze=False, constrained_layout=True)
+    names = sorted({name for env in envs for name in points[env]})
+    colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
+    for ax, env in zip(axes.flat, envs):
+        for name, (mean, sd, seconds) in points[env].items():
+            if seconds is not None:
+                ax.errorbar(seconds, mean, yerr=sd, fmt="o", color=colours[name], capsize=4, label=name)
+        for i, (method, value) in enumerate(published.get(env, {}).items()):
+            ax.axhline(value, color="grey", linestyle=(0, (4, 2 + i)), linewidth=0.9)
+            ax.annotate(method, (0.01, value), xycoords=("axes fraction", "data"), fontsize=7, color="dimgrey",
+                        va="bottom")
+        ax.set_xscale("log")
+        ax.set_title(env)
+        ax.set_xlabel("one-core wall seconds per 100k-step run")
+        ax.set_ylabel("final eval return")
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(envs):]:
+        ax.axis("off")
+    handles = {name: plt.Line2D([], [], marker="o", linestyle="", color=colours[name]) for name in names}
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(3, len(names)), fontsize=8,
+               bbox_to_anchor=(0.5, -0.02 - 0.03 * ((len(names) + 2) // 3)))
+    fig.suptitle(title)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
 def plot_runs(runs: list[Path], out_dir: Path | None = None, names: dict[Path, str] | None = None) -> list[Path]:
     """All figures for one or more runs; returns the files written. `names`: see group_runs."""
     for run in runs:
