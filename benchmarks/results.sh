@@ -7,8 +7,13 @@
 #            defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
 #   crossq-defaults: SBX's CrossQ at its own defaults (1024-wide critics, batch 256), 2 seeds, on Hopper-v5 and
 #            Walker2d-v5 (about 2 hours a trial on one CPU; crossq-defaults:ENV for one env)
-#   crossq-wn: issue 30's step past CrossQ, CrossQ with weight normalisation (`--preset crossq-wn`, Palenicek et
-#            al. 2025) on 5 seeds per suite env, the crossq preset's budget (crossq-wn:ENV for one env)
+#   crossq-wn: issue 30's step past CrossQ, the crossq preset with weight normalisation (`--set weight_norm=true`;
+#            the crossq-wn preset of that time) on 5 seeds per suite env, the crossq preset's budget (crossq-wn:ENV for
+#            one env). Issue 42 made `crossq-wn` CrossQ+WN at its published settings (front)
+#   front:   issue 42's front on Gym MuJoCo v4 (the published tables' version), 100k steps: the crossq preset, and
+#            the SAC family at the published settings where a run fits in about 2 hours of one core (crossq-wn),
+#            else at the largest settings that do (TQC with SBX's size, SimBa with 128-wide critic blocks, DroQ at
+#            5 updates per step), beside SBX at the same settings (front:ENV for one env)
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
@@ -16,7 +21,7 @@
 #            at their defaults (sb3-her, sbx-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|robotics|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|robotics|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -26,6 +31,7 @@ set -euo pipefail
 SOFTAC=${SOFTAC:-.venv/bin/softac}
 SWEEPS=${SWEEPS:-benchmarks/sweeps}
 MUJOCO="HalfCheetah-v5 Hopper-v5 Walker2d-v5 Ant-v5 Humanoid-v5"
+MUJOCO_V4="Hopper-v4 Ant-v4 HalfCheetah-v4 Walker2d-v4 Humanoid-v4"
 CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
 FALLBACK="Swimmer-v5 Reacher-v5 InvertedDoublePendulum-v5"
 ROBOTICS="FetchReach-v4 FetchPush-v4 PointMaze_UMaze-v3"
@@ -53,7 +59,19 @@ crossq_defaults() {
 }
 
 crossq_wn() {
-  $SOFTAC sweep --env $1 --seeds 5 --steps 100000 --preset crossq-wn --out $SWEEPS/$1-softac-crossq-wn
+  $SOFTAC sweep --env $1 --seeds 5 --steps 100000 --preset crossq --set weight_norm=true --out $SWEEPS/$1-softac-crossq-wn
+}
+
+front() {
+  local tqc=(--preset tqc --set n_critics=2 critic_hidden_sizes=256,256)
+  local simba=(--preset simba --set critic_hidden_sizes=128,128 log_std_mode=clamp log_std_min=-20)
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset crossq --out $SWEEPS/$1-softac
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset crossq-wn --out $SWEEPS/$1-softac-crossq-wn-published
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 "${tqc[@]}" --out $SWEEPS/$1-softac-tqc-2x256
+  $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-tqc-softac "${tqc[@]}" --out $SWEEPS/$1-sbx-tqc-softac
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 "${simba[@]}" --out $SWEEPS/$1-softac-simba-128
+  $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-simba-softac "${simba[@]}" --out $SWEEPS/$1-sbx-simba-softac
+  $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset droq --set gradient_steps=5 policy_delay=5 --out $SWEEPS/$1-softac-droq-utd5
 }
 
 options() {
@@ -89,6 +107,8 @@ for target in $targets; do
     crossq-defaults) for env in Hopper-v5 Walker2d-v5; do crossq_defaults $env; done ;;
     crossq-defaults:*) crossq_defaults ${target#crossq-defaults:} ;;
     crossq-wn) for env in $MUJOCO; do crossq_wn $env; done ;;
+    front) for env in $MUJOCO_V4; do front $env; done ;;
+    front:*) front ${target#front:} ;;
     crossq-wn:*) crossq_wn ${target#crossq-wn:} ;;
     fallback) for env in $FALLBACK; do fallback $env; done ;;
     robotics) for env in $ROBOTICS; do robotics $env; done ;;
