@@ -205,6 +205,65 @@ def test_droq_critics_drop_units_in_every_pass_with_their_own_keys():
     assert len(losses) == 3
 
 
+def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
+    """One hidden layer of 6 units, Q_i = w2 . relu(LN(dropout(W1 x + b1))) + b2, computed by hand in float64 with
+    the masks that the online and the target pass draw (losses.dropout_keys, one key per critic, networks.dropout);
+    the target is the smaller target critic's value."""
+    rng = np.random.default_rng(3)
+    rate, alpha, gamma = 0.3, 0.2, 0.9
+    critic = init_critics(rng, OBS, ACT, [6], "default", 2)
+    target = init_critics(rng, OBS, ACT, [6], "default", 2)
+    critics = sac.Critics("relu", unroll=True, layer_norm=True, dropout=rate)
+    actor = constant_actor([0.3, -0.2], [-0.5, 0.1])
+    b = batch([1.0, -2.0, 0.5, 3.0], [0.0, 1.0, 0.0, 0.0])
+    key = jax.random.PRNGKey(9)
+    loss, _ = sac.critic_loss(critic, target, actor, jnp.float32(alpha), b, key, POLICY, critics, gamma)
+
+    online_key, next_key = losses.dropout_keys(key, critics)
+    next_u, next_log_prob = hand_sample(key, [0.3, -0.2], [-0.5, 0.1])
+
+    def hand_q(params, obs, actions, pass_key):
+        x = np.concatenate([np.asarray(obs, np.float64), np.asarray(actions, np.float64)], -1)
+        out = []
+        for i, k in enumerate(jax.random.split(pass_key, 2)):
+            layer_key = jax.random.split(k, 1)[0]  # networks.mlp: one key per hidden layer
+            h = x @ np.asarray(params[0]["w"][i], np.float64) + np.asarray(params[0]["b"][i], np.float64)
+            h = np.asarray(dropout(jnp.asarray(h, jnp.float32), rate, layer_key), np.float64)
+            h = (h - h.mean(-1, keepdims=True)) / np.sqrt(h.var(-1, keepdims=True) + 1e-5)
+            out.append(np.maximum(h, 0) @ np.asarray(params[1]["w"][i], np.float64)[:, 0] + float(params[1]["b"][i][0]))
+        return np.stack(out)
+
+    q = hand_q(critic, b.obs, b.actions, online_key)
+    next_q = hand_q(target, b.next_obs, np.tanh(next_u), next_key).min(0)
+    y = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (next_q - alpha * next_log_prob)
+    # the mask rescales kept units by 1/(1 - rate) in float32 before the hand's float64 LayerNorm: a few float32
+    # roundings of the pre-activations (~1), amplified by the loss's squares of terms ~1-10
+    assert float(loss) == pytest.approx(0.5 * np.sum(np.mean((q - y) ** 2, axis=1)), rel=1e-4)
+    # the gradient lowers each critic's output bias by the mean of (q - y)
+    grads = jax.grad(lambda c: sac.critic_loss(c, target, actor, jnp.float32(alpha), b, key, POLICY, critics,
+                                               gamma)[0])(critic)
+    np.testing.assert_allclose(np.asarray(grads[-1]["b"])[:, 0], np.mean(q - y, axis=1), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("keys", [
+    dict(crossq=True, n_quantiles=5, top_quantiles_to_drop_per_net=1),
+    dict(crossq=True, target_critics="on", weight_norm=True, n_quantiles=5),
+    dict(network="simba", hidden_sizes=[16], n_quantiles=5, n_critics=3),
+    dict(critic_dropout=0.05, critic_layer_norm=True, n_quantiles=5, gradient_steps=2),
+    dict(target_critics="off", weight_decay=0.01),
+])
+def test_variants_compose_where_the_maths_allows(keys):
+    """TQC's quantile critics with CrossQ (with and without target critics), with SimBa networks and with DroQ's
+    dropout; SAC without target critics with AdamW: each builds and updates to finite values."""
+    cfg = SACConfig().replace(**{"hidden_sizes": [16, 16], "batch_size": 8, **keys})
+    fns = sac.build(cfg, 3, 2)
+    state, totals = fns.update(fns.init(0), _batches(np.random.default_rng(0), cfg.gradient_steps, 8))
+    means = sac.metric_means(totals)
+    assert set(means) >= {"critic_loss", "actor_loss", "q1_mean"} and all(np.isfinite(v) for v in means.values())
+    leaf = jax.tree_util.tree_leaves(state.critic)[-1]
+    assert leaf.shape[-1] == (cfg.n_quantiles or 1) and leaf.shape[0] == cfg.n_critics
+
+
 # ---- SimBa ---------------------------------------------------------------------------------------------------
 
 def _hand_simba(params, x, eps=1e-6):
