@@ -44,12 +44,13 @@ def _hand_quantile_huber(q, target):
 
 # ---- TQC -------------------------------------------------------------------------------------------------
 
-def test_tqc_pools_sorts_and_drops_the_largest_atoms_per_critic():
-    next_q = jnp.asarray([[[5.0, 1.0, 3.0]], [[2.0, 9.0, 0.5]]])  # 2 critics, 1 row, 3 quantiles
-    atoms = losses.truncated_target_atoms(next_q, drop_per_critic=1)
-    np.testing.assert_array_equal(np.asarray(atoms), [[0.5, 1.0, 2.0, 3.0]])  # 6 pooled, the 2 largest dropped
-    np.testing.assert_array_equal(np.asarray(losses.truncated_target_atoms(next_q, 0)),
-                                  [[0.5, 1.0, 2.0, 3.0, 5.0, 9.0]])
+def test_tqc_pools_the_atoms_and_drops_the_largest_per_critic():
+    next_q = jnp.asarray([[[5.0, 1.0, 3.0], [0.0, 7.0, 7.0]], [[2.0, 9.0, 0.5], [7.0, 1.0, 2.0]]])  # 2 critics, 2 rows
+    atoms, keep = losses.truncated_target_atoms(next_q, drop_per_critic=1)
+    kept = [sorted(np.asarray(atoms)[row][np.asarray(keep)[row] == 1]) for row in range(2)]
+    assert kept == [[0.5, 1.0, 2.0, 3.0], [0.0, 1.0, 2.0, 7.0]]  # 6 pooled a row, the 2 largest dropped (ties too)
+    atoms, keep = losses.truncated_target_atoms(next_q, 0)
+    assert sorted(np.asarray(atoms)[0]) == [0.5, 1.0, 2.0, 3.0, 5.0, 9.0] and np.all(np.asarray(keep) == 1)
 
 
 def test_tqc_critic_loss_is_the_quantile_huber_loss_to_the_truncated_soft_atoms():
@@ -247,6 +248,7 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
 
 @pytest.mark.parametrize("keys", [
     dict(crossq=True, n_quantiles=5, top_quantiles_to_drop_per_net=1),
+    dict(n_quantiles=1, top_quantiles_to_drop_per_net=0),
     dict(crossq=True, target_critics="on", weight_norm=True, n_quantiles=5),
     dict(network="simba", hidden_sizes=[16], n_quantiles=5, n_critics=3),
     dict(critic_dropout=0.05, critic_layer_norm=True, n_quantiles=5, gradient_steps=2),

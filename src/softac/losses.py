@@ -53,8 +53,8 @@ class Critics:
         return self.batch_renorm is None if self.targets is None else self.targets
 
     @property
-    def outputs(self) -> int:
-        return self.n_quantiles or 1
+    def quantiles(self) -> bool:
+        return self.n_quantiles > 0
 
     def q_values(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                  key: jax.Array | None = None) -> jax.Array:
@@ -63,15 +63,15 @@ class Critics:
         if self.batch_renorm is not None:
             return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm,
                                               False, matmul_dtype=self.matmul_dtype, unroll=self.unroll,
-                                              outputs=self.outputs)[0]
+                                              quantiles=self.quantiles)[0]
         return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll,
-                             self.network, self.dropout, key, self.outputs)
+                             self.network, self.dropout, key, self.quantiles)
 
     def q_values_training(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                           renorm: jax.Array | bool) -> tuple[jax.Array, Any]:
         """Q-values normalised with this batch's statistics, and the updated running statistics."""
         return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm, True,
-                                          renorm, self.matmul_dtype, self.unroll, self.outputs)
+                                          renorm, self.matmul_dtype, self.unroll, self.quantiles)
 
     def for_actor(self, q: jax.Array) -> jax.Array:
         """The value the actor climbs, per row: the smallest critic's Q (clipped double Q), or with TQC the
@@ -129,20 +129,26 @@ def discount(batch: Batch, gamma: float, n_step: int) -> jax.Array | float:
     return gamma ** batch.steps if n_step > 1 else gamma
 
 
-def truncated_target_atoms(next_q: jax.Array, drop_per_critic: int) -> jax.Array:
-    """TQC's next-state atoms (Kuznetsov et al. 2020, sec. 3.2): every critic's quantiles [n, batch, M] pooled
-    per row, sorted, and the n * drop_per_critic largest dropped: [batch, n * (M - drop_per_critic)]."""
+def truncated_target_atoms(next_q: jax.Array, drop_per_critic: int) -> tuple[jax.Array, jax.Array]:
+    """TQC's next-state atoms (Kuznetsov et al. 2020, sec. 3.2): every critic's quantiles [n, batch, M] pooled per
+    row [batch, n * M], and a mask of the atoms kept: all but the n * drop_per_critic largest. The loss does not
+    depend on the atoms' order, so they are not sorted: finding the few largest (lax.top_k) costs a tenth of
+    sorting the pool on a CPU (0.2 against 2.1 ms for 256 rows of 50 atoms)."""
     n, rows, m = next_q.shape
-    pooled = jnp.sort(jnp.transpose(next_q, (1, 0, 2)).reshape(rows, n * m), axis=-1)
-    return pooled[:, : n * (m - drop_per_critic)]
+    pooled = jnp.transpose(next_q, (1, 0, 2)).reshape(rows, n * m)
+    keep = jnp.ones_like(pooled)
+    if drop_per_critic:
+        _, largest = jax.lax.top_k(pooled, n * drop_per_critic)
+        keep = keep.at[jnp.arange(rows)[:, None], largest].set(0.0)
+    return pooled, keep
 
 
-def quantile_huber_error(q: jax.Array, next_atoms: jax.Array, next_log_prob: jax.Array, alpha: jax.Array,
-                         batch: Batch, gamma: float, n_step: int) -> tuple[jax.Array, dict]:
+def quantile_huber_error(q: jax.Array, next_atoms: jax.Array, keep: jax.Array, next_log_prob: jax.Array,
+                         alpha: jax.Array, batch: Batch, gamma: float, n_step: int) -> tuple[jax.Array, dict]:
     """TQC's critic loss: each critic's M quantiles [n, batch, M] (at tau_i = (i + 1/2) / M) regressed on every
-    soft target atom z_j = r + gamma^steps (1 - terminated) (atom_j - alpha log pi(a'|s')), held fixed, with the
-    quantile Huber loss |tau_i - 1{z_j < q_i}| * Huber_1(z_j - q_i); the mean over rows, quantiles and atoms,
-    summed over critics (as SBX's TQC sums its two critics' losses)."""
+    kept soft target atom z_j = r + gamma^steps (1 - terminated) (atom_j - alpha log pi(a'|s')), held fixed, with
+    the quantile Huber loss |tau_i - 1{z_j < q_i}| * Huber_1(z_j - q_i); the mean over rows, quantiles and kept
+    atoms, summed over critics (as SBX's TQC sums its two critics' losses)."""
     target = jax.lax.stop_gradient(
         batch.rewards[:, None] + (discount(batch, gamma, n_step) * (1.0 - batch.terminated))[..., None]
         * (next_atoms - alpha * next_log_prob[:, None]))
@@ -151,7 +157,8 @@ def quantile_huber_error(q: jax.Array, next_atoms: jax.Array, next_log_prob: jax
     delta = target[None, :, None, :] - q[..., None]  # [n, batch, M, atoms]
     abs_delta = jnp.abs(delta)
     huber = jnp.where(abs_delta > 1.0, abs_delta - 0.5, 0.5 * delta**2)
-    loss = jnp.sum(jnp.mean(jnp.abs(taus[:, None] - (delta < 0.0)) * huber, axis=(1, 2, 3)))
+    per_atom = jnp.abs(taus[:, None] - (delta < 0.0)) * huber * keep[None, :, None, :]
+    loss = jnp.sum(per_atom) / (q.shape[1] * m * jnp.sum(keep[0]))
     return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
 
 
@@ -171,8 +178,8 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     q, next_q, critic_stats = q_and_next_q(critic, critic_stats, target_critic, batch, next_actions, critics, renorm,
                                            target_stats, key)
     if critics.n_quantiles:
-        atoms = truncated_target_atoms(next_q, critics.drop_per_critic)
-        loss, metrics = quantile_huber_error(q, atoms, next_log_prob, alpha, batch, gamma, n_step)
+        atoms, keep = truncated_target_atoms(next_q, critics.drop_per_critic)
+        loss, metrics = quantile_huber_error(q, atoms, keep, next_log_prob, alpha, batch, gamma, n_step)
     else:
         loss, metrics = soft_bellman_error(q, jnp.min(next_q, axis=0), next_log_prob, alpha, batch, gamma, n_step)
     return loss, (metrics, critic_stats)

@@ -307,7 +307,7 @@ def _each_critic(params: Params, i: int) -> Params:
 def batch_renorm_critics_apply(params: Params, stats: Params, obs: jax.Array, actions: jax.Array, activation: str,
                              norm: BatchRenorm, train: bool, renorm: jax.Array | bool = False,
                              matmul_dtype: str = "float32", unroll: bool = False,
-                             outputs: int = 1) -> tuple[jax.Array, Params]:
+                             quantiles: bool = False) -> tuple[jax.Array, Params]:
     """`critics_apply` for critics with batch renormalisation: Q-values [n_critics, batch] and the new
     running statistics (each critic keeps its own)."""
     x = jnp.concatenate([obs, actions], axis=-1)
@@ -322,15 +322,15 @@ def batch_renorm_critics_apply(params: Params, stats: Params, obs: jax.Array, ac
         new_stats = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *[s for _, s in outs])
     else:
         q, new_stats = jax.vmap(one)(params, stats)
-    return (q[..., 0] if outputs == 1 else q), new_stats
+    return (q if quantiles else q[..., 0]), new_stats
 
 
 def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
                   matmul_dtype: str = "float32", normalize: bool = False, unroll: bool = False,
                   network: str = "mlp", dropout_rate: float = 0.0, key: jax.Array | None = None,
-                  outputs: int = 1) -> jax.Array:
-    """Q-values of every critic: shape [n_critics, batch], or [n_critics, batch, outputs] for critics with
-    several outputs (TQC's quantiles). With `dropout_rate`, each critic drops units with its own key.
+                  quantiles: bool = False) -> jax.Array:
+    """Q-values of every critic: shape [n_critics, batch], or with `quantiles` [n_critics, batch, outputs]
+    (TQC's quantile critics, one output a quantile). With `dropout_rate`, each critic drops units with its own key.
 
     The parameters are one stacked ensemble either way. `unroll` evaluates it critic by critic as
     plain 2-D matmuls, which XLA's CPU backend runs faster than the batched matmuls of `vmap`
@@ -351,4 +351,4 @@ def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation
         q = jax.vmap(lambda p: one(p, None))(params)
     else:
         q = jax.vmap(one)(params, keys)
-    return q[..., 0] if outputs == 1 else q
+    return q if quantiles else q[..., 0]
