@@ -13,8 +13,8 @@ import pytest
 
 from softac import SAC, losses, sac
 from softac.config import SACConfig
-from softac.networks import (BatchRenorm, critics_apply, dropout, init_critics, init_norm_stats, init_simba,
-                             output_layer_mask, simba)
+from softac.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
+                             init_simba, output_layer_mask, simba)
 
 from conftest import assert_clean_error, assert_same_training, run_cli
 from test_crossq import _batches
@@ -225,11 +225,13 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
 
     def hand_q(params, obs, actions, pass_key):
         x = np.concatenate([np.asarray(obs, np.float64), np.asarray(actions, np.float64)], -1)
+        # networks.critics_apply: one key per hidden layer, one draw for every critic and row of it
+        masks = np.asarray(dropout_mask(jax.random.split(pass_key, 1)[0], rate, (2, BATCH, 6)), np.float64)
+        assert set(np.unique(masks)) <= {0.0, np.float32(1 / (1 - rate))}
         out = []
-        for i, k in enumerate(jax.random.split(pass_key, 2)):
-            layer_key = jax.random.split(k, 1)[0]  # networks.mlp: one key per hidden layer
+        for i in range(2):
             h = x @ np.asarray(params[0]["w"][i], np.float64) + np.asarray(params[0]["b"][i], np.float64)
-            h = np.asarray(dropout(jnp.asarray(h, jnp.float32), rate, layer_key), np.float64)
+            h = h * masks[i]
             h = (h - h.mean(-1, keepdims=True)) / np.sqrt(h.var(-1, keepdims=True) + 1e-5)
             out.append(np.maximum(h, 0) @ np.asarray(params[1]["w"][i], np.float64)[:, 0] + float(params[1]["b"][i][0]))
         return np.stack(out)
@@ -237,8 +239,8 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
     q = hand_q(critic, b.obs, b.actions, online_key)
     next_q = hand_q(target, b.next_obs, np.tanh(next_u), next_key).min(0)
     y = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (next_q - alpha * next_log_prob)
-    # the mask rescales kept units by 1/(1 - rate) in float32 before the hand's float64 LayerNorm: a few float32
-    # roundings of the pre-activations (~1), amplified by the loss's squares of terms ~1-10
+    # the mask's 1/(1 - rate) is a float32 value: a few float32 roundings of the pre-activations (~1), amplified by
+    # the loss's squares of terms ~1-10
     assert float(loss) == pytest.approx(0.5 * np.sum(np.mean((q - y) ** 2, axis=1)), rel=1e-4)
     # the gradient lowers each critic's output bias by the mean of (q - y)
     grads = jax.grad(lambda c: sac.critic_loss(c, target, actor, jnp.float32(alpha), b, key, POLICY, critics,

@@ -188,23 +188,31 @@ def batch_renorm_mlp(params: Params, stats: Params, x: jax.Array, activation: st
     return x, new_stats
 
 
+def dropout_mask(key: jax.Array, rate: float, shape: tuple[int, ...]) -> jax.Array:
+    """Inverted dropout's multiplier: 0 with probability `rate`, else 1 / (1 - rate). The bits come from XLA's
+    RngBitGenerator (threefry), which a CPU runs ~2.5x faster than jax.random's threefry (2.4 against 6.3 ms for
+    2^19 draws here): DroQ draws one for every hidden unit of every critic pass, up to 60 passes per env step."""
+    key4 = jnp.concatenate([key, jax.random.fold_in(key, 1)])
+    bits = jax.lax.rng_bit_generator(key4, shape, dtype=jnp.uint32, algorithm=jax.lax.RandomAlgorithm.RNG_THREE_FRY)[1]
+    threshold = jnp.uint32(min(round(rate * 2.0**32), 2**32 - 1))
+    return jnp.where(bits >= threshold, jnp.float32(1.0 / (1.0 - rate)), jnp.float32(0.0))
+
+
 def dropout(x: jax.Array, rate: float, key: jax.Array) -> jax.Array:
     """Inverted dropout: each unit zeroed with probability `rate`, the rest scaled by 1/(1 - rate)."""
-    keep = jax.random.bernoulli(key, 1.0 - rate, x.shape)
-    return jnp.where(keep, x / (1.0 - rate), 0.0)
+    return x * dropout_mask(key, rate, x.shape)
 
 
 def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
-        normalize: bool = False, dropout_rate: float = 0.0, key: jax.Array | None = None) -> jax.Array:
+        normalize: bool = False, masks: list[jax.Array] | None = None) -> jax.Array:
     """`normalize` puts a LayerNorm (no affine) before each hidden activation (Ball et al. 2023, RLPD):
-    it keeps critics stable at high update-to-data ratios. `dropout_rate` drops hidden units before it (DroQ,
-    Hiraoka et al. 2022: dense, dropout, LayerNorm, activation), drawn from `key`."""
+    it keeps critics stable at high update-to-data ratios. `masks` (dropout_mask's, one per hidden layer) drop
+    hidden units before it (DroQ, Hiraoka et al. 2022: dense, dropout, LayerNorm, activation)."""
     act = ACTIVATIONS[activation]
-    keys = jax.random.split(key, len(params) - 1) if dropout_rate > 0 else [None] * (len(params) - 1)
-    for layer, layer_key in zip(params[:-1], keys):
+    for i, layer in enumerate(params[:-1]):
         h = dense(x, layer, matmul_dtype)
-        if dropout_rate > 0:
-            h = dropout(h, dropout_rate, layer_key)
+        if masks is not None:
+            h = h * masks[i]
         x = act(layer_norm(h) if normalize else h)
     return dense(x, params[-1], matmul_dtype)
 
@@ -330,7 +338,8 @@ def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation
                   network: str = "mlp", dropout_rate: float = 0.0, key: jax.Array | None = None,
                   quantiles: bool = False) -> jax.Array:
     """Q-values of every critic: shape [n_critics, batch], or with `quantiles` [n_critics, batch, outputs]
-    (TQC's quantile critics, one output a quantile). With `dropout_rate`, each critic drops units with its own key.
+    (TQC's quantile critics, one output a quantile). With `dropout_rate`, each critic and row drops its own units
+    (masks drawn from `key`).
 
     The parameters are one stacked ensemble either way. `unroll` evaluates it critic by critic as
     plain 2-D matmuls, which XLA's CPU backend runs faster than the batched matmuls of `vmap`
@@ -338,17 +347,20 @@ def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation
     """
     x = jnp.concatenate([obs, actions], axis=-1)
 
-    def one(p: Params, k: jax.Array | None) -> jax.Array:
+    def one(p: Params, masks: list[jax.Array] | None) -> jax.Array:
         if network == "simba":
             return simba(p, x, activation, matmul_dtype)
-        return mlp(p, x, activation, matmul_dtype, normalize, dropout_rate, k)
+        return mlp(p, x, activation, matmul_dtype, normalize, masks)
 
     n = jax.tree_util.tree_leaves(params)[0].shape[0]
-    keys = jax.random.split(key, n) if dropout_rate > 0 else None
+    masks = None
+    if dropout_rate > 0:  # every critic's masks in one draw per layer: vmapped or unrolled, the same masks
+        widths = [layer["w"].shape[-1] for layer in params[:-1]]
+        masks = [dropout_mask(k, dropout_rate, (n, x.shape[0], w))
+                 for k, w in zip(jax.random.split(key, len(widths)), widths)]
     if unroll:
-        q = jnp.stack([one(_each_critic(params, i), None if keys is None else keys[i]) for i in range(n)])
-    elif keys is None:
-        q = jax.vmap(lambda p: one(p, None))(params)
+        q = jnp.stack([one(_each_critic(params, i), None if masks is None else [m[i] for m in masks])
+                       for i in range(n)])
     else:
-        q = jax.vmap(one)(params, keys)
+        q = jax.vmap(one)(params, masks)
     return q if quantiles else q[..., 0]
