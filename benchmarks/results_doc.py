@@ -351,15 +351,15 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
 
 
 def machines_of(runs: list[Path]) -> str:
-    """The machines the trials' config.yaml name, every segment of a resumed trial's (runs made before it was
-    recorded: this machine)."""
+    """The machines the trials' config.yaml name, every segment of a resumed trial's (runs made before config.yaml
+    recorded it: said so, not guessed: this page is written on whichever machine a session has)."""
     import yaml
 
     names = set()
     for run in runs:
         config = (yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").exists() else None) or {}
         for segment in config.get("segments") or [config]:
-            names.add(segment.get("machine") or machine_description())
+            names.add(segment.get("machine") or "a machine its config.yaml does not name")
     return " and ".join(sorted(names))
 
 
