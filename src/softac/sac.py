@@ -1,10 +1,12 @@
-"""Soft Actor-Critic's update (Haarnoja et al. 2018a, 2018b), and CrossQ's (Bhatt et al. 2024).
+"""Soft Actor-Critic's update (Haarnoja et al. 2018a, 2018b), and its family's: CrossQ (Bhatt et al. 2024),
+CrossQ+WN (Palenicek et al. 2025), TQC (Kuznetsov et al. 2020), DroQ (Hiraoka et al. 2022), SimBa networks
+(Lee et al. 2024).
 
 Read with `policy.py` (the tanh-squashed Gaussian) and `losses.py` (the critic, actor and entropy
 losses). This module composes them: a critic step, an actor-and-alpha step, the target update, then one
-jitted `update` that fuses `gradient_steps` of them with `lax.scan`. CrossQ is the same update without
-target critics, its networks batch-renormalised (`networks.BatchRenorm`); the losses handle the
-difference, so nothing here branches on the algorithm but the target update and the networks' shapes.
+jitted `update` that fuses `gradient_steps` of them with `lax.scan` and sums their metrics. The variants
+differ in the losses (`losses.Critics`), the networks and the optimisers (AdamW, weight normalisation), so
+nothing here branches on the algorithm but whether there are target critics and the networks' shapes.
 """
 
 from __future__ import annotations
