@@ -101,12 +101,20 @@ def assert_exports_act_as_predict(agent: SAC, directory: Path, obs: np.ndarray) 
     return bound
 
 
-def assert_bound_is_tight(agent: SAC, bound: np.ndarray, share: float) -> None:
+def assert_bound_is_tight(agent: SAC, bound: np.ndarray, bf16: bool) -> None:
     """The bound is far below what a wrong export is off by (a dropped normalisation or fold, a wrong clip or
-    layer order: 1e-2 and more): below 1e-4 of the action range on `share` of the observations."""
+    layer order: 1e-2 of the action range and more). In float32: below 1e-4 of the range on 95% of the
+    observations. With bf16 layers an observation whose input to one lies within its error bound of a bf16
+    rounding boundary may round to the neighbouring bf16 value, and its bound grows by that bf16 step; how many
+    do depends on the trained weights, so on the CPU that trained them (CI's AVX2 run: 89% below 1e-4, the
+    95th percentile 2e-4): below 1e-4 at the median and below 1e-3 on 95%."""
     width = (agent.learner.scaler.high - agent.learner.scaler.low).astype(np.float64)
-    tight = np.all(bound <= 1e-4 * width, axis=1)
-    assert np.mean(tight) >= share, (np.mean(tight), np.quantile(bound / width, [0.5, 0.95, 1.0]))
+    relative = np.max(bound / width, axis=1)
+    summary = np.quantile(relative, [0.5, 0.95, 1.0])
+    if bf16:
+        assert np.median(relative) <= 1e-4 and np.mean(relative <= 1e-3) >= 0.95, summary
+    else:
+        assert np.mean(relative <= 1e-4) >= 0.95, summary
 
 
 @functools.lru_cache(maxsize=None)
@@ -153,10 +161,8 @@ def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     if agent.learner.obs_norm is not None:
         assert np.abs(agent.learner.normalize_obs(obs)).max() == agent.config.obs_norm_clip  # the clip is exercised
     bound = assert_exports_act_as_predict(agent, tmp_path, obs)
-    # on the episodes' observations (the FAR ones have outsized values, and bounds to match); with bf16 layers
-    # an observation whose input to one is within its error bound of a bf16 rounding boundary may round to the
-    # neighbouring bf16 value, and its bound grows by that bf16 step (93% stay tight for crossq-bf16 here)
-    assert_bound_is_tight(agent, bound[:-FAR], 0.9 if kind.endswith("bf16") else 0.95)
+    # on the episodes' observations (the FAR ones have outsized values, and bounds to match)
+    assert_bound_is_tight(agent, bound[:-FAR], bf16=kind.endswith("bf16"))
 
 
 def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
@@ -179,7 +185,7 @@ def test_every_activation_matches_jax(activation, tmp_path):
     """Untrained agents (PyTorch's default init: outputs well away from zero); gelu is JAX's tanh form."""
     agent = SAC(tiny_config(DRIFT, activation=activation))
     obs = np.random.default_rng(0).normal(scale=3.0, size=(300, 2)).astype(np.float32)
-    assert_bound_is_tight(agent, assert_exports_act_as_predict(agent, tmp_path, obs), 0.95)
+    assert_bound_is_tight(agent, assert_exports_act_as_predict(agent, tmp_path, obs), bf16=False)
 
 
 def _checkpoint_digests(run: Path) -> dict[str, str]:
