@@ -184,7 +184,7 @@ def test_the_tqc_settings_carry_every_setting_or_refuse():
     for change, name in (({"n_critics": 5}, "n_critics"), ({"n_quantiles": 0}, "n_quantiles"),
                          ({"obs_norm": True}, "obs_norm"), ({"alpha_lr": 1e-4}, "alpha_lr"),
                          ({"weight_decay": 0.01, "weight_decay_layers": "output"}, "output layers"),
-                         ({"network": "simba", "hidden_sizes": [64]}, "network")):
+                         ({"network": "simba", "hidden_sizes": [64]}, "network"), ({"action_repeat": 2}, "action_repeat")):
         with pytest.raises(ValueError, match=name):
             tqc_settings(preset.replace(**change), act_dim=6)
 

@@ -24,7 +24,7 @@ from softac import snapshot
 from softac.collector import Collector
 from softac.config import SACConfig
 from softac.device import select_device
-from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env
+from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env, with_action_repeat
 from softac.her import her_setup
 from softac.learner import Learner
 from softac.runstate import RunState
@@ -56,6 +56,7 @@ class SAC:
             probe.close()
         elif not isinstance(env, str):
             self.env_source = probe  # the (possibly flattened) user instance
+        self.env_source = with_action_repeat(self.env_source, config.action_repeat)
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
         self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer

@@ -11,6 +11,7 @@ from __future__ import annotations
 import warnings
 from typing import TYPE_CHECKING, Any, Callable
 
+import gymnasium as gym
 import numpy as np
 
 from softac.buffer import ObsOnceReplayBuffer, ReplayBuffer, buffer_bytes_per_transition, make_buffer
@@ -19,8 +20,6 @@ from softac.envs import EnvFailed, EnvPool, EnvSource, SpaceInfo, StepResult, co
 from softac.her import HerReplayBuffer, HerSetup
 
 if TYPE_CHECKING:
-    import gymnasium as gym
-
     from softac.env_workers import WorkerEnvPool
 
 BUFFER_PREFIX, ENVS_PREFIX = "buffer/", "envs/"  # checkpoint array names
@@ -93,7 +92,7 @@ class Collector:
             return WorkerEnvPool(source, cfg.n_envs, cfg.seed, env_name(source), cfg.env_workers)
 
         def make(i: int):
-            return source if (i == 0 and not isinstance(source, str)) else copy_env(source)
+            return source if (i == 0 and isinstance(source, gym.Env)) else copy_env(source)
 
         return EnvPool(make, cfg.n_envs, cfg.seed, env_name(source))
 

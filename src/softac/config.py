@@ -40,6 +40,7 @@ class SACConfig:
     total_steps: int = _f(20_000, "environment steps (transitions, summed over vector envs) to train for")
     seed: int = _f(0, "seed for networks, exploration, replay sampling and environments")
     n_envs: int = _f(1, "environments stepped together (a vector env)")
+    action_repeat: int = _f(1, "each action applied this many times, the rewards summed (the DMC papers use 2); steps count the agent's actions, so frames = steps * action_repeat")
     env_workers: int = _f(0, "worker processes stepping the n_envs envs (0 = in-process, the default: MuJoCo's fast envs gain nothing); for slow simulators")
     device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
     # replay
@@ -180,6 +181,7 @@ class SACConfig:
         need(self.total_steps >= 0, "total_steps", "must be >= 0")
         need(self.n_envs >= 1, "n_envs", "must be >= 1")
         need(self.n_envs <= 1024, "n_envs", "must be <= 1024")
+        need(1 <= self.action_repeat <= 1000, "action_repeat", "must be between 1 and 1000")
         need(0 <= self.env_workers <= self.n_envs, "env_workers",
              f"must be between 0 (the envs stepped in-process) and n_envs={self.n_envs}")
         need(self.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")

@@ -23,6 +23,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.registration import EnvSpec
 
 from softac.envs import (EnvError, EnvFailed, EnvPool, EnvSource, StepResult, copy_env, env_name, make_env,
                          resolve_env_id)
@@ -39,6 +40,8 @@ def env_recipe(source: EnvSource) -> bytes:
     spec (self-contained: the worker needs no registration), else the instance itself."""
     if isinstance(source, str):
         candidates = [gym.spec(resolve_env_id(source)), source]
+    elif isinstance(source, EnvSpec):
+        candidates = [source]
     else:
         candidates = [getattr(source, "spec", None), source]
     reasons = []

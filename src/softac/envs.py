@@ -13,6 +13,7 @@ attribute (classic control), and any env whose unwrapped class has
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import importlib
 import importlib.util
@@ -25,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.registration import EnvSpec
 
+from softac import dmc
 from softac.errors import RunFailed, SoftacError
 from softac.her import DictLayout, dict_layout, dict_observation_space, is_goal_env
 
@@ -84,9 +86,12 @@ def robotics_mujoco_problem() -> str | None:
 
 def resolve_env_id(env_id: str) -> str:
     """Check that `env_id` is registered, importing `module` first for `module:EnvId` (and Gymnasium-Robotics
-    for its envs)."""
+    or the DeepMind Control Suite for their envs: `dmc:DOMAIN-TASK` is `dm_control/DOMAIN-TASK-v0`)."""
     env_id = env_id.strip()
-    if ":" in env_id:
+    if dmc.is_dmc_id(env_id):
+        env_id = dmc.long_id(env_id)
+        dmc.register(env_id)
+    elif ":" in env_id:
         module, _, name = env_id.partition(":")
         try:
             importlib.import_module(module)
@@ -124,7 +129,7 @@ def make_env(source: EnvSource | EnvSpec, render_mode: str | None = None, **kwar
 
 def copy_env(source: EnvSource, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
     """Another env like `source`: made again from its id or spec, else a deep copy."""
-    if isinstance(source, str):
+    if isinstance(source, (str, EnvSpec)):
         return make_env(source, render_mode, **kwargs)
     spec = getattr(source, "spec", None)
     if spec is not None:
@@ -150,6 +155,37 @@ def _flatten_obs_if_needed(env: gym.Env) -> gym.Env:
     except Exception:
         raise EnvError(f"env {env_name(env)}: observation space {space} cannot be flattened to a vector") from None
     return gym.wrappers.FlattenObservation(env)
+
+
+class ActionRepeat(gym.Wrapper, gym.utils.RecordConstructorArgs):
+    """Each action applied `repeat` times, the rewards summed; an episode that ends inside the repeat ends the
+    step (the DMC papers' action repeat: 2 in SAC's, SimBa's and TD-MPC2's state runs, 8 in DrQ's cartpole)."""
+
+    def __init__(self, env: gym.Env, repeat: int):
+        gym.utils.RecordConstructorArgs.__init__(self, repeat=repeat)
+        gym.Wrapper.__init__(self, env)
+        self.repeat = int(repeat)
+
+    def step(self, action):
+        total = 0.0
+        for _ in range(self.repeat):
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            total += float(reward)
+            if terminated or truncated:
+                break
+        return obs, total, terminated, truncated, info
+
+
+def with_action_repeat(source: EnvSource, repeat: int) -> EnvSource:
+    """`source` with each action repeated `repeat` times: an id becomes its Gymnasium spec with ActionRepeat
+    among its wrappers (so copies and env workers make it the same way), an instance is wrapped."""
+    if repeat == 1:
+        return source
+    if isinstance(source, gym.Env):
+        return ActionRepeat(source, repeat)
+    spec = gym.spec(resolve_env_id(source)) if isinstance(source, str) else source
+    wrapper = gym.envs.registration.WrapperSpec("ActionRepeat", f"{__name__}:ActionRepeat", {"repeat": repeat})
+    return dataclasses.replace(spec, additional_wrappers=(*spec.additional_wrappers, wrapper))
 
 
 @dataclass(frozen=True)

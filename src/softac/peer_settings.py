@@ -22,7 +22,8 @@ def _common(c: SACConfig) -> dict[str, bool]:
             "policy_frequency": c.policy_frequency != 1, "reset_interval": c.reset_interval > 0,
             "activation": c.activation != "relu", "fixed alpha": not c.autotune_alpha, "n_envs": c.n_envs != 1,
             "log_std bounds": (c.log_std_mode, c.log_std_min, c.log_std_max) != ("clamp", -20.0, 2.0),
-            "network": c.network != "mlp", "her": c.her == "on", "random_action_prob": c.random_action_prob > 0}
+            "network": c.network != "mlp", "her": c.her == "on", "random_action_prob": c.random_action_prob > 0,
+            "action_repeat": c.action_repeat != 1}
 
 
 def crossq_settings(c: SACConfig) -> dict[str, Any]:

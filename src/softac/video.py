@@ -39,12 +39,21 @@ def choose_gl_backend() -> str:
         return chosen
     if "mujoco" in sys.modules:  # too late to choose for this process; keep what MuJoCo picked
         return "preset"
+    backend = working_gl_backend()
+    if backend is None:
+        raise SoftacError(NO_GL_MESSAGE)
+    return backend
+
+
+def working_gl_backend() -> str | None:
+    """The first headless backend that can make a context here (set as MUJOCO_GL, which child processes
+    inherit), or None."""
     for backend in GL_BACKENDS:
         if gl_backend_works(backend):
             os.environ["MUJOCO_GL"] = backend
             os.environ.setdefault("PYOPENGL_PLATFORM", backend)
             return backend
-    raise SoftacError(NO_GL_MESSAGE)
+    return None
 
 
 def _label(frame: np.ndarray, text: str) -> np.ndarray:
