@@ -192,21 +192,21 @@ def test_report_and_plot_errors(tmp_path):
 
 
 def test_gl_backend_choice(monkeypatch):
-    import softac.video as video
+    import softac.gl as gl
 
     # the choice below sets both variables: restored after the test, also where they were unset (delenv alone
     # records nothing then, and the osmesa chosen here leaked into every later test's MuJoCo processes)
     for name in ("MUJOCO_GL", "PYOPENGL_PLATFORM"):
         monkeypatch.setenv(name, "unset by this test")
         monkeypatch.delenv(name)
-    monkeypatch.setattr(video, "gl_backend_works", lambda backend: False)
-    monkeypatch.setattr(video.sys, "modules", {k: v for k, v in video.sys.modules.items() if k != "mujoco"})
-    with pytest.raises(video.SoftacError, match="libosmesa6"):
-        video.choose_gl_backend()
-    monkeypatch.setattr(video, "gl_backend_works", lambda backend: backend == "osmesa")
-    assert video.choose_gl_backend() == "osmesa" and os.environ["MUJOCO_GL"] == "osmesa"
+    monkeypatch.setattr(gl, "gl_backend_works", lambda backend: False)
+    monkeypatch.setattr(gl.sys, "modules", {k: v for k, v in gl.sys.modules.items() if k != "mujoco"})
+    with pytest.raises(gl.SoftacError, match="libosmesa6"):
+        gl.choose_gl_backend()
+    monkeypatch.setattr(gl, "gl_backend_works", lambda backend: backend == "osmesa")
+    assert gl.choose_gl_backend() == "osmesa" and os.environ["MUJOCO_GL"] == "osmesa"
     monkeypatch.setenv("MUJOCO_GL", "egl")
-    assert video.choose_gl_backend() == "egl"  # the user's choice wins
+    assert gl.choose_gl_backend() == "egl"  # the user's choice wins
 
 
 def test_make_demo_installs_the_base_package_only(tmp_path):

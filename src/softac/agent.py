@@ -27,6 +27,7 @@ from softac.device import select_device
 from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env, with_action_repeat
 from softac.her import her_setup
 from softac.learner import Learner
+from softac.exploration import ColoredNoise
 from softac.runstate import RunState
 
 if TYPE_CHECKING:
@@ -60,7 +61,10 @@ class SAC:
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
         self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer
-        self.run_state = RunState.new(config.seed)  # where its training stands (counters, RNGs, evaluations, its run)
+        noise = (ColoredNoise(config.noise_beta, config.n_envs, self.spaces.act_dim, config.noise_sequence_length,
+                              config.seed) if config.exploration_noise == "pink" else None)
+        # where its training stands (counters, RNGs, exploration noise, evaluations, its run)
+        self.run_state = RunState.new(config.seed, noise)
 
     @property
     def num_steps(self) -> int:

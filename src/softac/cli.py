@@ -336,7 +336,7 @@ def _new_agent(config, run: Path, args: argparse.Namespace):
 
 def _choose_gl_backend_if(video: bool) -> None:
     if video:  # MuJoCo picks its GL backend when first imported: choose it now, fail early
-        from softac.video import choose_gl_backend
+        from softac.gl import choose_gl_backend
 
         choose_gl_backend()
 

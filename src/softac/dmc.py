@@ -54,10 +54,10 @@ def _import_quietly(module: str):
     and warns without one): on a headless machine softac first picks the backend that works here (EGL, else
     OSMesa; none: rendering off, training unaffected), as `softac video` does for Gymnasium's envs."""
     if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY") and "dm_control" not in sys.modules:
-        from softac.video import working_gl_backend
+        from softac.gl import working_gl_backend
 
         if working_gl_backend() is None:
-            os.environ["MUJOCO_GL"] = "disable"  # rendering then fails with video.NO_GL_MESSAGE
+            os.environ["MUJOCO_GL"] = "disable"  # rendering then fails with gl.NO_GL_MESSAGE
     with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         warnings.simplefilter("ignore")
         return importlib.import_module(module)
@@ -65,7 +65,7 @@ def _import_quietly(module: str):
 
 def suite():
     """dm_control.suite, imported as softac imports it (the OpenGL backend chosen first)."""
-    from softac.envs import EnvError
+    from softac.errors import EnvError
 
     if importlib.util.find_spec("dm_control") is None or importlib.util.find_spec("shimmy") is None:
         raise EnvError(f"the DeepMind Control Suite needs dm_control and Shimmy, which are not installed: {INSTALL_HINT}")

@@ -27,18 +27,10 @@ import numpy as np
 from gymnasium.envs.registration import EnvSpec
 
 from softac import dmc
-from softac.errors import RunFailed, SoftacError
+from softac.errors import EnvError, EnvFailed, SoftacError
 from softac.her import DictLayout, dict_layout, dict_observation_space, is_goal_env
 
 EnvSource = Any  # a Gymnasium id string or a gym.Env instance
-
-
-class EnvError(SoftacError):
-    """An env that cannot be used: an unknown id, a space SAC cannot act in (bad input, exit 2)."""
-
-
-class EnvFailed(EnvError, RunFailed):
-    """An env that raised or returned non-finite values once the run had started (exit 3)."""
 
 
 def env_name(source: EnvSource | EnvSpec) -> str:

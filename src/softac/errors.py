@@ -11,6 +11,14 @@ class RunFailed(SoftacError):
     checkpoint could not be written (a full disk). The last good checkpoint is kept; the CLI exits 3."""
 
 
+class EnvError(SoftacError):
+    """An env that cannot be used: an unknown id, a space SAC cannot act in (bad input, exit 2)."""
+
+
+class EnvFailed(EnvError, RunFailed):
+    """An env that raised or returned non-finite values once the run had started (exit 3)."""
+
+
 class TrainingInterrupted(Exception):
     """Ctrl-C or SIGTERM stopped training after a checkpoint was written (exit 130)."""
 

@@ -120,6 +120,13 @@ class Learner:
                                                        self.normalize_obs(obs), key)
         return np.asarray(actions), np.asarray(env_actions), key
 
+    def act_with_noise(self, obs: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Actions tanh(mean + std * noise) for a batch of raw observations and given standard-normal noise:
+        (in [-1, 1], env-scaled)."""
+        actions, env_actions = self.functions.act_with_noise(self.state.actor, self.state.actor_stats,
+                                                             self.normalize_obs(obs), noise)
+        return np.asarray(actions), np.asarray(env_actions)
+
     def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
         """The env-scaled mean actions for a batch of raw observations."""
         actions = self.functions.act_deterministic(self.state.actor, self.state.actor_stats, self.normalize_obs(obs))

@@ -283,7 +283,10 @@ class TrainingLoop:
             actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, learner.spaces.act_dim)).astype(np.float32)
             env_actions = learner.scaler.to_env(actions)
         else:
-            actions, env_actions, rs.act_key = learner.act(obs, rs.act_key)
+            if rs.noise is not None:
+                actions, env_actions = learner.act_with_noise(obs, rs.noise.next())
+            else:
+                actions, env_actions, rs.act_key = learner.act(obs, rs.act_key)
             if not np.all(np.isfinite(actions)):
                 raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "
                                 "actions; the last good checkpoint is kept")
@@ -293,6 +296,8 @@ class TrainingLoop:
         result = self.collector.step(obs, actions, env_actions, before)
         rs.num_steps = after = before + cfg.n_envs
         for episode in result.finished:
+            if rs.noise is not None:
+                rs.noise.restart(episode.env)
             rs.num_episodes += 1
             self.rows.episode_finished(episode.ret, episode.success)
             if self.logs is not None:

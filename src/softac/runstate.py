@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
+from softac.exploration import ColoredNoise
 from softac.rundir import check_new_run_dir, checkpoint_path, holds_run, run_of_last_checkpoint
 
 
@@ -39,13 +40,15 @@ class RunState:
     # the only run it may go on writing into; any other directory must hold no run (never overwritten)
     run_dir: Path | None = None
     restored_from: Path | None = None  # the checkpoint directory it was loaded from
+    noise: ColoredNoise | None = None  # exploration_noise pink: each env's noise sequence (else the act_key's)
 
     @classmethod
-    def new(cls, seed: int) -> "RunState":
+    def new(cls, seed: int, noise: ColoredNoise | None = None) -> "RunState":
         import jax.numpy as jnp
 
         keys = np.random.default_rng([seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)
-        return cls(act_key=jnp.asarray(keys[0]), predict_key=jnp.asarray(keys[1]), rng=np.random.default_rng(seed))
+        return cls(act_key=jnp.asarray(keys[0]), predict_key=jnp.asarray(keys[1]), rng=np.random.default_rng(seed),
+                   noise=noise)
 
     def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The checkpoint's meta entries and arrays for this state (the format of checkpoint version 1)."""
@@ -58,7 +61,11 @@ class RunState:
                         "last_eval_step": self.last_eval_step, "recent_returns": list(self.recent_returns),
                         "recent_successes": list(self.recent_successes), "last_success": self.last_success},
         }
-        return meta, {"act_key": np.asarray(self.act_key), "predict_key": np.asarray(self.predict_key)}
+        arrays = {"act_key": np.asarray(self.act_key), "predict_key": np.asarray(self.predict_key)}
+        if self.noise is not None:
+            meta["exploration_noise"], noise_arrays = self.noise.checkpoint_parts()
+            arrays.update({f"noise/{name}": value for name, value in noise_arrays.items()})
+        return meta, arrays
 
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], where: Path | str = "") -> None:
         """Take the state a checkpoint saved; `where` is its directory (a run's checkpoints/last makes this
@@ -71,6 +78,9 @@ class RunState:
         self.num_episodes = int(meta["num_episodes"])
         self.train_time_s = float(meta.get("train_time_s", 0.0))
         self.rng.bit_generator.state = meta["numpy_rng"]
+        if self.noise is not None and meta.get("exploration_noise") is not None:
+            self.noise.restore(meta["exploration_noise"], {name: arrays[f"noise/{name}"]
+                                                           for name in ("sequences", "position")})
         trainer = meta.get("trainer") or {}
         self.best_eval, self.best_step = trainer.get("best_eval"), trainer.get("best_step")
         self.last_eval, self.last_eval_step = trainer.get("last_eval"), trainer.get("last_eval_step")

@@ -204,6 +204,15 @@ def act(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs:
     return action, scaler.to_env(action, jnp), key
 
 
+def act_with_noise(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
+                   noise: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(action in [-1, 1], in env bounds) = tanh(mean + std * noise) for given standard-normal noise (coloured
+    exploration noise, softac.exploration)."""
+    mean, log_std = policy.mean_and_log_std(actor, actor_stats, obs)
+    action = jnp.tanh(mean + jnp.exp(log_std) * noise)
+    return action, scaler.to_env(action, jnp)
+
+
 # ---- the state: fresh, and reset -----------------------------------------------------------------------
 
 def actor_hidden(config: SACConfig) -> list[int]:
@@ -298,6 +307,7 @@ class SACFunctions(NamedTuple):
     update: Callable[..., tuple[SACState, dict]]  # (state, batches, totals=None) -> (state, totals)
     act: Callable[[Any, Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]]  # (actor, its stats, ...)
     act_deterministic: Callable[[Any, Any, jax.Array], jax.Array]
+    act_with_noise: Callable[[Any, Any, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
     policy: Policy
     target_entropy: float
     scaler: ActionScaler
@@ -333,6 +343,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         update=jax.jit(partial(update, s), donate_argnums=(0, 2)),
         act=jax.jit(partial(act, s.policy, scaler)),
         act_deterministic=jax.jit(s.policy.deterministic),
+        act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler)),
         policy=s.policy,
         target_entropy=s.target_entropy,
         scaler=scaler,

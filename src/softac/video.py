@@ -1,14 +1,8 @@
-"""Videos of an agent: MuJoCo rendered offscreen (EGL or OSMesa, chosen automatically) to MP4.
-
-MuJoCo picks its OpenGL backend from MUJOCO_GL when it is first imported, so
-`choose_gl_backend()` must run before any MuJoCo env is made in the process.
-"""
+"""Videos of an agent: MuJoCo rendered offscreen (EGL or OSMesa, chosen by softac.gl) to MP4."""
 
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -16,45 +10,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
-
-GL_BACKENDS = ("egl", "osmesa")
-NO_GL_MESSAGE = ("headless rendering found neither EGL nor OSMesa: install Debian's libegl1 (with a Mesa or NVIDIA "
-                 "driver) or libosmesa6 (apt-get install libosmesa6), or set MUJOCO_GL")
-_PROBE = ("import os, sys; os.environ['MUJOCO_GL'] = sys.argv[1]; import mujoco; "
-          "ctx = mujoco.GLContext(16, 16); ctx.make_current(); ctx.free()")
-
-
-def gl_backend_works(backend: str) -> bool:
-    try:
-        r = subprocess.run([sys.executable, "-c", _PROBE, backend], capture_output=True, timeout=60)
-    except (subprocess.TimeoutExpired, OSError):
-        return False
-    return r.returncode == 0
-
-
-def choose_gl_backend() -> str:
-    """MUJOCO_GL as set by the user, else the first backend that can make a context here."""
-    chosen = os.environ.get("MUJOCO_GL")
-    if chosen:
-        return chosen
-    if "mujoco" in sys.modules:  # too late to choose for this process; keep what MuJoCo picked
-        return "preset"
-    backend = working_gl_backend()
-    if backend is None:
-        raise SoftacError(NO_GL_MESSAGE)
-    return backend
-
-
-def working_gl_backend() -> str | None:
-    """The first headless backend that can make a context here (set as MUJOCO_GL, which child processes
-    inherit), or None."""
-    for backend in GL_BACKENDS:
-        if gl_backend_works(backend):
-            os.environ["MUJOCO_GL"] = backend
-            os.environ.setdefault("PYOPENGL_PLATFORM", backend)
-            return backend
-    return None
-
+from softac.gl import NO_GL_MESSAGE
 
 def _label(frame: np.ndarray, text: str) -> np.ndarray:
     from PIL import Image, ImageDraw, ImageFont
@@ -76,7 +32,7 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
     """Render `episodes` episodes of `agent` into one MP4 at `out`; returns returns and lengths."""
     import imageio.v2 as imageio
 
-    from softac.envs import EnvError
+    from softac.errors import EnvError
     from softac.evaluation import EVAL_SEED_OFFSET
 
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed

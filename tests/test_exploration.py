@@ -1,0 +1,75 @@
+"""Coloured (pink) exploration noise (issue 43; Eberhard et al. 2023): its statistics, that training acts with
+it (a fresh sequence per episode), and exact resume with it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import assert_clean_error, assert_same_training, run_cli, tiny_config
+from softac import SAC
+from softac.exploration import ColoredNoise, colored_noise
+
+
+@pytest.mark.parametrize("length", [1000, 999])
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0])
+def test_colored_noise_has_unit_variance_and_its_spectrum_falls_as_one_over_f_to_the_beta(beta, length):
+    x = colored_noise(np.random.default_rng(0), beta, (4000,), length)
+    # each step's variance over 4,000 independent sequences (standard error 0.022)
+    for t in (0, length // 2, length - 1):
+        assert abs(x[:, t].var() - 1.0) < 0.1, (t, x[:, t].var())
+    # the mean periodogram's slope on log-log axes is -beta (the zero frequency left out)
+    power = np.mean(np.abs(np.fft.rfft(x, axis=1)) ** 2, axis=0)[1:]
+    freqs = np.fft.rfftfreq(length)[1:]
+    slope = np.polyfit(np.log(freqs), np.log(power), 1)[0]
+    assert abs(slope + beta) < 0.05, slope
+    lag1 = np.mean(x[:, 1:] * x[:, :-1])
+    if beta == 0:
+        assert abs(lag1) < 0.01  # white: no correlation between steps
+    else:
+        assert lag1 > 0.7  # pink and red: neighbouring steps alike
+
+
+def test_training_acts_with_each_envs_noise_sequence_and_starts_a_fresh_one_each_episode(tiny):
+    """With the policy held fixed (no gradient steps), each training action is tanh(mean + std * noise) for
+    the next value of its env's sequence: Pendulum's 200-step episodes, sequences of 150 (used up mid-episode,
+    then a fresh one) and a fresh one at each episode's end."""
+    cfg = tiny("Pendulum-v1", n_envs=2, learning_starts=0, gradient_steps=0, exploration_noise="pink",
+               noise_sequence_length=150, buffer_size=1000)
+    agent = SAC(cfg)
+    agent.learn(500, progress=False)  # 250 steps of each env: one episode end each (at 200)
+    buffer = agent.collector.buffer
+    replay = ColoredNoise(1.0, 2, 1, 150, cfg.seed)
+    for t in range(250):
+        if t == 200:
+            for env in (0, 1):
+                replay.restart(env)
+        noise = replay.next()
+        rows = slice(2 * t, 2 * t + 2)
+        expected, _ = agent.learner.act_with_noise(buffer.obs[rows], noise)
+        np.testing.assert_array_equal(buffer.actions[rows], expected)
+    # the noise is what moves the actions: consecutive actions of an env are correlated, as its noise is
+    mean, log_std = agent.learner.functions.policy.mean_and_log_std(agent.learner.state.actor, (),
+                                                                    buffer.obs[:500:2])
+    eps = (np.arctanh(np.clip(buffer.actions[:500:2, 0], -0.999999, 0.999999)) - mean[:, 0]) / np.exp(log_std[:, 0])
+    assert np.corrcoef(eps[1:], eps[:-1])[0, 1] > 0.5
+
+
+@pytest.mark.numerics
+def test_a_run_with_pink_noise_resumes_exactly(tiny, tmp_path):
+    cfg = tiny(n_envs=2, exploration_noise="pink", noise_sequence_length=40, noise_beta=1.0)
+    straight = SAC(cfg)
+    straight.learn(700, run_dir=tmp_path / "straight", progress=False)
+    first = SAC(cfg)
+    first.learn(430, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(270, run_dir=tmp_path / "split", progress=False)
+    assert_same_training(straight, resumed)  # the noise's random stream, sequences and positions too
+
+
+def test_bad_noise_settings_are_one_line_errors(tmp_path):
+    for setting, words in (("exploration_noise=brown", "must be gaussian or pink"),
+                           ("noise_beta=-1", "noise_beta"), ("noise_sequence_length=1", "noise_sequence_length")):
+        result = run_cli("train", "--env", "Pendulum-v1", "--steps", "10", "--out", str(tmp_path / "r"),
+                         "--set", setting)
+        assert_clean_error(result, words)
