@@ -182,6 +182,20 @@ def assert_same_last_checkpoint(a: Path, b: Path) -> tuple[dict, dict]:
 RUN_STATE_NOT_COMPARED = {"run_dir", "restored_from", "train_time_s"}
 
 
+def straight_and_resumed(cfg, tmp_path: Path, first: int, then: int):
+    """(an agent trained first + then steps in one go into tmp_path/straight, one trained `first` steps into
+    tmp_path/split, loaded from its last checkpoint and trained `then` more there): the N + M == N+M check."""
+    from softac import SAC
+
+    straight = SAC(cfg)
+    straight.learn(first + then, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(first, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    assert resumed.num_steps == first
+    resumed.learn(then, run_dir=tmp_path / "split", progress=False)
+    return straight, resumed
+
+
 def assert_same_training(a, b) -> None:
     """Two agents that trained the same steps share their whole training state, bit for bit: the learner's
     leaves, the run state (counters, keys, NumPy RNG, best and last evaluation and their steps, recent

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import assert_clean_error, assert_same_training, run_cli, tiny_config
-from softac import SAC
+from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed, tiny_config
 from softac.envs import ActionRepeat, EnvPool, get_env_state, make_env, set_env_state, with_action_repeat
 from softac.logs import read_csv
 
@@ -90,13 +89,7 @@ def test_a_dmc_agent_with_action_repeat_resumes_exactly_mid_episode(tmp_path):
     """N + M == N+M on walker-walk with action repeat 2 (500 agent steps an episode): the split at 250 falls
     inside the first episode, so the physics, the task's RNG and the step counter all carry over."""
     cfg = tiny_config("dmc:walker-walk", action_repeat=2, learning_starts=100, n_envs=1)
-    straight = SAC(cfg)
-    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
-    first = SAC(cfg)
-    first.learn(250, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    assert resumed.num_steps == 250
-    resumed.learn(150, run_dir=tmp_path / "split", progress=False)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 250, 150)
     assert_same_training(straight, resumed)
     assert read_csv(tmp_path / "split" / "episodes.csv") == []  # the first episode still running at the end
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import assert_clean_error, assert_same_training, run_cli, tiny_config
+from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from softac import SAC
 from softac.exploration import ColoredNoise, colored_noise
 
@@ -58,12 +58,7 @@ def test_training_acts_with_each_envs_noise_sequence_and_starts_a_fresh_one_each
 @pytest.mark.numerics
 def test_a_run_with_pink_noise_resumes_exactly(tiny, tmp_path):
     cfg = tiny(n_envs=2, exploration_noise="pink", noise_sequence_length=40, noise_beta=1.0)
-    straight = SAC(cfg)
-    straight.learn(700, run_dir=tmp_path / "straight", progress=False)
-    first = SAC(cfg)
-    first.learn(430, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(270, run_dir=tmp_path / "split", progress=False)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 430, 270)
     assert_same_training(straight, resumed)  # the noise's random stream, sequences and positions too
 
 

@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import assert_clean_error, assert_same_training, load_benchmark_script, run_cli
+from conftest import assert_clean_error, assert_same_training, load_benchmark_script, run_cli, straight_and_resumed
 
 from softac import SAC
 from softac.buffer import ReplayBuffer
@@ -157,12 +157,7 @@ def test_resume_with_her_is_exact(tiny, tmp_path, strategy, workers, random_prob
     mixed in (their numbers come from the run's saved generator)."""
     cfg = tiny(GOAL_ENV, n_envs=2, gradient_steps=2, eval_interval=300, her_strategy=strategy, env_workers=workers,
                random_action_prob=random_prob)
-    straight = SAC(cfg)
-    straight.learn(900, run_dir=tmp_path / "straight", progress=False)
-    first = SAC(cfg)
-    first.learn(510, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(390, run_dir=tmp_path / "split", progress=False)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 510, 390)
     assert_same_training(straight, resumed)
     for name in ("eval.csv", "episodes.csv"):
         assert (tmp_path / "straight" / name).read_text() == (tmp_path / "split" / name).read_text(), name

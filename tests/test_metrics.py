@@ -11,6 +11,7 @@ from softac import SAC, sac
 from softac.config import SACConfig
 from softac.logs import read_csv
 
+from conftest import straight_and_resumed
 from test_sac_math import _batch
 
 POLICY_COLUMNS = ("actor_loss", "alpha_loss", "log_prob_mean")
@@ -89,11 +90,7 @@ def test_a_run_resumed_between_rows_logs_the_rows_of_a_straight_run(tiny, tmp_pa
     """The sums behind the next row travel in the checkpoint: a run stopped at 550 (rows every 100) and resumed
     logs at 600 what a straight run logs there, bit for bit."""
     cfg = tiny(policy_delay=3, total_steps=800)
-    straight = SAC(cfg)
-    straight.learn(800, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(550, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(250, run_dir=tmp_path / "split", progress=False)
+    straight_and_resumed(cfg, tmp_path, 550, 250)
     columns = ("step", *CRITIC_COLUMNS, *POLICY_COLUMNS)
     rows_a, rows_b = ([{k: row[k] for k in columns} for row in _progress(tmp_path / run)] for run in ("straight", "split"))
     assert [r["step"] for r in rows_a] == [str(step) for step in range(100, 900, 100)]

@@ -18,7 +18,7 @@ from softac.export import export_policy
 from softac.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
                              init_simba, output_layer_mask, simba)
 
-from conftest import assert_clean_error, assert_same_training, run_cli
+from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from test_crossq import _batches
 from test_sac_losses import ACT, BATCH, OBS, POLICY, batch, constant_actor, hand_sample
 
@@ -370,10 +370,6 @@ VARIANTS = {
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_each_variant_resumes_exactly(tiny, tmp_path, variant):
     cfg = tiny(n_envs=2, eval_interval=300, **VARIANTS[variant])
-    straight = SAC(cfg)
-    straight.learn(900, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(500, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(400, run_dir=tmp_path / "split", progress=False)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 500, 400)
     assert_same_training(straight, resumed)
     assert (tmp_path / "straight" / "eval.csv").read_text() == (tmp_path / "split" / "eval.csv").read_text()
