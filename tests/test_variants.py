@@ -370,6 +370,6 @@ VARIANTS = {
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_each_variant_resumes_exactly(tiny, tmp_path, variant):
     cfg = tiny(n_envs=2, eval_interval=300, **VARIANTS[variant])
-    straight, resumed = straight_and_resumed(cfg, tmp_path, 500, 400)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 300, 200)
     assert_same_training(straight, resumed)
     assert (tmp_path / "straight" / "eval.csv").read_text() == (tmp_path / "split" / "eval.csv").read_text()
