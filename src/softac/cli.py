@@ -65,7 +65,7 @@ def _add_allow_new_bounds(p: argparse.ArgumentParser) -> None:
 
 
 def _train_arguments(t: argparse.ArgumentParser) -> None:
-    t.add_argument("--env", help="Gymnasium env id, or module:EnvId")
+    t.add_argument("--env", help="Gymnasium env id, module:EnvId, or dmc:DOMAIN-TASK (the DeepMind Control Suite, [dmc] extra)")
     src = t.add_mutually_exclusive_group()
     src.add_argument("--preset", help="preset name (see `softac presets`)")
     src.add_argument("--config", help="YAML file of config keys")
@@ -101,7 +101,7 @@ def _train_arguments(t: argparse.ArgumentParser) -> None:
 
 
 def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
-    sw.add_argument("--env", help="Gymnasium env id (default InvertedPendulum-v5)")
+    sw.add_argument("--env", help="Gymnasium env id, module:EnvId or dmc:DOMAIN-TASK (default InvertedPendulum-v5)")
     sw.add_argument("--seeds", default="1", help="a count N (seeds 0..N-1, or from --first-seed) or a comma list")
     sw.add_argument("--first-seed", type=int, default=0, help="first seed when --seeds is a count")
     sw.add_argument("--grid", action="append", nargs="+", default=[], metavar="KEY=V1,V2",
