@@ -14,6 +14,8 @@
 #            the SAC family at the published settings where a run fits in about 2 hours of one core (crossq-wn),
 #            else at the largest settings that do (TQC with SBX's size, SimBa with 128-wide critic blocks, DroQ at
 #            5 updates per step), beside SBX at the same settings (front:ENV for one env)
+#   dmc:     issue 43's DeepMind Control Suite tasks (the [dmc] extra) at 100k frames: 50k agent steps with
+#            action repeat 2, the crossq preset (the screening before the DMC presets; dmc:TASK for one task)
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
@@ -21,7 +23,7 @@
 #            at their defaults (sb3-her, sbx-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|robotics|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|dmc|robotics|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -35,6 +37,7 @@ MUJOCO_V4="Hopper-v4 Ant-v4 HalfCheetah-v4 Walker2d-v4 Humanoid-v4"
 CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
 FALLBACK="Swimmer-v5 Reacher-v5 InvertedDoublePendulum-v5"
 ROBOTICS="FetchReach-v4 FetchPush-v4 PointMaze_UMaze-v3"
+DMC="cheetah-run walker-run quadruped-run finger-spin reacher-hard walker-walk cartpole-swingup hopper-hop"
 
 classic() {
   case $1 in
@@ -72,6 +75,10 @@ front() {
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 "${simba[@]}" --out $SWEEPS/$1-softac-simba-128
   $SOFTAC sweep --env $1 --seeds 2 --steps 100000 --framework sbx-simba-softac "${simba[@]}" --out $SWEEPS/$1-sbx-simba-softac
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset droq --set gradient_steps=5 policy_delay=5 --out $SWEEPS/$1-softac-droq-utd5
+}
+
+dmc() {
+  $SOFTAC sweep --env dmc:$1 --seeds 1 --steps 50000 --preset crossq --set action_repeat=2 --out $SWEEPS/dmc-$1-softac-crossq-ar2
 }
 
 options() {
@@ -112,6 +119,8 @@ for target in $targets; do
     crossq-wn:*) crossq_wn ${target#crossq-wn:} ;;
     fallback) for env in $FALLBACK; do fallback $env; done ;;
     robotics) for env in $ROBOTICS; do robotics $env; done ;;
+    dmc) for task in $DMC; do dmc $task; done ;;
+    dmc:*) dmc ${target#dmc:} ;;
     robotics:*) robotics ${target#robotics:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
        elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
