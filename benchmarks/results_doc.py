@@ -39,6 +39,11 @@ SUITE_V4 = [env.replace("-v5", "-v4") for env in SUITE]
 FRONT = "MuJoCo v4 at 100k steps: return against one-core wall time"
 PUBLISHED = Path(__file__).resolve().parent / "published-100k.yaml"
 AGGREGATE = "MuJoCo suite: one aggregate"
+# issue 43: the DeepMind Control Suite at 100k frames (action repeat 2: 50k agent steps), beside the published means
+DMC = "DeepMind Control Suite at 100k frames"
+DMC_TASKS = ["cheetah-run", "walker-walk", "walker-run", "hopper-hop", "finger-spin", "quadruped-run", "reacher-hard",
+             "cartpole-swingup"]
+PUBLISHED_DMC = Path(__file__).resolve().parent / "published-dmc-100k.yaml"
 OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
 # ENV-softac-NAME: another preset or options on the env (benchmarks/results.sh's `options` and `fallback`, #18)
 
@@ -107,7 +112,7 @@ def kept_sections(results_md: Path) -> dict[str, list[str]]:
     for line in results_md.read_text().splitlines():
         if line.startswith("## "):
             heading = line[3:].strip()
-            current = heading if heading in ENVS or heading in (AGGREGATE, FRONT) else None
+            current = heading if heading in ENVS or heading in (AGGREGATE, FRONT, DMC) else None
             if current:
                 sections[current] = []
         if current:
@@ -350,6 +355,39 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     return lines + [f"![front](results/{figure.name})", ""]
 
 
+def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
+    """Per DMC task, each configuration's final return at 100k frames (mean ± sd over seeds, each seed, median
+    one-core wall seconds of the comparable trials) beside the published means of SimbaV2's result files."""
+    import yaml
+
+    excluded = timing_excluded(sweeps)
+    published = {name: envs for name, envs in yaml.safe_load(PUBLISHED_DMC.read_text())["methods"].items()}
+    shown = list(published)
+    rows = []
+    for task in DMC_TASKS:
+        for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
+            trials = finished_trials(d, excluded)
+            if not trials:
+                continue
+            finals = [r["final_eval_mean"] for r in trials]
+            timed = [r["wall_s"] for r in trials if r["timed"] and r["wall_s"]]
+            sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
+            others = " | ".join(f"{published[m][task][0]:.0f}" if task in published[m] else "-" for m in shown)
+            rows.append(f"| {task} | {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
+                        f"{', '.join(f'{v:.0f}' for v in finals)} | "
+                        f"{f'{np.median(timed):.0f}' if timed else '-'} | {others} |")
+    if not rows:
+        return kept.get(DMC, [])
+    return [f"## {DMC}", "",
+            "The DeepMind Control Suite through the `[dmc]` extra (`--env dmc:TASK`), action repeat 2, 100k frames "
+            "(50k agent steps), final deterministic evaluation (10 episodes of 1000 frames), one pinned CPU per "
+            "trial. Published: the mean at 100k frames of dojeon-ai/SimbaV2's result files "
+            "(benchmarks/published-dmc-100k.yaml; its SAC baseline has 2-3 seeds), run on GPUs.", "",
+            f"| task | configuration | seeds | final return (mean ± sd) | each seed | one-core s | "
+            f"{' | '.join(f'published {m}' for m in shown)} |",
+            "|" + "---|" * (6 + len(shown)), *rows, ""]
+
+
 def machines_of(runs: list[Path]) -> str:
     """The machines the trials' config.yaml name, every segment of a resumed trial's (runs made before config.yaml
     recorded it: said so, not guessed: this page is written on whichever machine a session has)."""
@@ -380,6 +418,7 @@ def main(argv: list[str] | None = None) -> int:
         if env == SUITE_V4[0]:
             text.extend(front(a.sweeps, figures, kept))
         text.extend(section(env, threshold, a.sweeps, figures, kept))
+    text.extend(dmc_section(a.sweeps, kept))
     notes = a.docs / "results-notes.md"
     if notes.exists():
         text.append(notes.read_text())

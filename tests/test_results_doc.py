@@ -145,3 +145,20 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
                    f"{', '.join(f'{v:.0f}' for v in finals)} | {np.median(walls):.0f} |")
     assert "| SimBa UTD 8 | **3116 ± 64 (5)** |" in front and "| CrossQ | 2764 ± 823 (10) |" in front
     assert (docs / "results" / "front-v4.png").stat().st_size > 10_000
+
+
+@pytest.mark.skipif(not (KEPT / "dmc-cheetah-run-softac-crossq-ar2" / "sweep.json").exists(),
+                    reason="kept DMC sweeps not present")
+def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_path):
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    shutil.copytree(KEPT / "dmc-cheetah-run-softac-crossq-ar2", sweeps / "dmc-cheetah-run-softac-crossq-ar2")
+    docs.mkdir()
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    section = (docs / "results.md").read_text().split("## DeepMind Control Suite at 100k frames")[1].split("\n## ")[0]
+    [row] = [line for line in section.splitlines() if line.startswith("| cheetah-run |")]
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    summary = json.loads((sweeps / "dmc-cheetah-run-softac-crossq-ar2" / "seed=0" / "summary.json").read_text())
+    assert cells[1] == "softac, crossq preset + action_repeat=2" and cells[2] == "1"
+    assert cells[4] == f"{summary['last_eval']:.0f}"
+    # SimbaV2's files at 100k frames: SAC 178, SimBaV2 UTD 2 642, BRO UTD 2 445, BRO UTD 10 531, TD-MPC2 519
+    assert cells[6:] == ["178", "642", "445", "531", "519"]
