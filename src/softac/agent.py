@@ -25,9 +25,9 @@ from softac.collector import Collector
 from softac.config import SACConfig
 from softac.device import select_device
 from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env, with_action_repeat
+from softac.exploration import ColoredNoise
 from softac.her import her_setup
 from softac.learner import Learner
-from softac.exploration import ColoredNoise
 from softac.runstate import RunState
 
 if TYPE_CHECKING:
