@@ -28,6 +28,9 @@ CASES = [
     ("sac-100k", "Hopper-v5"),
     ("crossq", "Hopper-v5"),
     ("crossq-wn", "Hopper-v5"),
+    ("tqc", "Hopper-v5"),
+    ("droq", "Hopper-v5"),
+    ("simba", "Hopper-v5"),
     ("Humanoid-v5", "Humanoid-v5"),
     ("FetchReach-v4", "FetchReach-v4"),
 ]

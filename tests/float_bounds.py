@@ -219,6 +219,13 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     x, e = network_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype or agent.learner.functions.matmul_dtype,
                          norm, agent.learner.state.actor_stats if norm is not None else None,
                          out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
+    if agent.learner.functions.policy.sde:  # gSDE's mean clip: monotone and 1-Lipschitz, as the obs clip above
+        from softac.policy import SDE_CLIP_MEAN
+
+        clipped = np.clip(x, -SDE_CLIP_MEAN, SDE_CLIP_MEAN)
+        e = np.maximum(np.clip(x + e, -SDE_CLIP_MEAN, SDE_CLIP_MEAN) - clipped,
+                       clipped - np.clip(x - e, -SDE_CLIP_MEAN, SDE_CLIP_MEAN))
+        x = clipped
 
     # action = clip(mid + half * tanh(x), low, high): tanh carries the error through as above and adds its own,
     # the product and the sum round (u each), the clip is 1-Lipschitz

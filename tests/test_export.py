@@ -36,6 +36,8 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     # then kept apart from the weights): the export rounds as JAX does
     "sac-bf16": lambda: tiny_config(DRIFT, learning_starts=100, obs_norm=True, matmul_dtype="bfloat16"),
     "crossq-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, matmul_dtype="bfloat16"),
+    # the actor outputs the mean alone, clipped to [-2, 2] before tanh (issue 43)
+    "gsde": lambda: tiny_config(DRIFT, learning_starts=100, exploration_noise="gsde"),
 }
 
 

@@ -184,7 +184,8 @@ def test_the_tqc_settings_carry_every_setting_or_refuse():
     for change, name in (({"n_critics": 5}, "n_critics"), ({"n_quantiles": 0}, "n_quantiles"),
                          ({"obs_norm": True}, "obs_norm"), ({"alpha_lr": 1e-4}, "alpha_lr"),
                          ({"weight_decay": 0.01, "weight_decay_layers": "output"}, "output layers"),
-                         ({"network": "simba", "hidden_sizes": [64]}, "network"), ({"action_repeat": 2}, "action_repeat")):
+                         ({"network": "simba", "hidden_sizes": [64]}, "network"),
+                         ({"exploration_noise": "gsde"}, "exploration_noise")):
         with pytest.raises(ValueError, match=name):
             tqc_settings(preset.replace(**change), act_dim=6)
 
@@ -263,3 +264,40 @@ def test_a_her_peer_on_an_env_without_goals_is_refused_in_one_line(tmp_path):
                         "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=300,
                        env=child_env(FAKE_PEERS))
     assert r.returncode == 2 and "sbx-her needs a goal env" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("how", [["--action-repeat", "2"], ["--preset", "tqc", "--set", "n_critics=2",
+                                                           "action_repeat=2"]], ids=["option", "setting"])
+def test_a_peer_repeats_each_action_as_softac_does(tmp_path, how):
+    """`--action-repeat` (a sweep's action_repeat setting; a sweep peer's own --set too): the peer's training
+    and evaluation envs repeat each action, so Pendulum's 200-step episodes last 100 agent steps; the run
+    records it, and its checkpoint is refused to a run without it."""
+    import yaml
+
+    framework = "sbx-crossq" if how[0] == "--action-repeat" else "sbx-tqc-softac"
+    run = tmp_path / "run"
+    command = [sys.executable, "-m", "softac.peers", "run", framework, "--env", "Pendulum-v1", "--seed", "0", "--steps",
+               "300", "--out", str(run), "--eval-interval", "100", "--eval-episodes", "2", "--log-interval", "100",
+               "--checkpoint-interval", "100"]
+    r = subprocess.run([*command, *how], capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+    assert r.returncode == 0, r.stderr
+    assert yaml.safe_load((run / "config.yaml").read_text())["action_repeat"] == 2
+    assert [int(row["length"]) for row in read_csv(run / "episodes.csv")] == [100, 100, 100]
+    r = subprocess.run(command, capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+    assert r.returncode == 2 and "holds the checkpoint of another run" in r.stderr, r.stderr
+
+
+def test_sb3_zoo_takes_rl_zoos_tuned_settings_for_the_classic_set():
+    """`sb3-zoo`: SB3's SAC at RL Zoo's hyperparams/sac.yml for each env of issue 43's classic set."""
+    from softac.peer_settings import LinearSchedule, rl_zoo_sac_settings
+
+    car = rl_zoo_sac_settings("MountainCarContinuous-v0")
+    assert (car["use_sde"], car["policy_kwargs"], car["train_freq"], car["ent_coef"]) == (
+        True, {"log_std_init": -3.67, "net_arch": [64, 64]}, 32, 0.1)
+    lunar = rl_zoo_sac_settings("LunarLanderContinuous-v3")["learning_rate"]
+    assert isinstance(lunar, LinearSchedule) and repr(lunar) == "lin_0.00073"
+    assert (lunar(1.0), lunar(0.5), lunar(0.0)) == (7.3e-4, 3.65e-4, 0.0)  # SB3 passes the progress remaining
+    assert rl_zoo_sac_settings("BipedalWalker-v3")["gamma"] == 0.98
+    assert rl_zoo_sac_settings("Pendulum-v1") == {"learning_rate": 1e-3}
+    with pytest.raises(ValueError, match="not for Hopper-v5"):
+        rl_zoo_sac_settings("Hopper-v5")

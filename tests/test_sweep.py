@@ -81,6 +81,12 @@ def test_a_peer_trial_checkpoints_at_the_sweeps_interval_and_continues_with_the_
     assert cmd[cmd.index("--checkpoint-interval") + 1] == str(spec.base_config().checkpoint_interval)
     (run / "checkpoints" / "last").mkdir(parents=True)  # partial: `python -m softac.peers run` continues it
     assert sweep.trial_state(run) == "partial" and sweep.trial_command(spec, spec.base_config(), trial, run) == cmd
+    assert "--action-repeat" not in cmd
+    # the env's action repeat (DMC's 2) goes to a peer at any settings: it repeats actions as softac does
+    repeated = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], framework="sbx-crossq-softac",
+                               overrides=["action_repeat=2"])
+    cmd = sweep.trial_command(repeated, repeated.base_config(), trial, tmp_path / "repeated")
+    assert cmd[cmd.index("--action-repeat") + 1] == "2"
 
 
 def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
@@ -187,6 +193,7 @@ def test_a_resumed_sweeps_progress_counts_the_trials_that_ended_before_it(tmp_pa
     (["--search", "random", "--space", "/nonexistent/space.yaml"], "space"),
     (["--success-threshold", "1.5"], "--success-threshold is a success rate in (0, 1]"),
     (["--framework", "sb3-her"], "--framework sb3-her needs a goal env"),
+    (["--framework", "sb3-zoo"], "RL Zoo's SAC settings are here for Pendulum-v1"),  # the default env has none
     (["--max-retries", "-1"], "--max-retries"),
 ])
 def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
@@ -239,7 +246,7 @@ def test_a_peer_at_the_sweeps_settings_refuses_what_it_cannot_take(tmp_path):
 
 @pytest.mark.parametrize("framework", ["sb3", "sbx", "sbx-crossq", "sbx-crossq-softac"])
 def test_peers_take_eval_settings_spelled_either_way(framework):
-    for pair in ("eval-interval=5000", "eval_interval=5000", " eval_episodes=5"):
+    for pair in ("eval-interval=5000", "eval_interval=5000", " eval_episodes=5", "action_repeat=2"):
         spec = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=100, seeds=[0], overrides=[pair],
                                framework=framework)
         try:

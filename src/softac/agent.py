@@ -25,7 +25,7 @@ from softac.collector import Collector
 from softac.config import SACConfig
 from softac.device import select_device
 from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env, with_action_repeat
-from softac.exploration import ColoredNoise
+from softac.exploration import exploration_noise
 from softac.her import her_setup
 from softac.learner import Learner
 from softac.runstate import RunState
@@ -61,10 +61,8 @@ class SAC:
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
         self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer
-        noise = (ColoredNoise(config.noise_beta, config.n_envs, self.spaces.act_dim, config.noise_sequence_length,
-                              config.seed) if config.exploration_noise == "pink" else None)
         # where its training stands (counters, RNGs, exploration noise, evaluations, its run)
-        self.run_state = RunState.new(config.seed, noise)
+        self.run_state = RunState.new(config.seed, exploration_noise(config, self.spaces.act_dim))
 
     @property
     def num_steps(self) -> int:

@@ -1,4 +1,5 @@
-"""Temporally correlated exploration noise: coloured (pink) noise for the policy's Gaussian.
+"""Temporally correlated exploration noise: coloured (pink) noise for the policy's Gaussian, and gSDE's
+exploration matrices.
 
 SAC explores with a = tanh(mean + std * eps), eps white (independent at each step). Eberhard et al. 2023
 ("Pink Noise Is All You Need", ICLR) draw eps from a sequence whose power spectrum falls as 1/f^beta along
@@ -7,6 +8,9 @@ further in sparse-reward and long-horizon tasks (MountainCar, ...) while the pol
 the critics stay SAC's. Each env draws one sequence per episode (its length the config's
 `noise_sequence_length`, the envs' episode length), a fresh one when its episode ends; each value has unit
 variance, as white noise's.
+
+gSDE (Raffin et al. 2022; softac.policy has the maths) draws instead, for each env, the standard-normal weights
+of an exploration matrix, kept for `sde_sample_freq` steps; the policy scales them by its current std.
 """
 
 from __future__ import annotations
@@ -63,12 +67,15 @@ class ColoredNoise:
         self.sequences[env] = colored_noise(self.rng, self.beta, self.sequences.shape[1:2], self.length)
         self.position[env] = 0
 
+    def episode_ended(self, env: int) -> None:
+        self.restart(env)
+
     def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         return ({"rng": self.rng.bit_generator.state, "beta": self.beta, "length": self.length},
                 {"sequences": self.sequences.copy(), "position": self.position.copy()})
 
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
-        if arrays["sequences"].shape != self.sequences.shape:
+        if "sequences" not in arrays or arrays["sequences"].shape != self.sequences.shape:
             from softac.errors import SoftacError
 
             raise SoftacError(f"the checkpoint's exploration noise has shape {arrays['sequences'].shape}, this "
@@ -76,3 +83,50 @@ class ColoredNoise:
         self.rng.bit_generator.state = meta["rng"]
         self.sequences = np.array(arrays["sequences"], np.float64)
         self.position = np.array(arrays["position"], np.int64)
+
+
+class SdeNoise:
+    """gSDE's exploration: for each env the standard-normal weights (features x act) of its exploration
+    matrix, drawn afresh every `sample_freq` steps (SB3's sde_sample_freq) and kept across episode ends, as
+    SB3 keeps them. Its state (random stream, weights, steps since the draw) goes into checkpoints."""
+
+    def __init__(self, sample_freq: int, n_envs: int, n_features: int, act_dim: int, seed: int):
+        self.sample_freq = int(sample_freq)
+        self.rng = np.random.default_rng([seed, 0x65DE])
+        self.weights = np.zeros((n_envs, n_features, act_dim), np.float32)
+        self.since_draw = self.sample_freq  # a draw before the first step
+
+    def next(self) -> np.ndarray:
+        """(n_envs, features, act_dim) float32: each env's current weights."""
+        if self.since_draw >= self.sample_freq:
+            self.weights = self.rng.standard_normal(self.weights.shape, dtype=np.float32)
+            self.since_draw = 0
+        self.since_draw += 1
+        return self.weights
+
+    def episode_ended(self, env: int) -> None:
+        pass
+
+    def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        return ({"rng": self.rng.bit_generator.state, "sample_freq": self.sample_freq},
+                {"weights": self.weights.copy(), "since_draw": np.asarray(self.since_draw, np.int64)})
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        if "weights" not in arrays or arrays["weights"].shape != self.weights.shape:
+            from softac.errors import SoftacError
+
+            raise SoftacError("the checkpoint's exploration noise is not this run's gSDE exploration matrices "
+                              f"(n_envs, features, action dims) {self.weights.shape}")
+        self.rng.bit_generator.state = meta["rng"]
+        self.weights = np.array(arrays["weights"], np.float32)
+        self.since_draw = int(arrays["since_draw"])
+
+
+def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | None:
+    """The noise source the config's `exploration_noise` names (None: white noise from the act key)."""
+    if config.exploration_noise == "pink":
+        return ColoredNoise(config.noise_beta, config.n_envs, act_dim, config.noise_sequence_length, config.seed)
+    if config.exploration_noise == "gsde":
+        n_features = list(config.actor_hidden_sizes or config.hidden_sizes)[-1]
+        return SdeNoise(config.sde_sample_freq, config.n_envs, n_features, act_dim, config.seed)
+    return None

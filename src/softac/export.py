@@ -126,6 +126,10 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
             arrays[f"n{i}_{key}"] = value
     if any(layer["bf16"] for layer in layers):
         arrays["bf16"] = np.array([layer["bf16"] for layer in layers], np.int8)
+    if learner.functions.policy.sde:
+        from softac.policy import SDE_CLIP_MEAN
+
+        arrays["mean_clip"] = np.asarray(SDE_CLIP_MEAN, np.float32)
     arrays["activation"] = np.asarray(learner.config.activation)
     arrays["action_low"] = learner.scaler.low.astype(np.float32)
     arrays["action_high"] = learner.scaler.high.astype(np.float32)
@@ -216,6 +220,9 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         x = g.op("Add", g.op("MatMul", x, g.const(f"w{i}", arrays[f"w{i}"])), g.const(f"b{i}", arrays[f"b{i}"]))
         if i < n_layers - 1:
             x = _onnx_activation(g, str(arrays["activation"]), x)
+    if "mean_clip" in arrays:
+        clip = float(arrays["mean_clip"])
+        x = g.op("Clip", x, g.const("mean_clip_low", -clip), g.const("mean_clip_high", clip))
     low, high = arrays["action_low"], arrays["action_high"]
     scaled = g.op("Add", g.const("action_bias", (high + low) / 2.0),
                   g.op("Mul", g.const("action_scale", (high - low) / 2.0), g.op("Tanh", x)))

@@ -14,6 +14,8 @@ policy.npz holds
                                   multiplies in bfloat16 (its input is rounded to bf16; its w already is)
     nI_mean, nI_inv_std,          float32, only for a CrossQ layer I that multiplies in bf16: its input's batch
     nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values)
+    mean_clip                     float32, only for gSDE policies: the mean is clipped to [-mean_clip, mean_clip]
+                                  before tanh
     action_low, action_high       float32: the env's action bounds
     activation                    the hidden activation's name: relu, tanh, elu or gelu
     obs_keys, obs_key_sizes       only for envs that observe a dict (goal envs): its keys in the order the
@@ -79,5 +81,7 @@ def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
         x = x @ params[f"w{i}"] + params[f"b{i}"]
         if i < n_layers - 1:
             x = activation(x)
+    if "mean_clip" in params:
+        x = np.clip(x, -params["mean_clip"], params["mean_clip"])
     low, high = params["action_low"], params["action_high"]
     return np.clip((high + low) / 2.0 + (high - low) / 2.0 * np.tanh(x), low, high)

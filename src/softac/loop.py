@@ -297,7 +297,7 @@ class TrainingLoop:
         rs.num_steps = after = before + cfg.n_envs
         for episode in result.finished:
             if rs.noise is not None:
-                rs.noise.restart(episode.env)
+                rs.noise.episode_ended(episode.env)
             rs.num_episodes += 1
             self.rows.episode_finished(episode.ret, episode.success)
             if self.logs is not None:

@@ -177,14 +177,21 @@ def batch_renorm_mlp(params: Params, stats: Params, x: jax.Array, activation: st
                    matmul_dtype: str = "float32") -> tuple[jax.Array, Params]:
     """An MLP whose every layer normalises its input first (CrossQ's networks: the observation, then each
     hidden activation); returns the output and the new running statistics."""
+    features, new_stats = batch_renorm_mlp_features(params, stats, x, activation, norm, train, renorm, matmul_dtype)
+    return dense(features, params[-1], matmul_dtype), new_stats
+
+
+def batch_renorm_mlp_features(params: Params, stats: Params, x: jax.Array, activation: str, norm: BatchRenorm,
+                              train: bool, renorm: jax.Array | bool = False,
+                              matmul_dtype: str = "float32") -> tuple[jax.Array, Params]:
+    """`batch_renorm_mlp` up to the output layer's input (normalised): (those features, the new statistics)."""
     act = ACTIVATIONS[activation]
     new_stats = []
     for i, (layer, layer_stats) in enumerate(zip(params, stats)):
         x, layer_stats = norm(x, layer, layer_stats, train, renorm)
         new_stats.append(layer_stats)
-        x = dense(x, layer, matmul_dtype)
         if i < len(params) - 1:
-            x = act(x)
+            x = act(dense(x, layer, matmul_dtype))
     return x, new_stats
 
 
@@ -208,13 +215,19 @@ def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "floa
     """`normalize` puts a LayerNorm (no affine) before each hidden activation (Ball et al. 2023, RLPD):
     it keeps critics stable at high update-to-data ratios. `masks` (dropout_mask's, one per hidden layer) drop
     hidden units before it (DroQ, Hiraoka et al. 2022: dense, dropout, LayerNorm, activation)."""
+    return dense(mlp_features(params, x, activation, matmul_dtype, normalize, masks), params[-1], matmul_dtype)
+
+
+def mlp_features(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
+                 normalize: bool = False, masks: list[jax.Array] | None = None) -> jax.Array:
+    """`mlp` up to the output layer's input: the last hidden layer's activations."""
     act = ACTIVATIONS[activation]
     for i, layer in enumerate(params[:-1]):
         h = dense(x, layer, matmul_dtype)
         if masks is not None:
             h = h * masks[i]
         x = act(layer_norm(h) if normalize else h)
-    return dense(x, params[-1], matmul_dtype)
+    return x
 
 
 # ---- SimBa (Lee et al. 2024, "SimBa: Simplicity Bias for Scaling Up Parameters in Deep RL") ---------------
@@ -255,6 +268,11 @@ def _affine_layer_norm(x: jax.Array, scale: jax.Array, bias: jax.Array) -> jax.A
 
 
 def simba(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32") -> jax.Array:
+    return dense(simba_features(params, x, activation, matmul_dtype), params["head"], matmul_dtype)
+
+
+def simba_features(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32") -> jax.Array:
+    """`simba` up to the output layer's input: the residual stream after the final LayerNorm."""
     act = ACTIVATIONS[activation]
     x = dense(x, params["embed"], matmul_dtype)
     for block in params["blocks"]:
@@ -262,7 +280,7 @@ def simba(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "fl
         h = act(dense(h, {"w": block["w1"], "b": block["b1"]}, matmul_dtype))
         x = x + dense(h, {"w": block["w2"], "b": block["b2"]}, matmul_dtype)
     head = params["head"]
-    return dense(_affine_layer_norm(x, head["ln_scale"], head["ln_bias"]), head, matmul_dtype)
+    return _affine_layer_norm(x, head["ln_scale"], head["ln_bias"])
 
 
 def output_layer_mask(params: Params) -> Params:
@@ -284,12 +302,26 @@ def critic_sizes(obs_dim: int, act_dim: int, hidden: list[int], out_dim: int = 1
 
 
 def init_actor(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,
-               norm: bool = False, network: str = "mlp") -> Params:
-    """The actor outputs [mean, log_std] for each action dimension."""
+               norm: bool = False, network: str = "mlp", sde_log_std_init: float | None = None) -> Params:
+    """The actor outputs [mean, log_std] for each action dimension. With gSDE (`sde_log_std_init` given) it
+    outputs the mean only, and its output layer also holds `sde_log_std`, the log std of each weight of the
+    exploration matrix (output layer's input features x action dims), all at `sde_log_std_init`."""
+    out_dim = act_dim if sde_log_std_init is not None else 2 * act_dim
     if network == "simba":
-        return init_simba(rng, obs_dim, hidden, 2 * act_dim)
-    # with orthogonal init a small last layer starts the policy near zero mean (Andrychowicz et al. 2021)
-    return init_mlp(rng, actor_sizes(obs_dim, act_dim, hidden), init, out_gain=0.01, norm=norm)
+        actor = init_simba(rng, obs_dim, hidden, out_dim)
+        head = actor["head"]
+    else:
+        # with orthogonal init a small last layer starts the policy near zero mean (Andrychowicz et al. 2021)
+        actor = init_mlp(rng, [obs_dim, *hidden, out_dim], init, out_gain=0.01, norm=norm)
+        head = actor[-1]
+    if sde_log_std_init is not None:
+        head["sde_log_std"] = np.full((hidden[-1], act_dim), sde_log_std_init, np.float32)
+    return actor
+
+
+def actor_head(actor: Params) -> dict:
+    """The actor's output layer (an MLP's last, a SimBa network's head)."""
+    return actor["head"] if isinstance(actor, dict) else actor[-1]
 
 
 def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from softac.peer_settings import SWEEP_TRANSLATORS, crossq_settings  # noqa: F401  (crossq_settings: its old home)
+from softac.peer_settings import (SWEEP_TRANSLATORS, crossq_settings,  # noqa: F401  (crossq_settings: its old home)
+                                  rl_zoo_sac_settings)
 
 if TYPE_CHECKING:
     from softac.config import SACConfig
@@ -33,7 +34,8 @@ class Peer:
     package: str  # the module to import (the [bench] extra installs it)
     distribution: str  # its name on PyPI, for the version in config.yaml
     algorithm: str  # the class trained: SAC or CrossQ
-    settings: str  # "defaults" (the peer's own), "sweep" (the sweep's --preset/--set), or the softac preset it runs at
+    settings: str  # "defaults" (the peer's own), "sweep" (the sweep's --preset/--set), "zoo" (RL Zoo's for the
+    # env), or the softac preset it runs at
     about: str
     label: str  # the configuration's name in tables and legends
     her: bool = False  # with SB3's HerReplayBuffer: for goal envs only
@@ -61,6 +63,10 @@ PEERS = {
                              "SBX's SAC with its SimbaPolicy at the sweep's own settings (its --preset and --set, e.g. "
                              "--preset simba; obs_norm through SB3's VecNormalize; what SBX cannot take is refused)",
                              "SBX SAC + SimBa, same settings", policy="SimbaPolicy"),
+    "sb3-zoo": Peer("stable_baselines3", "stable-baselines3", "SAC", "zoo",
+                    "Stable-Baselines3's SAC at RL Zoo's tuned settings for the env (Pendulum-v1, "
+                    "MountainCarContinuous-v0, LunarLanderContinuous-v3, BipedalWalker-v3; softac.peer_settings)",
+                    "SB3 SAC, RL Zoo's tuned settings"),
     "sb3-her": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults",
                     "Stable-Baselines3's SAC at its defaults with its HerReplayBuffer (future, 4 goals) and "
                     "learning_starts 1000, for goal envs", "SB3 SAC + HER, its defaults", her=True),
@@ -104,14 +110,16 @@ def check_her_env(framework: str, env: Any, env_id: str, named: str | None = Non
                           f"desired_goal and compute_reward); {env_id} is not one")
 
 
-def peer_env(framework: str, env_id: str):
+def peer_env(framework: str, env_id: str, action_repeat: int = 1):
     """The peer's training env as Gymnasium makes it (a goal env's dict observation kept: SB3's
-    MultiInputPolicy takes it), checked by check_her_env."""
+    MultiInputPolicy takes it; each action repeated `action_repeat` times by softac's ActionRepeat), checked
+    by check_her_env."""
     import gymnasium as gym
 
-    from softac.envs import resolve_env_id
+    from softac.envs import resolve_env_id, with_action_repeat
 
-    env = gym.make(resolve_env_id(env_id))  # resolve_env_id imports Gymnasium-Robotics for its ids
+    # resolve_env_id imports Gymnasium-Robotics for its ids (and registers the DeepMind Control Suite's)
+    env = gym.make(with_action_repeat(resolve_env_id(env_id), action_repeat))
     check_her_env(framework, env, env_id)
     return env
 
@@ -130,7 +138,7 @@ def peer_settings(framework: str, config: SACConfig | None, act_dim: int) -> dic
     from softac.config import SACConfig
 
     peer = PEERS[framework]
-    if peer.settings == "defaults":
+    if peer.settings in ("defaults", "zoo"):  # zoo: the env's, which peer_model adds
         return {}
     if peer.settings == "sweep":
         if config is None:
@@ -139,9 +147,10 @@ def peer_settings(framework: str, config: SACConfig | None, act_dim: int) -> dic
     return crossq_settings(SACConfig.preset(peer.settings))
 
 
-def peer_model(framework: str, env_id: str, seed: int, config: SACConfig | None = None, **overrides: Any):
+def peer_model(framework: str, env_id: str, seed: int, config: SACConfig | None = None, action_repeat: int = 1,
+               **overrides: Any):
     """The peer's model on a fresh env, at its settings (a "sweep" peer's from `config`; `overrides`, e.g.
-    learning_starts for a throughput probe, replace them)."""
+    learning_starts for a throughput probe, replace them), each action repeated `action_repeat` times."""
     import gymnasium as gym
     import numpy as np
 
@@ -149,9 +158,12 @@ def peer_model(framework: str, env_id: str, seed: int, config: SACConfig | None 
 
     algorithm, kwargs = _peer_algorithm(framework)
     peer = PEERS[framework]
-    env = peer_env(framework, env_id)
+    env = peer_env(framework, env_id, action_repeat)
     try:
-        kwargs.update(peer_settings(framework, config, int(np.prod(env.action_space.shape))))
+        if peer.settings == "zoo":
+            kwargs.update(rl_zoo_sac_settings(env_id))
+        else:
+            kwargs.update(peer_settings(framework, config, int(np.prod(env.action_space.shape))))
     except ValueError as exc:
         raise SoftacError(f"{framework}: {exc}") from None
     if peer.her:
@@ -261,7 +273,7 @@ def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
         raise SoftacError(f"{directory} holds the checkpoint of another run ({meta.get('peer') or 'softac'}), not "
                           f"of {identity}; pick another --out")
     algorithm, kwargs = _peer_algorithm(framework)
-    env = peer_env(framework, env_id)
+    env = peer_env(framework, env_id, int(identity.get("action_repeat", 1)))
     if "obs_rms_mean" in arrays:
         env = normalized_env(env, sweep_config(env_id, **meta["sweep"]))
         env.obs_rms.mean, env.obs_rms.var = arrays["obs_rms_mean"].copy(), arrays["obs_rms_var"].copy()
@@ -329,7 +341,7 @@ def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps:
 
 def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
              eval_episodes: int, log_interval: int, checkpoint_interval: int = 0, preset: str | None = None,
-             overrides: list[str] | None = None) -> dict[str, Any]:
+             overrides: list[str] | None = None, action_repeat: int = 1) -> dict[str, Any]:
     """Train a peer and write a softac-style run directory (config.yaml, progress.csv, episodes.csv,
     eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions, episode i of
     every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what softac's mean
@@ -337,7 +349,9 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     `checkpoint_interval` steps, and when Ctrl-C or SIGTERM stops it (TrainingInterrupted, exit 130), the run
     saves checkpoints/last; the same call on the same directory continues from there, so a peer's run that
     takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes. A peer
-    whose settings are a sweep's runs at the config `preset` and `overrides` make (sweep_config)."""
+    whose settings are a sweep's runs at the config `preset` and `overrides` make (sweep_config). With
+    `action_repeat` (or a sweep peer's action_repeat setting) its training and evaluation envs repeat each
+    action, as softac's do; steps count the agent's actions, as softac's."""
     from softac.errors import TrainingInterrupted
     from softac.rundir import run_lock
 
@@ -345,7 +359,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     with run_lock(out):
         try:
             return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
-                           checkpoint_interval, sweep).run()
+                           checkpoint_interval, sweep, action_repeat).run()
         except TrainingInterrupted as exc:
             # said before the lock goes: a stopped sweep waits for the lock, then its user reads the trial's log
             print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr,
@@ -357,7 +371,8 @@ def _hyperparameters(model: Any) -> dict[str, Any]:
     """What config.yaml records of a peer's model: its settings as it holds them."""
     hyper = {k: getattr(model, k) for k in ("learning_rate", "qf_learning_rate", "buffer_size", "batch_size",
                                             "learning_starts", "tau", "gamma", "train_freq", "gradient_steps",
-                                            "policy_delay", "ent_coef", "target_entropy") if hasattr(model, k)}
+                                            "policy_delay", "ent_coef", "target_entropy", "use_sde",
+                                            "sde_sample_freq") if hasattr(model, k)}
     if "train_freq" in hyper:
         hyper["train_freq"] = f"{hyper['train_freq'].frequency} {hyper['train_freq'].unit.value}"
     return {**{k: (v if isinstance(v, (int, float, str)) else str(v)) for k, v in hyper.items()},
@@ -373,7 +388,7 @@ class PeerRun:
 
     def __init__(self, framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
                  eval_episodes: int, log_interval: int, checkpoint_interval: int,
-                 sweep: dict[str, Any] | None = None):
+                 sweep: dict[str, Any] | None = None, action_repeat: int = 1):
         from softac import checkpoint as ckpt
         from softac.rundir import checkpoint_path
 
@@ -381,15 +396,27 @@ class PeerRun:
         self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
         self.checkpoint_interval = checkpoint_interval
         self.sweep = sweep if PEERS[framework].settings == "sweep" else None  # the softac settings it runs at
+        from softac.errors import SoftacError
+
         self.checkpoint = checkpoint_path(out, "last")
+        if action_repeat < 1:
+            raise SoftacError(f"--action-repeat must be >= 1, not {action_repeat}")
+        config = sweep_config(env_id, **self.sweep) if self.sweep is not None else None
+        if config is not None and config.action_repeat != 1:
+            if action_repeat not in (1, config.action_repeat):
+                raise SoftacError(f"--action-repeat {action_repeat} and the setting action_repeat="
+                                  f"{config.action_repeat} differ: give one")
+            action_repeat = config.action_repeat
+        self.action_repeat = action_repeat
         self.identity = {"framework": framework, "env_id": env_id, "seed": seed, "total_steps": steps}
+        if action_repeat != 1:  # only then: the checkpoints of runs without it keep their identity
+            self.identity["action_repeat"] = action_repeat
         self.resumed = ckpt.is_checkpoint(self.checkpoint)
         if self.resumed:
             self.model, meta = load_peer_checkpoint(framework, env_id, self.checkpoint, self.identity)
             self.record = meta["record"]
         else:
-            config = sweep_config(env_id, **self.sweep) if self.sweep is not None else None
-            self.model = peer_model(framework, env_id, seed, config)
+            self.model = peer_model(framework, env_id, seed, config, action_repeat)
             self.record = {"step": 0, "episodes": 0, "best": None, "best_step": None, "last": None,
                            "elapsed_s": 0.0, "recent_returns": []}
 
@@ -420,7 +447,7 @@ class PeerRun:
         self.logs = CsvLogger(self.out, start if self.resumed else None)
         # evaluated on softac's envs (a dict observation flattened, as run_episodes takes it), the flat
         # observations given back to the peer's policy as the dict it was trained on
-        self.eval_envs = [make_env(self.env_id) for _ in range(min(self.eval_episodes, MAX_PARALLEL))]
+        self.eval_envs = [self.make_env() for _ in range(min(self.eval_episodes, MAX_PARALLEL))]
         space = dict_observation_space(self.eval_envs[0])
         self.layout = dict_layout(space) if space is not None else None
         self.t0 = time.perf_counter() - self.record["elapsed_s"]  # time_s counts every segment's seconds
@@ -475,6 +502,12 @@ class PeerRun:
             self.save(step)
         return not self.stop.requested
 
+    def make_env(self) -> Any:
+        """An evaluation env: softac's, each action repeated as in training."""
+        from softac.envs import make_env, with_action_repeat
+
+        return make_env(with_action_repeat(self.env_id, self.action_repeat))
+
     def policy(self, obs: Any) -> Any:
         """The peer's deterministic actions for a batch of flat observations (as a dict, for a dict env), normalised
         by the training statistics where it has them (VecNormalize), as softac's predict() normalises."""
@@ -489,7 +522,7 @@ class PeerRun:
         from softac.envs import make_env
         from softac.evaluation import EVAL_SEED_OFFSET, run_episodes
 
-        stats = run_episodes(self.policy, lambda: make_env(self.env_id), self.eval_episodes,
+        stats = run_episodes(self.policy, self.make_env, self.eval_episodes,
                              self.seed + EVAL_SEED_OFFSET, envs=self.eval_envs)
         values = {"mean_return": stats["mean_return"], "std_return": stats["std_return"], "episodes": stats["episodes"]}
         if stats["success_rate"] is not None:
@@ -530,6 +563,8 @@ def arguments() -> argparse.ArgumentParser:
     p.add_argument("--log-interval", type=int, default=1000)
     p.add_argument("--checkpoint-interval", type=int, default=0,
                    help="run: steps between checkpoints (0: only when stopped by a signal); run again to continue")
+    p.add_argument("--action-repeat", type=int, default=1,
+                   help="run: each action applied this many times, the rewards summed (softac's action_repeat)")
     p.add_argument("--preset", help="a peer that runs at a sweep's settings: softac's preset (default: the env's)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="... and its overrides")
     return p
@@ -548,7 +583,7 @@ def main(argv: list[str]) -> None:
             if not a.out:
                 parser.error("run needs --out")
             out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
-                           a.log_interval, a.checkpoint_interval, a.preset, a.set)
+                           a.log_interval, a.checkpoint_interval, a.preset, a.set, a.action_repeat)
         elif a.kind == "throughput":
             out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
         else:

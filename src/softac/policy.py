@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softac.networks import BatchRenorm, batch_renorm_mlp, mlp, simba
+from softac.networks import (BatchRenorm, actor_head, batch_renorm_mlp_features, dense, mlp_features,
+                             simba_features)
 
 LOG_2 = float(np.log(2.0))
 LOG_SQRT_2PI = float(0.5 * np.log(2.0 * np.pi))
@@ -49,6 +50,30 @@ def squashed_sample(mean: jax.Array, log_std: jax.Array, key: jax.Array) -> tupl
     return jnp.tanh(u), squashed_gaussian_log_prob(u, mean, log_std)
 
 
+# gSDE (Raffin et al. 2022, "Smooth Exploration for Robotic Reinforcement Learning"), as SB3's SAC `use_sde`:
+# the noise is a linear function of the features the mean's layer reads, u = mean + f(s) @ W, with the
+# exploration matrix W ~ N(0, std^2) drawn every so often rather than each step, so that exploration is smooth
+# along a trajectory and consistent in a state. For a fixed state u is Gaussian with variance
+# (f(s)^2) @ std^2 per action dim. The features are held fixed in the noise (SB3's learn_features=False) and
+# the mean is clipped to [-2, 2] (SB3's clip_mean: tanh saturates beyond it).
+SDE_CLIP_MEAN = 2.0
+SDE_EPSILON = 1e-6  # added to the variance, as SB3's StateDependentNoiseDistribution
+
+
+def sde_log_std(features: jax.Array, log_std_matrix: jax.Array) -> jax.Array:
+    """Per action dim, log of the state-dependent std sqrt(f(s)^2 @ exp(log_std)^2 + eps)."""
+    f = jax.lax.stop_gradient(features)
+    return 0.5 * jnp.log(jnp.square(f) @ jnp.exp(2.0 * log_std_matrix) + SDE_EPSILON)
+
+
+def sde_noise(features: jax.Array, log_std_matrix: jax.Array, weights: jax.Array) -> jax.Array:
+    """f(s) @ W with W = exp(log_std) * weights: one matrix `weights` (features x act) for a batch, or one per
+    row (batch x features x act); `weights` standard normal."""
+    f = jax.lax.stop_gradient(features)
+    matrix = jnp.exp(log_std_matrix) * weights
+    return f @ matrix if weights.ndim == 2 else jnp.einsum("bf,bfa->ba", f, matrix)
+
+
 @dataclass(frozen=True)
 class Policy:
     """The actor's settings; its parameters and running statistics are passed to each method. Acting uses
@@ -60,32 +85,63 @@ class Policy:
     matmul_dtype: str = "float32"
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
     network: str = "mlp"  # or simba (networks.simba)
+    sde: bool = False  # gSDE: the actor outputs the mean; its head holds the exploration matrix's log std
+
+    def _features(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
+                  renorm: jax.Array | bool = False) -> tuple[jax.Array, Any]:
+        """The input of the actor's output layer, and the running statistics (new ones in training mode)."""
+        if self.network == "simba":
+            return simba_features(actor, obs, self.activation, self.matmul_dtype), stats
+        if self.batch_renorm is None:
+            return mlp_features(actor, obs, self.activation, self.matmul_dtype), stats
+        return batch_renorm_mlp_features(actor, stats, obs, self.activation, self.batch_renorm, train, renorm,
+                                         self.matmul_dtype)
 
     def _outputs(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
-                 renorm: jax.Array | bool = False) -> tuple[jax.Array, jax.Array, Any]:
-        if self.network == "simba":
-            out = simba(actor, obs, self.activation, self.matmul_dtype)
-        elif self.batch_renorm is None:
-            out = mlp(actor, obs, self.activation, self.matmul_dtype)
-        else:
-            out, stats = batch_renorm_mlp(actor, stats, obs, self.activation, self.batch_renorm, train, renorm,
-                                          self.matmul_dtype)
+                 renorm: jax.Array | bool = False) -> tuple[jax.Array, jax.Array, Any, jax.Array]:
+        """(mean, log std per action dim, running statistics, features)."""
+        features, stats = self._features(actor, stats, obs, train, renorm)
+        head = actor_head(actor)
+        out = dense(features, head, self.matmul_dtype)
+        if self.sde:
+            mean = jnp.clip(out, -SDE_CLIP_MEAN, SDE_CLIP_MEAN)
+            return mean, sde_log_std(features, head["sde_log_std"]), stats, features
         mean, raw_log_std = jnp.split(out, 2, axis=-1)
-        return mean, bound_log_std(raw_log_std, self.log_std_min, self.log_std_max, self.log_std_mode), stats
+        log_std = bound_log_std(raw_log_std, self.log_std_min, self.log_std_max, self.log_std_mode)
+        return mean, log_std, stats, features
+
+    def _sample(self, actor: Any, outputs: tuple, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        mean, log_std, _, features = outputs
+        if not self.sde:
+            return squashed_sample(mean, log_std, key)
+        # one exploration matrix for the whole batch, fresh for each call (SB3 draws one per gradient step)
+        log_std_matrix = actor_head(actor)["sde_log_std"]
+        u = mean + sde_noise(features, log_std_matrix, jax.random.normal(key, log_std_matrix.shape))
+        return jnp.tanh(u), squashed_gaussian_log_prob(u, mean, log_std)
 
     def mean_and_log_std(self, actor: Any, stats: Any, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The Gaussian's mean and log std per action dim before tanh (with gSDE: the state-dependent std)."""
         return self._outputs(actor, stats, obs)[:2]
 
     def sample(self, actor: Any, stats: Any, obs: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         """A reparameterised action in [-1, 1] and its log-probability."""
-        return squashed_sample(*self.mean_and_log_std(actor, stats, obs), key)
+        return self._sample(actor, self._outputs(actor, stats, obs), key)
 
     def sample_training(self, actor: Any, stats: Any, obs: jax.Array, key: jax.Array,
                         renorm: jax.Array | bool = False) -> tuple[jax.Array, jax.Array, Any]:
         """`sample` in training mode: normalised with the batch's statistics, which also update the running
         ones (returned third). Without batch renormalisation, `sample` and `stats` unchanged."""
-        mean, log_std, stats = self._outputs(actor, stats, obs, train=True, renorm=renorm)
-        return (*squashed_sample(mean, log_std, key), stats)
+        outputs = self._outputs(actor, stats, obs, train=True, renorm=renorm)
+        return (*self._sample(actor, outputs, key), outputs[2])
+
+    def with_noise(self, actor: Any, stats: Any, obs: jax.Array, noise: jax.Array) -> jax.Array:
+        """The action in [-1, 1] for given standard-normal noise: tanh(mean + std * noise), noise (batch x
+        act) white or coloured (softac.exploration); with gSDE tanh(mean + f(s) @ (std * noise)), noise the
+        exploration matrices' weights (batch x features x act)."""
+        mean, log_std, _, features = self._outputs(actor, stats, obs)
+        if self.sde:
+            return jnp.tanh(mean + sde_noise(features, actor_head(actor)["sde_log_std"], noise))
+        return jnp.tanh(mean + jnp.exp(log_std) * noise)
 
     def deterministic(self, actor: Any, stats: Any, obs: jax.Array) -> jax.Array:
         return jnp.tanh(self.mean_and_log_std(actor, stats, obs)[0])

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
-from softac.exploration import ColoredNoise
+from softac.exploration import ColoredNoise, SdeNoise
 from softac.rundir import check_new_run_dir, checkpoint_path, holds_run, run_of_last_checkpoint
 
 
@@ -40,10 +40,10 @@ class RunState:
     # the only run it may go on writing into; any other directory must hold no run (never overwritten)
     run_dir: Path | None = None
     restored_from: Path | None = None  # the checkpoint directory it was loaded from
-    noise: ColoredNoise | None = None  # exploration_noise pink: each env's noise sequence (else the act_key's)
+    noise: ColoredNoise | SdeNoise | None = None  # pink: each env's noise sequence; gsde: its exploration matrix (else the act_key's)
 
     @classmethod
-    def new(cls, seed: int, noise: ColoredNoise | None = None) -> "RunState":
+    def new(cls, seed: int, noise: ColoredNoise | SdeNoise | None = None) -> "RunState":
         import jax.numpy as jnp
 
         keys = np.random.default_rng([seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)
@@ -79,8 +79,9 @@ class RunState:
         self.train_time_s = float(meta.get("train_time_s", 0.0))
         self.rng.bit_generator.state = meta["numpy_rng"]
         if self.noise is not None and meta.get("exploration_noise") is not None:
-            self.noise.restore(meta["exploration_noise"], {name: arrays[f"noise/{name}"]
-                                                           for name in ("sequences", "position")})
+            self.noise.restore(meta["exploration_noise"], {name.removeprefix("noise/"): value
+                                                           for name, value in arrays.items()
+                                                           if name.startswith("noise/")})
         trainer = meta.get("trainer") or {}
         self.best_eval, self.best_step = trainer.get("best_eval"), trainer.get("best_step")
         self.last_eval, self.last_eval_step = trainer.get("last_eval"), trainer.get("last_eval_step")

@@ -206,10 +206,9 @@ def act(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs:
 
 def act_with_noise(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
                    noise: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(action in [-1, 1], in env bounds) = tanh(mean + std * noise) for given standard-normal noise (coloured
-    exploration noise, softac.exploration)."""
-    mean, log_std = policy.mean_and_log_std(actor, actor_stats, obs)
-    action = jnp.tanh(mean + jnp.exp(log_std) * noise)
+    """(action in [-1, 1], in env bounds) for given standard-normal noise (`Policy.with_noise`: coloured noise
+    or gSDE's exploration matrices, softac.exploration)."""
+    action = policy.with_noise(actor, actor_stats, obs, noise)
     return action, scaler.to_env(action, jnp)
 
 
@@ -231,7 +230,8 @@ def uses_target_critics(config: SACConfig) -> bool:
 def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random.Generator) -> tuple[Any, ...]:
     """New actor and critics, and (with batch renormalisation) their running statistics."""
     c, norm = config, config.crossq
-    actor = init_actor(rng, obs_dim, act_dim, actor_hidden(c), c.init, norm=norm, network=c.network)
+    actor = init_actor(rng, obs_dim, act_dim, actor_hidden(c), c.init, norm=norm, network=c.network,
+                       sde_log_std_init=c.sde_log_std_init if c.exploration_noise == "gsde" else None)
     critic = init_critics(rng, obs_dim, act_dim, critic_hidden(c), c.init, c.n_critics, norm=norm, network=c.network,
                           out_dim=c.n_quantiles or 1)
     if c.weight_norm:  # on the sphere from the start, so the running statistics see one scale throughout
@@ -289,7 +289,8 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> Updat
     # critics with batch renormalisation stay vmapped: unrolled, they were no faster (docs/performance.md)
     unroll = jax.default_backend() == "cpu" and c.n_critics <= 8 and norm is None
     return UpdateSettings(
-        policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm, c.network),
+        policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm, c.network,
+                      sde=c.exploration_noise == "gsde"),
         critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
                         drop_per_critic=c.top_quantiles_to_drop_per_net, targets=uses_target_critics(c)),

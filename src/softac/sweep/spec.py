@@ -248,12 +248,20 @@ def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
             raise SoftacError(f"--framework {spec.framework} runs at one config (--preset and --set): --grid and "
                               "--search are for softac")
     else:
-        allowed = {"eval_interval", "eval_episodes", "log_interval"}
+        # how the run is measured, and the env's action repeat, which a peer takes as softac does
+        allowed = {"eval_interval", "eval_episodes", "log_interval", "action_repeat"}
         own = [pair for pair in spec.overrides if override_key(pair.split("=", 1)[0]) not in allowed]
         if spec.grid or spec.search or spec.preset or own:
             raise SoftacError(f"--framework {spec.framework} runs {peer.about}, not softac's "
                               "settings: --grid, --search, --preset and --set (other than eval_interval/"
-                              "eval_episodes/log_interval) are for softac")
+                              "eval_episodes/log_interval/action_repeat) are for softac")
+    if peer.settings == "zoo":
+        from softac.peer_settings import rl_zoo_sac_settings
+
+        try:
+            rl_zoo_sac_settings(spec.env_id)
+        except ValueError as exc:
+            raise SoftacError(f"--framework {spec.framework}: {exc}") from None
     if peer.her or peer.settings == "sweep":  # checked now, not in every trial after Ray starts
         env = make_env(spec.env_id)
         try:

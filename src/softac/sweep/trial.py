@@ -61,6 +61,7 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
                 "--seed", str(trial["seed"]), "--steps", str(spec.steps), "--out", str(run),
                 "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
                 "--log-interval", str(base.log_interval), "--checkpoint-interval", str(base.checkpoint_interval),
+                *(["--action-repeat", str(base.action_repeat)] if base.action_repeat != 1 else []),
                 *sweep_settings(spec)]
     if trial_state(run, spec.steps) == "partial":  # also a run finished before the sweep's budget was raised
         return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--total-steps", str(spec.steps),
