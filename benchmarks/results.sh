@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # Regenerates the sweeps behind docs/results.md, one trial per CPU (each trial pinned), same evaluation for
 # every framework (10 deterministic episodes every eval_interval steps).
-#   classic: InvertedPendulum-v5/v4 and Pusher-v5, softac's presets on 5 seeds, Stable-Baselines3 on 3
+#   classic: InvertedPendulum-v5/v4 and Pusher-v5, softac's presets on 5 seeds, Stable-Baselines3 on 3; issue 43's
+#            classic set (Pendulum-v1, MountainCarContinuous-v0; the [box2d] extra's LunarLanderContinuous-v3,
+#            BipedalWalker-v3): softac's presets on seeds 0-4 (tuned on seeds 100+), SB3's SAC at RL Zoo's tuned
+#            settings on 3 (--framework sb3-zoo), RL Zoo's step budget, steps and seconds to the solved return
 #   mujoco:  HalfCheetah, Hopper, Walker2d, Ant, Humanoid (v5), 100k steps: softac's env presets (CrossQ) on 5
 #            seeds; SBX's CrossQ at the same settings (sbx-crossq-softac: the crossq preset's) on 2; SBX's SAC at its
 #            defaults on 2 (SB3 trains ~3x slower than SBX here: not within the budget)
@@ -34,7 +37,7 @@ SOFTAC=${SOFTAC:-.venv/bin/softac}
 SWEEPS=${SWEEPS:-benchmarks/sweeps}
 MUJOCO="HalfCheetah-v5 Hopper-v5 Walker2d-v5 Ant-v5 Humanoid-v5"
 MUJOCO_V4="Hopper-v4 Ant-v4 HalfCheetah-v4 Walker2d-v4 Humanoid-v4"
-CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5"
+CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5 Pendulum-v1 MountainCarContinuous-v0 LunarLanderContinuous-v3 BipedalWalker-v3"
 FALLBACK="Swimmer-v5 Reacher-v5 InvertedDoublePendulum-v5"
 ROBOTICS="FetchReach-v4 FetchPush-v4 PointMaze_UMaze-v3"
 DMC="cheetah-run walker-run quadruped-run finger-spin reacher-hard walker-walk cartpole-swingup hopper-hop"
@@ -47,6 +50,16 @@ classic() {
     Pusher-v5)
       $SOFTAC sweep --env $1 --seeds 5 --steps 30000 --threshold -40 --out $SWEEPS/$1-softac
       $SOFTAC sweep --env $1 --seeds 3 --steps 30000 --threshold -40 --framework sb3 --out $SWEEPS/$1-sb3 ;;
+    Pendulum-v1|MountainCarContinuous-v0|LunarLanderContinuous-v3|BipedalWalker-v3)
+      local steps threshold
+      case $1 in
+        Pendulum-v1) steps=20000; threshold=-200 ;;
+        MountainCarContinuous-v0) steps=50000; threshold=90 ;;
+        LunarLanderContinuous-v3) steps=500000; threshold=200 ;;
+        BipedalWalker-v3) steps=500000; threshold=300 ;;
+      esac
+      $SOFTAC sweep --env $1 --seeds 5 --steps $steps --threshold $threshold --out $SWEEPS/$1-softac
+      $SOFTAC sweep --env $1 --seeds 3 --steps $steps --threshold $threshold --framework sb3-zoo --out $SWEEPS/$1-sb3-zoo ;;
   esac
 }
 

@@ -28,6 +28,8 @@ from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial
 
 # env -> the threshold its sweeps were given (None: no threshold columns)
 ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
+                                 "Pendulum-v1": -200.0, "MountainCarContinuous-v0": 90.0,
+                                 "LunarLanderContinuous-v3": 200.0, "BipedalWalker-v3": 300.0,
                                  "HalfCheetah-v5": None, "Hopper-v5": None, "Walker2d-v5": None, "Ant-v5": None,
                                  "Humanoid-v5": None, "Swimmer-v5": None, "Reacher-v5": None,
                                  "InvertedDoublePendulum-v5": None, "FetchReach-v4": None, "FetchPush-v4": None,
@@ -44,6 +46,8 @@ DMC = "DeepMind Control Suite at 100k frames"
 DMC_TASKS = ["cheetah-run", "walker-walk", "walker-run", "hopper-hop", "finger-spin", "quadruped-run", "reacher-hard",
              "cartpole-swingup"]
 PUBLISHED_DMC = Path(__file__).resolve().parent / "published-dmc-100k.yaml"
+# issue 43's columns: SAC, SimBa and BRO from the SimBa paper's files (10 seeds), SimBaV2 and TD-MPC2 from SimbaV2's
+DMC_SHOWN = ["SAC (SimBa paper)", "SimBa", "SimBaV2 UTD 2", "BRO (SimBa paper)", "TD-MPC2"]
 OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
 # ENV-softac-NAME: another preset or options on the env (benchmarks/results.sh's `options` and `fallback`, #18)
 
@@ -55,7 +59,11 @@ to its CPU); each env's section names the machine its sweeps ran on (this page w
 deterministic actions, episode i seeded `seed + 1000000 + i`.
 
 - Classic set (InvertedPendulum-v5/v4, Pusher-v5): softac's env presets on 5 seeds, Stable-Baselines3's
-  SAC at its defaults on 3 seeds (`softac sweep --framework sb3`), the same step budget.
+  SAC at its defaults on 3 seeds (`softac sweep --framework sb3`), the same step budget. Issue 43's classic
+  set (Pendulum-v1, MountainCarContinuous-v0, LunarLanderContinuous-v3, BipedalWalker-v3): softac's env
+  presets on seeds 0-4 (their settings were chosen on seeds 100 and up) beside Stable-Baselines3's SAC at RL
+  Zoo's tuned settings for each env (`--framework sb3-zoo`, 3 seeds), RL Zoo's step budget; "reached R" is
+  the solved return (-200, 90, 200, 300).
 - MuJoCo suite (HalfCheetah, Hopper, Walker2d, Ant, Humanoid, all v5): 100k env steps. "softac, crossq
   preset" is softac's env preset (each extends `crossq` and changes nothing else), on 5 seeds; beside it,
   like for like, "SBX CrossQ, crossq preset's settings" (`softac sweep --framework sbx-crossq-softac`: SBX's
@@ -362,7 +370,7 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
 
     excluded = timing_excluded(sweeps)
     published = {name: envs for name, envs in yaml.safe_load(PUBLISHED_DMC.read_text())["methods"].items()}
-    shown = list(published)
+    shown = [m for m in DMC_SHOWN if m in published]
     rows = []
     for task in DMC_TASKS:
         for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
@@ -381,8 +389,9 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
     return [f"## {DMC}", "",
             "The DeepMind Control Suite through the `[dmc]` extra (`--env dmc:TASK`), action repeat 2, 100k frames "
             "(50k agent steps), final deterministic evaluation (10 episodes of 1000 frames), one pinned CPU per "
-            "trial. Published: the mean at 100k frames of dojeon-ai/SimbaV2's result files "
-            "(benchmarks/published-dmc-100k.yaml; its SAC baseline has 2-3 seeds), run on GPUs.", "",
+            "trial. Published: the mean at 100k frames of SonyResearch/simba's result files (SAC, SimBa, BRO; 10 "
+            "seeds) and dojeon-ai/SimbaV2's (SimBaV2, TD-MPC2; benchmarks/published-dmc-100k.yaml has their "
+            "commits, standard deviations and SimbaV2's own SAC and BRO baselines), run on GPUs.", "",
             f"| task | configuration | seeds | final return (mean ± sd) | each seed | one-core s | "
             f"{' | '.join(f'published {m}' for m in shown)} |",
             "|" + "---|" * (6 + len(shown)), *rows, ""]

@@ -108,11 +108,14 @@ def test_wall_time_ratios_compare_trials_that_ran_on_the_same_days():
 def test_plotting_several_sweeps_names_each_by_framework_and_preset(tmp_path):
     from conftest import run_cli
     from softac.cli import _trial_configuration
-    from softac.sweep import load_spec
+    from softac.sweep import SweepSpec, load_spec
 
     sweep = load_spec(KEPT / "Hopper-v5-softac").describe()
     assert sweep == "softac, crossq preset"
     assert load_spec(KEPT / "Hopper-v5-sbx").describe() == "SBX SAC, its defaults"
+    repeated = SweepSpec(env_id="dmc:cheetah-run", steps=50000, seeds=[0], framework="sbx-crossq-softac",
+                         overrides=["eval_interval=5000", "action_repeat=2"])
+    assert repeated.describe() == "SBX CrossQ, crossq preset's settings + action_repeat=2"
     assert _trial_configuration(sweep, KEPT / "Hopper-v5-softac" / "seed=1") == "softac, crossq preset"
     assert _trial_configuration(sweep, tmp_path / "tau=0.1,seed=1") == "softac, crossq preset, tau=0.1"
     r = run_cli("plot", str(KEPT / "Hopper-v5-softac"), str(KEPT / "Hopper-v5-sbx"), "--out", str(tmp_path / "figs"))
@@ -160,5 +163,6 @@ def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_pat
     summary = json.loads((sweeps / "dmc-cheetah-run-softac-crossq-ar2" / "seed=0" / "summary.json").read_text())
     assert cells[1] == "softac, crossq preset + action_repeat=2" and cells[2] == "1"
     assert cells[4] == f"{summary['last_eval']:.0f}"
-    # SimbaV2's files at 100k frames: SAC 178, SimBaV2 UTD 2 642, BRO UTD 2 445, BRO UTD 10 531, TD-MPC2 519
-    assert cells[6:] == ["178", "642", "445", "531", "519"]
+    # issue 43's columns at 100k frames: the SimBa paper's SAC 329, SimBa 559 and BRO 463 (10 seeds each), SimbaV2's
+    # SimBaV2 UTD 2 642 and TD-MPC2 519
+    assert cells[6:] == ["329", "559", "642", "463", "519"]

@@ -87,7 +87,9 @@ class SweepSpec:
         """The configuration by framework and preset, for tables and legends: "softac, crossq preset",
         "softac, env preset + obs_norm=true", "SBX CrossQ, its defaults" (a peer's own settings are fixed)."""
         if self.framework in PEERS and PEERS[self.framework].settings != "sweep":
-            return PEERS[self.framework].label
+            # of what such a peer takes, only the env's action repeat changes what it trains
+            repeat = [pair.strip() for pair in self.overrides if override_key(pair.split("=", 1)[0]) == "action_repeat"]
+            return " + ".join([PEERS[self.framework].label, *repeat])
         if self.framework in PEERS:
             name = f"{PEERS[self.framework].label} as softac's {self.preset or 'env'} preset"
             return f"{name} + {' '.join(self.overrides)}" if self.overrides else name
