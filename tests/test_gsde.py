@@ -1,6 +1,6 @@
 """gSDE, generalised state-dependent exploration (issue 43; Raffin et al. 2022, SB3's SAC `use_sde`): the
-distribution against a hand computation, its statistics, that training acts with each env's exploration
-matrix held for sde_sample_freq steps, that its log std learns, exact resume and export.
+distribution against a hand computation, its gradients, its statistics, that training acts with each env's
+exploration matrix held for sde_sample_freq steps, that its log std learns, exact resume and export.
 
 The hand computations run in float64 and the policy in float32; bounds are float32 roundings of the terms."""
 
@@ -90,6 +90,23 @@ def test_a_sample_and_its_log_probability_match_a_hand_computation():
     per_row = np.broadcast_to(weights.astype(np.float32), (64, HIDDEN, ACT))
     assert np.all(np.abs(np.asarray(POLICY.with_noise(actor, (), obs, per_row)) - np.tanh(u)) <= bound)
     assert np.all(np.abs(np.asarray(POLICY.deterministic(actor, (), obs)) - np.tanh(mean)) <= bound)
+
+
+def test_the_features_learn_through_the_noise_as_in_sb3s_sac():
+    """SB3's SAC makes its gSDE distribution with learn_features=True: the actor's loss reaches the hidden
+    layers through the noise and the variance, not only through the mean. With the mean's weights at zero
+    (a constant mean) only those paths are left, and the first layer's gradient is still not zero."""
+    actor = sde_actor()
+    actor[-1] = {**actor[-1], "w": np.zeros_like(actor[-1]["w"])}
+    obs = np.random.default_rng(7).normal(0.0, 1.0, (32, OBS)).astype(np.float32)
+
+    def mean_log_prob_and_action(layers):
+        action, log_prob = POLICY.sample(layers, (), obs, jax.random.PRNGKey(8))
+        return jnp.mean(log_prob) + jnp.mean(action)
+
+    grads = jax.grad(mean_log_prob_and_action)(actor)
+    assert float(jnp.max(jnp.abs(grads[0]["w"]))) > 1e-4
+    assert float(jnp.max(jnp.abs(grads[-1]["sde_log_std"]))) > 1e-4
 
 
 def test_the_noise_has_the_state_dependent_variance_and_is_smooth_in_the_state():

@@ -54,24 +54,23 @@ def squashed_sample(mean: jax.Array, log_std: jax.Array, key: jax.Array) -> tupl
 # the noise is a linear function of the features the mean's layer reads, u = mean + f(s) @ W, with the
 # exploration matrix W ~ N(0, std^2) drawn every so often rather than each step, so that exploration is smooth
 # along a trajectory and consistent in a state. For a fixed state u is Gaussian with variance
-# (f(s)^2) @ std^2 per action dim. The features are held fixed in the noise (SB3's learn_features=False) and
-# the mean is clipped to [-2, 2] (SB3's clip_mean: tanh saturates beyond it).
+# (f(s)^2) @ std^2 per action dim. The features learn through the noise and the variance too, as SB3's SAC
+# has them (its actor passes learn_features=True), and the mean is clipped to [-2, 2] (SB3's clip_mean: tanh
+# saturates beyond it).
 SDE_CLIP_MEAN = 2.0
 SDE_EPSILON = 1e-6  # added to the variance, as SB3's StateDependentNoiseDistribution
 
 
 def sde_log_std(features: jax.Array, log_std_matrix: jax.Array) -> jax.Array:
     """Per action dim, log of the state-dependent std sqrt(f(s)^2 @ exp(log_std)^2 + eps)."""
-    f = jax.lax.stop_gradient(features)
-    return 0.5 * jnp.log(jnp.square(f) @ jnp.exp(2.0 * log_std_matrix) + SDE_EPSILON)
+    return 0.5 * jnp.log(jnp.square(features) @ jnp.exp(2.0 * log_std_matrix) + SDE_EPSILON)
 
 
 def sde_noise(features: jax.Array, log_std_matrix: jax.Array, weights: jax.Array) -> jax.Array:
     """f(s) @ W with W = exp(log_std) * weights: one matrix `weights` (features x act) for a batch, or one per
     row (batch x features x act); `weights` standard normal."""
-    f = jax.lax.stop_gradient(features)
     matrix = jnp.exp(log_std_matrix) * weights
-    return f @ matrix if weights.ndim == 2 else jnp.einsum("bf,bfa->ba", f, matrix)
+    return features @ matrix if weights.ndim == 2 else jnp.einsum("bf,bfa->ba", features, matrix)
 
 
 @dataclass(frozen=True)
