@@ -138,6 +138,19 @@ def test_the_exploration_matrix_is_held_for_sde_sample_freq_steps_of_each_env():
     np.testing.assert_array_equal(noise.next(), draws[6])
 
 
+def test_one_kind_of_noise_state_is_refused_to_the_other_in_one_line():
+    """A checkpoint's noise state restored into a run with the other kind names the mismatch (SoftacError),
+    whichever way round."""
+    from softac import SoftacError
+    from softac.exploration import ColoredNoise
+
+    pink, sde = ColoredNoise(1.0, 2, 1, 50, 0), SdeNoise(8, 2, 4, 1, 0)
+    for into, source, words in ((pink, sde, "is not pink noise"), (sde, pink, "not this run's gSDE")):
+        meta, arrays = source.checkpoint_parts()
+        with pytest.raises(SoftacError, match=words):
+            into.restore(meta, arrays)
+
+
 def test_training_acts_with_each_envs_exploration_matrix(tiny):
     """With the policy held fixed (no gradient steps), each training action is the policy's action for the
     weights SdeNoise gives at that step, across Pendulum's episode end at 200."""

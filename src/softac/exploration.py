@@ -75,11 +75,13 @@ class ColoredNoise:
                 {"sequences": self.sequences.copy(), "position": self.position.copy()})
 
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
-        if "sequences" not in arrays or arrays["sequences"].shape != self.sequences.shape:
+        saved = arrays["sequences"].shape if "sequences" in arrays else None
+        if saved != self.sequences.shape:
             from softac.errors import SoftacError
 
-            raise SoftacError(f"the checkpoint's exploration noise has shape {arrays['sequences'].shape}, this "
-                              f"run's {self.sequences.shape} (n_envs, action dims, noise_sequence_length)")
+            what = f"has shape {saved}" if saved else "is not pink noise (gSDE's exploration matrices)"
+            raise SoftacError(f"the checkpoint's exploration noise {what}, this run's pink noise has shape "
+                              f"{self.sequences.shape} (n_envs, action dims, noise_sequence_length)")
         self.rng.bit_generator.state = meta["rng"]
         self.sequences = np.array(arrays["sequences"], np.float64)
         self.position = np.array(arrays["position"], np.int64)
