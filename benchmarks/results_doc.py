@@ -365,7 +365,8 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
 
 def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
     """Per DMC task, each configuration's final return at 100k frames (mean ± sd over seeds, each seed, median
-    one-core wall seconds of the comparable trials) beside the published means of SimbaV2's result files."""
+    one-core wall seconds of the comparable trials) beside the published means (DMC_SHOWN, from
+    benchmarks/published-dmc-100k.yaml)."""
     import yaml
 
     excluded = timing_excluded(sweeps)

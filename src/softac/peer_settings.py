@@ -5,6 +5,7 @@ is refused (ValueError naming it), so "same settings" stays true when a preset o
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 from softac.config import SACConfig
@@ -101,10 +102,6 @@ SWEEP_TRANSLATORS = {"sbx-tqc-softac": tqc_settings, "sbx-simba-softac": simba_s
 # DLR-RM/rl-baselines3-zoo, hyperparams/sac.yml at commit 00128b5d46d497b772f3bd891ae9f520919e8971, as SB3's
 # SAC keywords (`--framework sb3-zoo`); n_timesteps is the sweep's --steps (a linear schedule decays over it).
 # RL Zoo lists LunarLanderContinuous-v2; Gymnasium 1.x has only -v3 (same dynamics and reward).
-RL_ZOO_N_TIMESTEPS = {"Pendulum-v1": 20_000, "MountainCarContinuous-v0": 50_000,
-                      "LunarLanderContinuous-v3": 500_000, "BipedalWalker-v3": 500_000}
-
-
 class LinearSchedule:
     """RL Zoo's `lin_X`: a learning rate decayed linearly from X to 0 over the run (SB3 calls it with the
     progress remaining, 1 -> 0). A class, not a lambda, so that config.yaml names it and SB3's zip loads it."""
@@ -119,20 +116,26 @@ class LinearSchedule:
         return f"lin_{self.initial:g}"
 
 
+# env -> SB3 SAC's keywords (the rest SB3's defaults); "Tuned" where RL Zoo marks the entry so
+RL_ZOO_SAC: dict[str, dict[str, Any]] = {
+    "Pendulum-v1": {"learning_rate": 1e-3},
+    "MountainCarContinuous-v0": {  # "Tuned"
+        "learning_rate": 3e-4, "buffer_size": 50_000, "batch_size": 512, "ent_coef": 0.1, "train_freq": 32,
+        "gradient_steps": 32, "gamma": 0.9999, "tau": 0.01, "learning_starts": 0, "use_sde": True,
+        "policy_kwargs": {"log_std_init": -3.67, "net_arch": [64, 64]}},
+    "LunarLanderContinuous-v3": {
+        "learning_rate": LinearSchedule(7.3e-4), "buffer_size": 1_000_000, "batch_size": 256, "ent_coef": "auto",
+        "gamma": 0.99, "tau": 0.01, "train_freq": 1, "gradient_steps": 1, "learning_starts": 10_000,
+        "policy_kwargs": {"net_arch": [400, 300]}},
+    "BipedalWalker-v3": {  # "Tuned"
+        "learning_rate": 7.3e-4, "buffer_size": 300_000, "batch_size": 256, "ent_coef": "auto", "gamma": 0.98,
+        "tau": 0.02, "train_freq": 64, "gradient_steps": 64, "learning_starts": 10_000, "use_sde": True,
+        "policy_kwargs": {"log_std_init": -3, "net_arch": [400, 300]}},
+}
+
+
 def rl_zoo_sac_settings(env_id: str) -> dict[str, Any]:
     """SB3 SAC's keywords at RL Zoo's tuned settings for `env_id` (ValueError where RL Zoo has none here)."""
-    if env_id == "Pendulum-v1":
-        return {"learning_rate": 1e-3}
-    if env_id == "MountainCarContinuous-v0":  # "Tuned"
-        return {"learning_rate": 3e-4, "buffer_size": 50_000, "batch_size": 512, "ent_coef": 0.1, "train_freq": 32,
-                "gradient_steps": 32, "gamma": 0.9999, "tau": 0.01, "learning_starts": 0, "use_sde": True,
-                "policy_kwargs": {"log_std_init": -3.67, "net_arch": [64, 64]}}
-    if env_id == "LunarLanderContinuous-v3":
-        return {"learning_rate": LinearSchedule(7.3e-4), "buffer_size": 1_000_000, "batch_size": 256,
-                "ent_coef": "auto", "gamma": 0.99, "tau": 0.01, "train_freq": 1, "gradient_steps": 1,
-                "learning_starts": 10_000, "policy_kwargs": {"net_arch": [400, 300]}}
-    if env_id == "BipedalWalker-v3":  # "Tuned"
-        return {"learning_rate": 7.3e-4, "buffer_size": 300_000, "batch_size": 256, "ent_coef": "auto",
-                "gamma": 0.98, "tau": 0.02, "train_freq": 64, "gradient_steps": 64, "learning_starts": 10_000,
-                "use_sde": True, "policy_kwargs": {"log_std_init": -3, "net_arch": [400, 300]}}
-    raise ValueError(f"RL Zoo's SAC settings are here for {', '.join(RL_ZOO_N_TIMESTEPS)}; not for {env_id}")
+    if env_id not in RL_ZOO_SAC:
+        raise ValueError(f"RL Zoo's SAC settings are here for {', '.join(RL_ZOO_SAC)}; not for {env_id}")
+    return copy.deepcopy(RL_ZOO_SAC[env_id])  # SB3 may change policy_kwargs in place

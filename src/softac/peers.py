@@ -133,13 +133,16 @@ def sweep_config(env_id: str, preset: str | None, overrides: list[str] | None) -
     return config.with_overrides(list(overrides or []))
 
 
-def peer_settings(framework: str, config: SACConfig | None, act_dim: int) -> dict[str, Any]:
-    """The keywords a peer is made with besides its library's defaults (ValueError for settings it cannot take)."""
+def peer_settings(framework: str, config: SACConfig | None, act_dim: int, env_id: str = "") -> dict[str, Any]:
+    """The keywords a peer is made with besides its library's defaults (ValueError for settings it cannot take;
+    a "zoo" peer's are RL Zoo's for `env_id`)."""
     from softac.config import SACConfig
 
     peer = PEERS[framework]
-    if peer.settings in ("defaults", "zoo"):  # zoo: the env's, which peer_model adds
+    if peer.settings == "defaults":
         return {}
+    if peer.settings == "zoo":
+        return rl_zoo_sac_settings(env_id)
     if peer.settings == "sweep":
         if config is None:
             raise ValueError(f"{framework} runs at a sweep's settings: give its config")
@@ -160,10 +163,7 @@ def peer_model(framework: str, env_id: str, seed: int, config: SACConfig | None 
     peer = PEERS[framework]
     env = peer_env(framework, env_id, action_repeat)
     try:
-        if peer.settings == "zoo":
-            kwargs.update(rl_zoo_sac_settings(env_id))
-        else:
-            kwargs.update(peer_settings(framework, config, int(np.prod(env.action_space.shape))))
+        kwargs.update(peer_settings(framework, config, int(np.prod(env.action_space.shape)), env_id))
     except ValueError as exc:
         raise SoftacError(f"{framework}: {exc}") from None
     if peer.her:
@@ -390,14 +390,13 @@ class PeerRun:
                  eval_episodes: int, log_interval: int, checkpoint_interval: int,
                  sweep: dict[str, Any] | None = None, action_repeat: int = 1):
         from softac import checkpoint as ckpt
+        from softac.errors import SoftacError
         from softac.rundir import checkpoint_path
 
         self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
         self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
         self.checkpoint_interval = checkpoint_interval
         self.sweep = sweep if PEERS[framework].settings == "sweep" else None  # the softac settings it runs at
-        from softac.errors import SoftacError
-
         self.checkpoint = checkpoint_path(out, "last")
         if action_repeat < 1:
             raise SoftacError(f"--action-repeat must be >= 1, not {action_repeat}")

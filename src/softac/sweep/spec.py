@@ -257,11 +257,9 @@ def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
             raise SoftacError(f"--framework {spec.framework} runs {peer.about}, not softac's "
                               "settings: --grid, --search, --preset and --set (other than eval_interval/"
                               "eval_episodes/log_interval/action_repeat) are for softac")
-    if peer.settings == "zoo":
-        from softac.peer_settings import rl_zoo_sac_settings
-
+    if peer.settings == "zoo":  # RL Zoo's settings for the env, or a refusal: no env needs making
         try:
-            rl_zoo_sac_settings(spec.env_id)
+            peer_settings(spec.framework, base, 0, spec.env_id)
         except ValueError as exc:
             raise SoftacError(f"--framework {spec.framework}: {exc}") from None
     if peer.her or peer.settings == "sweep":  # checked now, not in every trial after Ray starts
