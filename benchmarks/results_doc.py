@@ -46,6 +46,7 @@ DMC = "DeepMind Control Suite at 100k frames"
 DMC_TASKS = ["cheetah-run", "walker-walk", "walker-run", "hopper-hop", "finger-spin", "quadruped-run", "reacher-hard",
              "cartpole-swingup"]
 PUBLISHED_DMC = Path(__file__).resolve().parent / "published-dmc-100k.yaml"
+PUBLISHED_DMC_RUNS = PUBLISHED_DMC.with_name("published-dmc-100k-runs.yaml")  # per seed, for the aggregate
 # issue 43's columns: SAC, SimBa and BRO from the SimBa paper's files (10 seeds), SimBaV2 and TD-MPC2 from SimbaV2's
 DMC_SHOWN = ["SAC (SimBa paper)", "SimBa", "SimBaV2 UTD 2", "BRO (SimBa paper)", "TD-MPC2"]
 OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
@@ -363,7 +364,51 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     return lines + [f"![front](results/{figure.name})", ""]
 
 
-def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
+def dmc_aggregate(finals: dict[str, dict[str, list[float]]], seconds: dict[str, dict[str, float]],
+                  figure: Path) -> list[str]:
+    """The DMC aggregate: per configuration, the IQM of every run's final return / 1000 (DMC's returns lie in
+    [0, 1000], so no random-policy or best-run normalisation is needed) with its stratified-bootstrap 95%
+    interval, beside each published method's over the same tasks from its per-seed results
+    (benchmarks/published-dmc-100k-runs.yaml); and the summed median one-core time of a run per task."""
+    import yaml
+
+    published = yaml.safe_load(PUBLISHED_DMC_RUNS.read_text())["runs"]
+    lines = ["### One aggregate", "",
+             "The interquartile mean (IQM) of every run's final return / 1000 over the tasks a configuration ran, "
+             "with a stratified-bootstrap 95% interval (runs resampled within each task, 20,000 resamples: "
+             "rliable's method, Agarwal et al. 2021); each published method over the same tasks from its per-seed "
+             "results (benchmarks/published-dmc-100k-runs.yaml). One-core time: the sum over the tasks of the "
+             "median wall seconds of a run (the comparable trials), so what one seed of the whole set costs.", "",
+             "| configuration | tasks | runs | IQM of return / 1000 [95% CI] | one-core s for the tasks |",
+             "|---|---|---|---|---|"]
+    scores: dict[str, tuple[float, float, float]] = {}
+    tasks_of_first: list[str] | None = None
+    for name, per_task in finals.items():
+        tasks = [t for t in DMC_TASKS if t in per_task]
+        tasks_of_first = tasks_of_first or tasks
+        label = name if len(tasks) == len(DMC_TASKS) else f"{name} ({len(tasks)} tasks)"
+        scores[label] = stratified_bootstrap_iqm([[v / 1000 for v in per_task[t]] for t in tasks])
+        timed = [seconds[name][t] for t in tasks if t in seconds.get(name, {})]
+        total = f"{sum(timed):.0f}" + ("" if len(timed) == len(tasks) else f" ({len(timed)} tasks timed)") if timed else "-"
+        point, low, high = scores[label]
+        lines.append(f"| {label} | {len(tasks)} | {sum(len(per_task[t]) for t in tasks)} | "
+                     f"{point:.2f} [{low:.2f}, {high:.2f}] | {total} |")
+    for method in DMC_SHOWN:
+        runs = published.get(method, {})
+        tasks = [t for t in (tasks_of_first or []) if t in runs]
+        if not tasks:
+            continue
+        label = f"published {method}" + ("" if len(tasks) == len(DMC_TASKS) else f" ({len(tasks)} tasks)")
+        scores[label] = stratified_bootstrap_iqm([[v / 1000 for v in runs[t]] for t in tasks])
+        point, low, high = scores[label]
+        lines.append(f"| {label} | {len(tasks)} | {sum(len(runs[t]) for t in tasks)} | "
+                     f"{point:.2f} [{low:.2f}, {high:.2f}] | GPU |")
+    plot_aggregate(scores, figure, "DeepMind Control Suite, 100k frames: IQM of final return / 1000",
+                   "return / 1000\nerror bar: 95% stratified-bootstrap interval")
+    return lines + ["", f"![DMC aggregate](results/{figure.name})", ""]
+
+
+def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list[str]:
     """Per DMC task, each configuration's final return at 100k frames (mean ± sd over seeds, each seed, median
     one-core wall seconds of the comparable trials) beside the published means (DMC_SHOWN, from
     benchmarks/published-dmc-100k.yaml)."""
@@ -373,6 +418,8 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
     published = {name: envs for name, envs in yaml.safe_load(PUBLISHED_DMC.read_text())["methods"].items()}
     shown = [m for m in DMC_SHOWN if m in published]
     rows = []
+    all_finals: dict[str, dict[str, list[float]]] = {}
+    seconds: dict[str, dict[str, float]] = {}
     for task in DMC_TASKS:
         for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
             trials = finished_trials(d, excluded)
@@ -380,6 +427,9 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
                 continue
             finals = [r["final_eval_mean"] for r in trials]
             timed = [r["wall_s"] for r in trials if r["timed"] and r["wall_s"]]
+            all_finals.setdefault(name, {})[task] = finals
+            if timed:
+                seconds.setdefault(name, {})[task] = float(np.median(timed))
             sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
             others = " | ".join(f"{published[m][task][0]:.0f}" if task in published[m] else "-" for m in shown)
             rows.append(f"| {task} | {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
@@ -395,7 +445,8 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]]) -> list[str]:
             "commits, standard deviations and SimbaV2's own SAC and BRO baselines), run on GPUs.", "",
             f"| task | configuration | seeds | final return (mean ± sd) | each seed | one-core s | "
             f"{' | '.join(f'published {m}' for m in shown)} |",
-            "|" + "---|" * (6 + len(shown)), *rows, ""]
+            "|" + "---|" * (6 + len(shown)), *rows, "",
+            *dmc_aggregate(all_finals, seconds, figures / "dmc-aggregate.png")]
 
 
 def machines_of(runs: list[Path]) -> str:
@@ -428,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
         if env == SUITE_V4[0]:
             text.extend(front(a.sweeps, figures, kept))
         text.extend(section(env, threshold, a.sweeps, figures, kept))
-    text.extend(dmc_section(a.sweeps, kept))
+    text.extend(dmc_section(a.sweeps, kept, figures))
     notes = a.docs / "results-notes.md"
     if notes.exists():
         text.append(notes.read_text())

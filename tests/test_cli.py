@@ -313,6 +313,9 @@ def test_presets_lists_every_preset():
     assert r.returncode == 0
     for name in ("InvertedPendulum-v5", "InvertedPendulum-v4", "Pusher-v5", "sb3", "cleanrl", "default"):
         assert name in r.stdout
+    [dmc] = [line for line in r.stdout.splitlines() if line.startswith("dmc ")]
+    assert "[dmc]" in dmc and "action repeat 2" in dmc
+    assert_clean_error(run_cli("train", "--preset", "dmc", "--steps", "10"), "preset 'dmc' is for DeepMind Control")
 
 
 def test_gpu_without_a_gpu_is_a_clean_error(tmp_path):

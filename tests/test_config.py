@@ -122,6 +122,19 @@ def test_mujoco_env_presets_extend_crossq():
         assert SACConfig.for_env(env).crossq and SACConfig.for_env(env).env_id == env
 
 
+def test_dmc_tasks_get_the_dmc_preset_the_crossq_preset_with_action_repeat_2():
+    """Every DeepMind Control task without a preset of its own trains with `dmc`: crossq's settings, action repeat 2,
+    50k agent steps (100k frames), so the DMC sweeps of `--preset crossq --set action_repeat=2` measure it."""
+    for env in ("dmc:cheetah-run", "dm_control/walker-walk-v0"):
+        assert SACConfig.for_env(env) == SACConfig.preset("crossq", env_id=env).replace(action_repeat=2,
+                                                                                         total_steps=50_000)
+        assert SACConfig.preset("dmc", env_id=env) == SACConfig.for_env(env)
+    with pytest.raises(ConfigError, match="--env dmc:DOMAIN-TASK"):
+        SACConfig.preset("dmc")
+    with pytest.raises(ConfigError, match="for DeepMind Control tasks.*got Hopper-v5"):
+        SACConfig.preset("dmc", env_id="Hopper-v5")
+
+
 def test_a_preset_that_extends_itself_is_refused(monkeypatch, tmp_path):
     import softac.config as config
 

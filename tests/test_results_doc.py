@@ -166,3 +166,30 @@ def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_pat
     # issue 43's columns at 100k frames: the SimBa paper's SAC 329, SimBa 559 and BRO 463 (10 seeds each), SimbaV2's
     # SimBaV2 UTD 2 642 and TD-MPC2 519
     assert cells[6:] == ["329", "559", "642", "463", "519"]
+    # the aggregate: one run of ours is its own IQM; the published SAC's ten cheetah-run seeds trimmed by two at each
+    # end (295.3, 296.2, 305.5, 329.3, 338.0, 366.1: mean 321.7), over the same one task
+    aggregate = section.split("### One aggregate")[1]
+    ours = [line for line in aggregate.splitlines() if line.startswith("| softac, crossq preset + action_repeat=2")]
+    assert ours and ours[0].split("|")[4].strip().startswith(f"{summary['last_eval'] / 1000:.2f} [")
+    [sac] = [line for line in aggregate.splitlines() if line.startswith("| published SAC (SimBa paper) (1 tasks)")]
+    assert sac.split("|")[3].strip() == "10" and sac.split("|")[4].strip().startswith("0.32 [")
+    assert (docs / "results" / "dmc-aggregate.png").stat().st_size > 10_000
+
+
+def test_the_published_dmc_runs_agree_with_the_published_means():
+    """published-dmc-100k-runs.yaml (per seed, for the aggregate) and published-dmc-100k.yaml (mean, sd, seeds) are
+    read from the same rows: each task's runs give its mean and sample sd to the rounding of the means file."""
+    import numpy as np
+    import yaml
+
+    runs = yaml.safe_load((ROOT / "benchmarks" / "published-dmc-100k-runs.yaml").read_text())["runs"]
+    means = yaml.safe_load((ROOT / "benchmarks" / "published-dmc-100k.yaml").read_text())["methods"]
+    assert set(runs) == set(means)
+    for method, tasks in runs.items():
+        assert set(tasks) == {task for task in means[method] if task not in ("source", "file")}
+        for task, values in tasks.items():
+            mean, sd, seeds = means[method][task]
+            assert len(values) == seeds
+            # the means file rounds to 1 (0.5), this file each value to 0.1 (0.05 on a mean or an sd)
+            assert abs(np.mean(values) - mean) <= 0.55
+            assert seeds == 1 or abs(np.std(values, ddof=1) - sd) <= 0.55

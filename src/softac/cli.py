@@ -463,12 +463,12 @@ def cmd_baselines(args: argparse.Namespace) -> int:
 
 
 def cmd_presets(args: argparse.Namespace) -> int:
-    from softac.config import GENERIC_PRESETS, preset_names, preset_summary
+    from softac.config import DMC_PRESET, GENERIC_PRESETS, preset_names, preset_summary
 
     names = preset_names()
     width = max(len(n) for n in names)
     for name in names:
-        kind = "[any env]" if name in GENERIC_PRESETS else "[env]"
+        kind = "[any env]" if name in GENERIC_PRESETS else "[dmc]" if name == DMC_PRESET else "[env]"
         print(f"{name:<{width}}  {kind:<9}  {preset_summary(name)}")
     return EXIT_OK
 

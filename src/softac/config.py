@@ -16,6 +16,7 @@ from typing import Any
 
 import yaml
 
+from softac.dmc import is_dmc_id
 from softac.errors import SoftacError
 
 
@@ -25,6 +26,7 @@ class ConfigError(SoftacError, ValueError):
 
 DEFAULT_ENV = "InvertedPendulum-v5"
 FALLBACK_PRESET = "default"
+DMC_PRESET = "dmc"  # every DeepMind Control task without a preset of its own (issue 43); names no env itself
 
 
 def _f(default: Any, doc: str) -> Any:
@@ -116,6 +118,9 @@ class SACConfig:
         """The named preset (an env id or `sb3`, `cleanrl`, `default`)."""
         values = load_preset(name)
         cfg = cls()
+        if name == DMC_PRESET and not is_dmc_id(env_id or ""):
+            raise ConfigError(f"preset '{DMC_PRESET}' is for DeepMind Control tasks: give one with --env "
+                              f"dmc:DOMAIN-TASK (e.g. dmc:cheetah-run), got {env_id or 'no --env'}")
         if env_id is not None:
             values["env_id"] = env_id
         elif "env_id" not in values and name in preset_names() and name not in GENERIC_PRESETS:
@@ -124,9 +129,10 @@ class SACConfig:
 
     @classmethod
     def for_env(cls, env_id: str | None) -> "SACConfig":
-        """The env's own preset when there is one, else the fallback preset."""
+        """The env's own preset when there is one, else `dmc` for a DeepMind Control task, else the fallback
+        preset."""
         env_id = env_id or DEFAULT_ENV
-        name = env_id if env_id in preset_names() else FALLBACK_PRESET
+        name = env_id if env_id in preset_names() else DMC_PRESET if is_dmc_id(env_id) else FALLBACK_PRESET
         return cls.preset(name, env_id=env_id)
 
     @classmethod
