@@ -344,27 +344,44 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     return out
 
 
-def plot_front(points: dict[str, dict[str, tuple[float, float, float | None]]], published: dict[str, dict[str, float]],
+def plot_front(points: dict[str, dict[str, tuple]], published: dict[str, dict[str, float]],
                out: Path, title: str) -> Path:
     """Return against wall time, one panel per env: each configuration a point at (median wall seconds, mean final
-    return) with its spread over seeds as a vertical bar ({env: {name: (mean, sd, seconds or None)}}; a point without
-    seconds is left out), and each published method's mean as a dashed line ({env: {method: mean}})."""
+    return) with its spread over seeds as a vertical bar ({env: {name: (mean, sd, seconds or None[, timed])}}; a
+    point without seconds is left out; one whose seconds come from disturbed trials (timed False) is drawn hollow),
+    and each published method's mean as a dashed line ({env: {method: mean}}), labelled at the right."""
     plt = _pyplot()
+    from matplotlib import ticker
+
     envs = list(points)
     cols = min(3, len(envs))
     rows = (len(envs) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows), squeeze=False, constrained_layout=True)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.25 * len(points)), squeeze=False,
+                             layout="constrained")
     names = sorted({name for env in envs for name in points[env]})
     colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
+    any_hollow = False
     for ax, env in zip(axes.flat, envs):
-        for name, (mean, sd, seconds) in points[env].items():
-            if seconds is not None:
-                ax.errorbar(seconds, mean, yerr=sd, fmt="o", color=colours[name], capsize=4, label=name)
-        for i, (method, value) in enumerate(published.get(env, {}).items()):
+        for name, (mean, sd, seconds, *timed) in points[env].items():
+            if seconds is None:
+                continue
+            hollow = bool(timed) and not timed[0]
+            any_hollow |= hollow
+            ax.errorbar(seconds, mean, yerr=sd, fmt="o", color=colours[name], capsize=4,
+                        markerfacecolor="white" if hollow else colours[name])
+        lines = sorted(published.get(env, {}).items(), key=lambda kv: kv[1])
+        for i, (method, value) in enumerate(lines):
             ax.axhline(value, color="grey", linestyle=(0, (4, 2 + i)), linewidth=0.9)
-            ax.annotate(method, (0.01, value), xycoords=("axes fraction", "data"), fontsize=7, color="dimgrey",
-                        va="bottom")
+        low, high = ax.get_ylim()
+        label_at = -np.inf
+        for method, value in lines:  # labels at the right, nudged apart where two means nearly coincide
+            label_at = max(value, label_at + 0.045 * (high - low))
+            ax.annotate(method, (1.0, label_at), xycoords=("axes fraction", "data"), xytext=(3, 0),
+                        textcoords="offset points", fontsize=7, color="dimgrey", va="center")
         ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
+        ax.xaxis.set_minor_locator(ticker.LogLocator(subs=(2.0, 5.0)))
+        ax.xaxis.set_minor_formatter(ticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
         ax.set_title(env)
         ax.set_xlabel("one-core wall seconds per 100k-step run")
         ax.set_ylabel("final eval return")
@@ -372,10 +389,13 @@ def plot_front(points: dict[str, dict[str, tuple[float, float, float | None]]], 
     for ax in list(axes.flat)[len(envs):]:
         ax.axis("off")
     handles = {name: plt.Line2D([], [], marker="o", linestyle="", color=colours[name]) for name in names}
-    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(3, len(names)), fontsize=8,
-               bbox_to_anchor=(0.5, -0.02 - 0.03 * ((len(names) + 2) // 3)))
+    if any_hollow:
+        handles["hollow: wall time from disturbed trials (timing-excluded)"] = plt.Line2D(
+            [], [], marker="o", linestyle="", color="grey", markerfacecolor="white")
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=min(2, len(handles)),
+               fontsize=8)
     fig.suptitle(title)
-    fig.savefig(out, dpi=110, bbox_inches="tight")
+    fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
 
