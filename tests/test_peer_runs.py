@@ -56,6 +56,22 @@ def test_a_peer_run_writes_the_columns_as_softac_does(tmp_path):
     assert (run / ".lock").exists()  # written under the run lock, as softac's runs are
 
 
+def test_a_peer_run_stops_at_its_target_return(tmp_path):
+    """`--target-return`: the peer stops after the first evaluation that reaches it, as softac train does, and its
+    summary says so (a sweep then counts the trial as finished)."""
+    run = tmp_path / "peer"
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx", "--env", DRIFT, "--seed", "0", "--steps",
+                        "700", "--out", str(run), "--eval-interval", "200", "--eval-episodes", "2",
+                        "--target-return=-1e9"], capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+    assert r.returncode == 0, r.stderr
+    assert [int(row["step"]) for row in read_csv(run / "eval.csv")] == [200]
+    summary = json.loads((run / "summary.json").read_text())
+    assert (summary["steps"], summary["stopped_early"], summary["stop_reason"]) == (200, True, "target_return")
+    from softac.sweep import trial_state
+
+    assert trial_state(run, 700) == "done"
+
+
 def test_a_softac_run_writes_the_same_columns(tmp_path):
     run = tmp_path / "softac"
     r = run_cli("train", "--env", "softac_test_envs:Slow-v0", "--steps", "700", "--out", str(run), "--no-progress",
@@ -185,7 +201,8 @@ def test_the_tqc_settings_carry_every_setting_or_refuse():
                          ({"obs_norm": True}, "obs_norm"), ({"alpha_lr": 1e-4}, "alpha_lr"),
                          ({"weight_decay": 0.01, "weight_decay_layers": "output"}, "output layers"),
                          ({"network": "simba", "hidden_sizes": [64]}, "network"),
-                         ({"exploration_noise": "gsde"}, "exploration_noise")):
+                         ({"exploration_noise": "gsde"}, "exploration_noise"),
+                         ({"lr_schedule": "linear"}, "lr_schedule")):
         with pytest.raises(ValueError, match=name):
             tqc_settings(preset.replace(**change), act_dim=6)
 

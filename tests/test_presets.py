@@ -6,27 +6,44 @@ import pytest
 import yaml
 
 from conftest import run_cli
-from softac.config import GENERIC_PRESETS, SACConfig, preset_names
+from softac.config import DMC_PRESET, GENERIC_PRESETS, SACConfig, preset_names
 from softac.envs import ROBOTICS_PREFIXES
 
-# Gymnasium-Robotics' envs need the [robotics] extra (the test extra has it; test-min leaves them out)
-ENV_PRESETS = [pytest.param(name, marks=pytest.mark.robotics) if name.startswith(ROBOTICS_PREFIXES) else name
-               for name in preset_names() if name not in GENERIC_PRESETS]
+# the env a preset that names no env of its own trains on here: `dmc` is every DeepMind Control task's
+FAMILY_ENVS = {DMC_PRESET: "dmc:cartpole-swingup"}
+
+
+def _param(name: str):
+    # Gymnasium-Robotics' envs need the [robotics] extra (the test extra has it; test-min leaves them out);
+    # the DeepMind Control Suite the [dmc] extra
+    if name.startswith(ROBOTICS_PREFIXES):
+        return pytest.param(name, marks=pytest.mark.robotics)
+    if name == DMC_PRESET:
+        import importlib.util
+
+        missing = importlib.util.find_spec("dm_control") is None
+        return pytest.param(name, marks=[pytest.mark.dmc, pytest.mark.skipif(missing, reason="no [dmc] extra")])
+    return name
+
+
+ENV_PRESETS = [_param(name) for name in preset_names() if name not in GENERIC_PRESETS]
 
 
 @pytest.mark.parametrize("name", ENV_PRESETS)
 def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
-    preset = SACConfig.preset(name)
+    env = FAMILY_ENVS.get(name, name)
+    preset = SACConfig.preset(name, env_id=env if name in FAMILY_ENVS else None)
     steps = 150
     run = tmp_path / "run"
     # the preset's networks, batch, rates and flags as they are; only the budget, the warm-up and the
     # buffer shrink so that the run includes learning (50 steps of the preset's updates: what a wrong shape,
-    # dtype or flag breaks fails at the first)
-    r = run_cli("train", "--env", name, "--steps", str(steps), "--out", str(run), "--no-progress", "--set",
+    # dtype or flag breaks fails at the first); the env's own preset, as a user who gives only --env gets it
+    r = run_cli("train", "--env", env, "--steps", str(steps), "--out", str(run), "--no-progress", "--set",
                 "learning_starts=100", "buffer_size=5000", f"eval_interval={steps}", "eval_episodes=1", timeout=600)
     assert r.returncode == 0, r.stderr
     config = yaml.safe_load((run / "config.yaml").read_text())
-    for key in ("hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm", "crossq"):
+    for key in ("hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm", "crossq",
+                "action_repeat"):
         assert config[key] == getattr(preset, key), key
     summary = json.loads((run / "summary.json").read_text())
     assert summary["steps"] == steps and summary["last_eval"] is not None

@@ -89,6 +89,26 @@ def test_a_peer_trial_checkpoints_at_the_sweeps_interval_and_continues_with_the_
     assert cmd[cmd.index("--action-repeat") + 1] == "2"
 
 
+def test_a_target_return_goes_to_every_trials_command_and_names_the_configuration(tmp_path):
+    """`softac sweep --target-return R`: softac's new and resumed trials and a peer's stop at R (train's
+    --target-return; `python -m softac.peers run --target-return`), and tables say so."""
+    for framework in ("softac", "sbx"):
+        spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], framework=framework, target_return=200.0)
+        trial, run = sweep.grid_trials(spec)[0], tmp_path / framework / "seed=0"
+        cmd = sweep.trial_command(spec, spec.base_config(), trial, run)
+        assert "--target-return=200.0" in cmd
+        assert spec.describe().endswith(", stops at 200")
+    (run.parent.parent / "softac" / "seed=0" / "checkpoints" / "last").mkdir(parents=True)
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], target_return=-5.5)
+    resume = sweep.trial_command(spec, spec.base_config(), trial, tmp_path / "softac" / "seed=0")
+    assert resume[3:5] == ["train", "--resume"] and "--target-return=-5.5" in resume
+    plain = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0])
+    assert not any(arg.startswith("--target-return") for arg in sweep.trial_command(plain, plain.base_config(), trial,
+                                                                                    tmp_path / "new"))
+    # a sweep.json written before the key existed is the same sweep without a target
+    assert sweep.SweepSpec.from_dict({"env_id": DRIFT, "steps": 500, "seeds": [0]}).target_return is None
+
+
 def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
     """summary.md's "check it on more seeds" line must train the best trial's configuration: the search's
     --preset and --set, with the sampled values in place of an override of the same key."""
@@ -327,6 +347,26 @@ def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
     assert_clean_error(different, "differs in overrides", "--resume")
     shorter = run_cli("sweep", "--resume", str(out), "--steps", "300", timeout=60)
     assert_clean_error(shorter, "a sweep of 400 steps per trial; --steps 300 cannot shorten it")
+
+
+@pytest.mark.ray
+def test_trials_stop_at_the_target_return_and_count_as_finished(tmp_path):
+    """Each trial stops after the first evaluation that reaches the target (here any: -1e9), its summary says
+    so, the sweep's table reports the steps to it, and a rerun redoes nothing."""
+    out = tmp_path / "target"
+    command = ["sweep", "--env", DRIFT, "--seeds", "2", "--steps", "600", "--target-return=-1e9", "--out", str(out),
+               *TINY_SET]
+    result = run_cli(*command, timeout=600)
+    assert result.returncode == 0, result.stderr
+    for row in _rows(out / "summary.csv"):
+        summary = json.loads((out / row["trial"] / "summary.json").read_text())
+        assert (summary["steps"], summary["stopped_early"], summary["stop_reason"]) == (200, True, "target_return")
+        assert row["status"] == "done" and row["steps"] == "200" and row["steps_to_threshold"] == "200"
+    assert "Each trial stops at the first evaluation that reaches -1e+09" in (out / "summary.md").read_text()
+    again = run_cli(*command, timeout=120)
+    assert again.returncode == 0 and "2 trials (2 already finished)" in again.stderr, again.stderr
+    given = run_cli("sweep", "--resume", str(out), "--target-return", "5", timeout=60)
+    assert_clean_error(given, "--resume continues a sweep with its own settings; drop --target-return")
 
 
 def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):

@@ -130,6 +130,9 @@ def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
     sw.add_argument("--asha", action="store_true", help="with --search: stop poor trials early (ASHA)")
     sw.add_argument("--threshold", type=_finite_float, metavar="R",
                     help="also report steps and seconds until the eval mean first reaches R")
+    sw.add_argument("--target-return", type=_finite_float, metavar="R",
+                    help="stop each trial once its deterministic eval mean reaches R (softac's trials and the "
+                         "peers'); the summary's steps and seconds to it are reported as with --threshold R")
     sw.add_argument("--success-threshold", type=_finite_float, metavar="S", default=0.9,
                     help="for envs that report success (goal envs): the summary's steps until the eval success "
                          "rate first reaches S (default 0.9)")
@@ -483,7 +486,7 @@ def sweep_spec_from_args(args: argparse.Namespace):
         preset=args.preset, overrides=[pair for group in args.overrides for pair in group],
         grid=sweep.parse_grid([g for group in args.grid for g in group]),
         framework=args.framework, search=args.search, samples=args.samples if args.search else 0,
-        space=sweep.load_space(args.space) if args.search else None, asha=args.asha)
+        space=sweep.load_space(args.space) if args.search else None, asha=args.asha, target_return=args.target_return)
     spec.steps = spec.steps or spec.preset_config().total_steps  # default: the preset's budget
     return spec
 
@@ -493,7 +496,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     if args.resume:
         given = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--out", args.out),
-                                          ("--space", args.space), ("--search", args.search))
+                                          ("--space", args.space), ("--search", args.search),
+                                          ("--target-return", args.target_return))
                  if value is not None] + (["--grid"] if args.grid else []) + (["--set"] if args.overrides else [])
         if given:
             raise SoftacError(f"--resume continues a sweep with its own settings; drop {', '.join(given)}")
@@ -510,7 +514,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     check_success_rate(args.success_threshold, "--success-threshold")
     threshold = args.threshold
     if threshold is None:
-        threshold = sweep.default_threshold(spec.env_id)
+        threshold = spec.target_return if spec.target_return is not None else sweep.default_threshold(spec.env_id)
     result = sweep.run_sweep(spec, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
                              max_concurrent=args.max_concurrent, threshold=threshold,
                              success_threshold=args.success_threshold, max_retries=args.max_retries,

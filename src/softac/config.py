@@ -93,6 +93,8 @@ class SACConfig:
     actor_lr: float = _f(3e-4, "Adam learning rate of the actor")
     critic_lr: float = _f(3e-4, "Adam learning rate of the critics")
     alpha_lr: float = _f(3e-4, "Adam learning rate of log(alpha)")
+    lr_schedule: str = _f("constant", "the learning rates over a run: constant, or linear (each falls linearly with the env steps to lr_end_fraction of itself at total_steps, as SB3's and RL Zoo's lin_ schedules)")
+    lr_end_fraction: float = _f(0.0, "with lr_schedule=linear: the fraction of each learning rate left at total_steps (0, SB3's lin_: to zero)")
     autotune_alpha: bool = _f(True, "learn the entropy coefficient on log(alpha) (Haarnoja et al. 2018b)")
     alpha: float = _f(1.0, "entropy coefficient: fixed value, or the initial one when autotuned")
     target_entropy: Any = _f("auto", "entropy target when autotuned; auto = -target_entropy_scale * |A|")
@@ -255,6 +257,8 @@ class SACConfig:
         need(self.matmul_dtype in ("float32", "bfloat16", "auto"), "matmul_dtype", "must be float32, bfloat16 or auto")
         for key in ("actor_lr", "critic_lr", "alpha_lr"):
             need(0.0 < getattr(self, key) < 1.0, key, "must be in (0, 1)")
+        need(self.lr_schedule in ("constant", "linear"), "lr_schedule", "must be constant or linear")
+        need(0.0 <= self.lr_end_fraction <= 1.0, "lr_end_fraction", "must be in [0, 1]")
         need(self.alpha > 0.0 if self.autotune_alpha else self.alpha >= 0.0, "alpha",
              "must be > 0 (>= 0 when fixed)")
         need(self.target_entropy == "auto" or isinstance(self.target_entropy, float), "target_entropy",

@@ -148,11 +148,26 @@ class Learner:
 
     # ---- learning ----------------------------------------------------------------------------------
 
-    def update(self, batch: dict[str, np.ndarray]) -> None:
+    def update(self, batch: dict[str, np.ndarray], step: int | None = None) -> None:
         """All of a vector-env step's gradient steps in one jitted call, on a batch of raw observations
-        (normalised here with the current statistics); their metrics are added to the totals on the device."""
+        (normalised here with the current statistics); their metrics are added to the totals on the device.
+        `step`: the env steps taken so far, which a learning-rate schedule follows (lr_scale)."""
         batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
-        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), self.totals)
+        scale = self.lr_scale(step)
+        args = () if scale is None else (scale,)
+        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), self.totals, *args)
+
+    def lr_scale(self, step: int | None) -> np.ndarray | None:
+        """The learning rates' factor at env step `step` (None: constant rates). linear: 1 - (1 - lr_end_fraction)
+        x step / total_steps, as SB3 computes its progress remaining after each rollout (a resumed run that
+        raises total_steps stretches what is left of the schedule, as SB3's does)."""
+        c = self.config
+        if c.lr_schedule == "constant":
+            return None
+        if step is None:
+            raise ValueError("lr_schedule=linear needs the env step of each update")
+        progress = min(step / max(c.total_steps, 1), 1.0)
+        return np.float32(1.0 - (1.0 - c.lr_end_fraction) * progress)
 
     def metrics(self) -> dict[str, float]:
         """Each metric's mean over the gradient steps since the last `take_metrics()` that computed it (the

@@ -312,7 +312,7 @@ class TrainingLoop:
         cfg = self.config
         if after >= cfg.learning_starts and cfg.gradient_steps > 0 and self.collector.can_sample():
             batch = self.collector.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
-            self.learner.update(batch)
+            self.learner.update(batch, after)
 
     def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training

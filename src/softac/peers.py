@@ -341,7 +341,8 @@ def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps:
 
 def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
              eval_episodes: int, log_interval: int, checkpoint_interval: int = 0, preset: str | None = None,
-             overrides: list[str] | None = None, action_repeat: int = 1) -> dict[str, Any]:
+             overrides: list[str] | None = None, action_repeat: int = 1,
+             target_return: float | None = None) -> dict[str, Any]:
     """Train a peer and write a softac-style run directory (config.yaml, progress.csv, episodes.csv,
     eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions, episode i of
     every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what softac's mean
@@ -351,7 +352,8 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes. A peer
     whose settings are a sweep's runs at the config `preset` and `overrides` make (sweep_config). With
     `action_repeat` (or a sweep peer's action_repeat setting) its training and evaluation envs repeat each
-    action, as softac's do; steps count the agent's actions, as softac's."""
+    action, as softac's do; steps count the agent's actions, as softac's. With `target_return` the run stops
+    after the first evaluation whose mean reaches it (softac train's --target-return)."""
     from softac.errors import TrainingInterrupted
     from softac.rundir import run_lock
 
@@ -359,7 +361,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     with run_lock(out):
         try:
             return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
-                           checkpoint_interval, sweep, action_repeat).run()
+                           checkpoint_interval, sweep, action_repeat, target_return).run()
         except TrainingInterrupted as exc:
             # said before the lock goes: a stopped sweep waits for the lock, then its user reads the trial's log
             print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr,
@@ -388,14 +390,14 @@ class PeerRun:
 
     def __init__(self, framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
                  eval_episodes: int, log_interval: int, checkpoint_interval: int,
-                 sweep: dict[str, Any] | None = None, action_repeat: int = 1):
+                 sweep: dict[str, Any] | None = None, action_repeat: int = 1, target_return: float | None = None):
         from softac import checkpoint as ckpt
         from softac.errors import SoftacError
         from softac.rundir import checkpoint_path
 
         self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
         self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
-        self.checkpoint_interval = checkpoint_interval
+        self.checkpoint_interval, self.target_return, self.reached = checkpoint_interval, target_return, False
         self.sweep = sweep if PEERS[framework].settings == "sweep" else None  # the softac settings it runs at
         self.checkpoint = checkpoint_path(out, "last")
         if action_repeat < 1:
@@ -462,7 +464,7 @@ class PeerRun:
                 self.model.learn(self.steps - start, callback=Hooks(), reset_num_timesteps=not self.resumed)
             if self.stop.requested:
                 raise TrainingInterrupted(int(self.model.num_timesteps), str(self.checkpoint))
-            if self.eval_interval > 0 and self.steps % self.eval_interval != 0:
+            if self.eval_interval > 0 and self.steps % self.eval_interval != 0 and not self.reached:
                 self.evaluate(self.steps)
         finally:
             self.logs.close()
@@ -471,7 +473,8 @@ class PeerRun:
         elapsed = time.perf_counter() - self.t0
         summary = {"steps": int(self.model.num_timesteps), "episodes": self.record["episodes"],
                    "train_time_s": elapsed, "wall_s": elapsed, "last_eval": self.record["last"],
-                   "best_eval": self.record["best"], "stopped_early": False, "best_step": self.record["best_step"],
+                   "best_eval": self.record["best"], "stopped_early": self.reached,
+                   "stop_reason": "target_return" if self.reached else "steps", "best_step": self.record["best_step"],
                    "total_steps": self.steps, "framework": self.framework}
         if self.layout is not None and "last_success" in self.record:
             summary.update(last_success=self.record["last_success"], recent_success_rate=self.rows.success_rate())
@@ -497,9 +500,10 @@ class PeerRun:
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
         if self.eval_interval > 0 and step % self.eval_interval == 0:
             self.evaluate(step)
+            self.reached = self.target_return is not None and self.record["last"] >= self.target_return
         if self.stop.requested or (self.checkpoint_interval > 0 and step % self.checkpoint_interval == 0):
             self.save(step)
-        return not self.stop.requested
+        return not (self.stop.requested or self.reached)
 
     def make_env(self) -> Any:
         """An evaluation env: softac's, each action repeated as in training."""
@@ -566,6 +570,7 @@ def arguments() -> argparse.ArgumentParser:
                    help="run: each action applied this many times, the rewards summed (softac's action_repeat)")
     p.add_argument("--preset", help="a peer that runs at a sweep's settings: softac's preset (default: the env's)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="... and its overrides")
+    p.add_argument("--target-return", type=float, help="run: stop once an evaluation's mean return reaches this")
     return p
 
 
@@ -582,7 +587,7 @@ def main(argv: list[str]) -> None:
             if not a.out:
                 parser.error("run needs --out")
             out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
-                           a.log_interval, a.checkpoint_interval, a.preset, a.set, a.action_repeat)
+                           a.log_interval, a.checkpoint_interval, a.preset, a.set, a.action_repeat, a.target_return)
         elif a.kind == "throughput":
             out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
         else:

@@ -86,30 +86,40 @@ def renorm_active(state: SACState, s: UpdateSettings) -> jax.Array:
     return state.n_updates >= s.batch_renorm_warmup
 
 
-def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings) -> tuple[SACState, dict]:
+def scaled(updates: Any, lr_scale: jax.Array | None) -> Any:
+    """A learning-rate schedule's factor on one step's updates (lr_schedule; None: constant rates). Adam's and
+    AdamW's update is -lr times a direction that does not depend on lr, so scaling the update scales lr."""
+    return updates if lr_scale is None else jax.tree_util.tree_map(lambda u: u * lr_scale, updates)
+
+
+def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings,
+                lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
     grads, (metrics, critic_stats) = jax.grad(soft_q_loss, has_aux=True)(
         state.critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
         batch, key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s), state.target_critic_stats)
     updates, critic_opt = s.critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, updates)
+    critic = optax.apply_updates(state.critic, scaled(updates, lr_scale))
     if s.weight_norm:
         critic = unit_norm_hidden_units(critic)
     return state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats), metrics
 
 
-def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: UpdateSettings) -> tuple[SACState, dict]:
+def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: UpdateSettings,
+                         lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
     (loss, (log_prob, actor_stats)), grads = jax.value_and_grad(policy_loss, has_aux=True)(
         state.actor, state.actor_stats, state.critic, state.critic_stats, alpha_of(state, s), obs, key, s.policy,
         s.critics, renorm_active(state, s))
     updates, actor_opt = s.actor_tx.update(grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, updates)
+    actor = optax.apply_updates(state.actor, scaled(updates, lr_scale))
     if s.weight_norm:
         actor = unit_norm_hidden_units(actor)
     state = state._replace(actor=actor, actor_opt=actor_opt, actor_stats=actor_stats)
     if s.autotune_alpha:
         a_loss, grad = jax.value_and_grad(alpha_loss)(state.log_alpha, log_prob, s.target_entropy)
         updates, alpha_opt = s.alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
-        state = state._replace(log_alpha=optax.apply_updates(state.log_alpha, updates), alpha_opt=alpha_opt)
+        # the schedule scales alpha's rate too, as SB3 sets its lr schedule on the entropy coefficient's optimiser
+        state = state._replace(log_alpha=optax.apply_updates(state.log_alpha, scaled(updates, lr_scale)),
+                               alpha_opt=alpha_opt)
     else:
         a_loss = alpha_loss(state.log_alpha, log_prob, s.target_entropy)
     return state, {"actor_loss": loss, "alpha_loss": a_loss, "log_prob_mean": jnp.mean(log_prob)}
@@ -143,12 +153,12 @@ def metric_means(totals: dict[str, Any]) -> dict[str, float]:
     return means
 
 
-def policy_round(state: SACState, totals: dict, obs: jax.Array, key: jax.Array,
-                 s: UpdateSettings) -> tuple[SACState, dict]:
+def policy_round(state: SACState, totals: dict, obs: jax.Array, key: jax.Array, s: UpdateSettings,
+                 lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
     """CleanRL's delayed policy update: every `policy_frequency` critic steps, that many actor steps (same
     batch, fresh noise), so actor and critic take the same number of steps overall."""
     for k in jax.random.split(key, s.policy_frequency):
-        state, metrics = actor_and_alpha_step(state, obs, k, s)
+        state, metrics = actor_and_alpha_step(state, obs, k, s, lr_scale)
         totals = add_to_totals(totals, metrics, ACTOR_STEPS)
     return state, totals
 
@@ -165,32 +175,36 @@ def update_targets(state: SACState, n_updates: jax.Array, s: UpdateSettings) -> 
                           target_critic_stats=averaged(state.target_critic_stats, state.critic_stats))
 
 
-def gradient_step(s: UpdateSettings, carry: tuple[SACState, dict], batch: Batch) -> tuple[tuple[SACState, dict], None]:
+def gradient_step(s: UpdateSettings, lr_scale: jax.Array | None, carry: tuple[SACState, dict],
+                  batch: Batch) -> tuple[tuple[SACState, dict], None]:
     """One critic step; a policy round when due; the target update; their metrics added to the totals. TD3's
     policy delay (Fujimoto et al. 2018, sec. 5.2) spaces the policy rounds `policy_delay` times further apart
     with no catch-up: the actor takes 1/policy_delay of the steps, and the update costs less."""
     state, totals = carry
     key, critic_key, actor_key = jax.random.split(state.key, 3)
     alpha = alpha_of(state, s)
-    state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key, s)
+    state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key, s, lr_scale)
     totals = add_to_totals(totals, {**critic_metrics, "alpha": alpha}, CRITIC_STEPS)
     n = state.n_updates + 1
     period = s.policy_frequency * s.policy_delay
     if period == 1:
-        state, totals = policy_round(state, totals, batch.obs, actor_key, s)
+        state, totals = policy_round(state, totals, batch.obs, actor_key, s, lr_scale)
     else:
-        state, totals = jax.lax.cond(n % period == 0, lambda st, tot: policy_round(st, tot, batch.obs, actor_key, s),
+        state, totals = jax.lax.cond(n % period == 0,
+                                     lambda st, tot: policy_round(st, tot, batch.obs, actor_key, s, lr_scale),
                                      lambda st, tot: (st, tot), state, totals)
     if s.has_targets:
         state = update_targets(state, n, s)
     return (state._replace(n_updates=n), totals), None
 
 
-def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | None = None) -> tuple[SACState, dict]:
+def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | None = None,
+           lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
     """`batches` has a leading axis of gradient steps; all of them run in this one call. Returns the new state
-    and `totals` (zero_totals() when None) with this call's metrics added (`metric_means` reads them)."""
+    and `totals` (zero_totals() when None) with this call's metrics added (`metric_means` reads them).
+    `lr_scale`: the learning rates' factor for this call's steps (lr_schedule), None for constant rates."""
     totals = zero_totals() if totals is None else totals
-    (state, totals), _ = jax.lax.scan(partial(gradient_step, s), (state, totals), batches)
+    (state, totals), _ = jax.lax.scan(partial(gradient_step, s, lr_scale), (state, totals), batches)
     return state, totals
 
 

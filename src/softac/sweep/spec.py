@@ -74,6 +74,9 @@ class SweepSpec:
     samples: int = 0
     space: dict[str, dict[str, list[Any]]] | None = None
     asha: bool = False
+    # each trial stops once its deterministic eval mean reaches this (RLlib's stop criterion; `softac train
+    # --target-return`): its last evaluation is then that one
+    target_return: float | None = None
 
     def preset_config(self) -> SACConfig:
         """The preset (or the env's own) with the overrides, before the sweep's step budget."""
@@ -85,7 +88,12 @@ class SweepSpec:
 
     def describe(self) -> str:
         """The configuration by framework and preset, for tables and legends: "softac, crossq preset",
-        "softac, env preset + obs_norm=true", "SBX CrossQ, its defaults" (a peer's own settings are fixed)."""
+        "softac, env preset + obs_norm=true", "SBX CrossQ, its defaults" (a peer's own settings are fixed);
+        ", stops at R" where the trials stop at a target return."""
+        name = self._configuration()
+        return name if self.target_return is None else f"{name}, stops at {self.target_return:g}"
+
+    def _configuration(self) -> str:
         if self.framework in PEERS and PEERS[self.framework].settings != "sweep":
             # of what such a peer takes, only the env's action repeat changes what it trains
             repeat = [pair.strip() for pair in self.overrides if override_key(pair.split("=", 1)[0]) == "action_repeat"]

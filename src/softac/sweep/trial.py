@@ -55,6 +55,8 @@ def sweep_settings(spec: SweepSpec) -> list[str]:
 
 
 def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: Path) -> list[str]:
+    # one token: a negative target (Pendulum's -200) must not read as an option
+    target = [] if spec.target_return is None else [f"--target-return={float(spec.target_return)!r}"]
     if spec.framework != "softac":
         # the same command continues a peer's run from its last checkpoint
         return [sys.executable, "-m", "softac.peers", "run", spec.framework, "--env", spec.env_id,
@@ -62,13 +64,13 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
                 "--eval-interval", str(base.eval_interval), "--eval-episodes", str(base.eval_episodes),
                 "--log-interval", str(base.log_interval), "--checkpoint-interval", str(base.checkpoint_interval),
                 *(["--action-repeat", str(base.action_repeat)] if base.action_repeat != 1 else []),
-                *sweep_settings(spec)]
+                *sweep_settings(spec), *target]
     if trial_state(run, spec.steps) == "partial":  # also a run finished before the sweep's budget was raised
         return [sys.executable, "-m", "softac", "train", "--resume", str(run), "--total-steps", str(spec.steps),
-                "--no-progress"]
+                "--no-progress", *target]
     pairs = list(spec.overrides) + [f"{k}={value_text(v)}" for k, v in trial["values"].items()]
     cmd = [sys.executable, "-m", "softac", "train", "--env", spec.env_id, "--seed", str(trial["seed"]),
-           "--steps", str(spec.steps), "--out", str(run), "--no-progress"]
+           "--steps", str(spec.steps), "--out", str(run), "--no-progress", *target]
     if spec.preset:
         cmd += ["--preset", spec.preset]
     if pairs:
