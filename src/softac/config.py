@@ -16,7 +16,6 @@ from typing import Any
 
 import yaml
 
-from softac.dmc import is_dmc_id
 from softac.errors import SoftacError
 
 
@@ -118,6 +117,8 @@ class SACConfig:
     @classmethod
     def preset(cls, name: str, env_id: str | None = None) -> "SACConfig":
         """The named preset (an env id or `sb3`, `cleanrl`, `default`)."""
+        from softac.dmc import is_dmc_id  # here: softac.dmc loads NumPy, which `softac --help` does not need
+
         values = load_preset(name)
         cfg = cls()
         if name == DMC_PRESET and not is_dmc_id(env_id or ""):
@@ -133,6 +134,8 @@ class SACConfig:
     def for_env(cls, env_id: str | None) -> "SACConfig":
         """The env's own preset when there is one, else `dmc` for a DeepMind Control task, else the fallback
         preset."""
+        from softac.dmc import is_dmc_id
+
         env_id = env_id or DEFAULT_ENV
         name = env_id if env_id in preset_names() else DMC_PRESET if is_dmc_id(env_id) else FALLBACK_PRESET
         return cls.preset(name, env_id=env_id)
