@@ -386,27 +386,26 @@ def dmc_aggregate(finals: dict[str, dict[str, list[float]]], seconds: dict[str, 
              "| configuration | tasks | runs | IQM of return / 1000 [95% CI] | one-core s for the tasks |",
              "|---|---|---|---|---|"]
     scores: dict[str, tuple[float, float, float]] = {}
+
+    def add_row(name: str, runs: dict[str, list[float]], tasks: list[str], seconds_cell: str) -> None:
+        label = name if len(tasks) == len(DMC_TASKS) else f"{name} ({len(tasks)} tasks)"
+        scores[label] = stratified_bootstrap_iqm([[v / 1000 for v in runs[t]] for t in tasks])
+        point, low, high = scores[label]
+        lines.append(f"| {label} | {len(tasks)} | {sum(len(runs[t]) for t in tasks)} | "
+                     f"{point:.2f} [{low:.2f}, {high:.2f}] | {seconds_cell} |")
+
     tasks_of_first: list[str] | None = None
     for name, per_task in finals.items():
         tasks = [t for t in DMC_TASKS if t in per_task]
         tasks_of_first = tasks_of_first or tasks
-        label = name if len(tasks) == len(DMC_TASKS) else f"{name} ({len(tasks)} tasks)"
-        scores[label] = stratified_bootstrap_iqm([[v / 1000 for v in per_task[t]] for t in tasks])
         timed = [seconds[name][t] for t in tasks if t in seconds.get(name, {})]
         total = f"{sum(timed):.0f}" + ("" if len(timed) == len(tasks) else f" ({len(timed)} tasks timed)") if timed else "-"
-        point, low, high = scores[label]
-        lines.append(f"| {label} | {len(tasks)} | {sum(len(per_task[t]) for t in tasks)} | "
-                     f"{point:.2f} [{low:.2f}, {high:.2f}] | {total} |")
+        add_row(name, per_task, tasks, total)
     for method in DMC_SHOWN:
         runs = published.get(method, {})
         tasks = [t for t in (tasks_of_first or []) if t in runs]
-        if not tasks:
-            continue
-        label = f"published {method}" + ("" if len(tasks) == len(DMC_TASKS) else f" ({len(tasks)} tasks)")
-        scores[label] = stratified_bootstrap_iqm([[v / 1000 for v in runs[t]] for t in tasks])
-        point, low, high = scores[label]
-        lines.append(f"| {label} | {len(tasks)} | {sum(len(runs[t]) for t in tasks)} | "
-                     f"{point:.2f} [{low:.2f}, {high:.2f}] | GPU |")
+        if tasks:
+            add_row(f"published {method}", runs, tasks, "GPU")
     plot_aggregate(scores, figure, "DeepMind Control Suite, 100k frames: IQM of final return / 1000",
                    "return / 1000\nerror bar: 95% stratified-bootstrap interval")
     return lines + ["", f"![DMC aggregate](results/{figure.name})", ""]

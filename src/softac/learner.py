@@ -153,9 +153,8 @@ class Learner:
         (normalised here with the current statistics); their metrics are added to the totals on the device.
         `step`: the env steps taken so far, which a learning-rate schedule follows (lr_scale)."""
         batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
-        scale = self.lr_scale(step)
-        args = () if scale is None else (scale,)
-        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), self.totals, *args)
+        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), self.totals,
+                                                        self.lr_scale(step))
 
     def lr_scale(self, step: int | None) -> np.ndarray | None:
         """The learning rates' factor at env step `step` (None: constant rates). linear: 1 - (1 - lr_end_fraction)

@@ -344,10 +344,11 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     return out
 
 
-def plot_front(points: dict[str, dict[str, tuple]], published: dict[str, dict[str, float]],
+def plot_front(points: dict[str, dict[str, tuple[float, float, float | None, bool]]],
+               published: dict[str, dict[str, float]],
                out: Path, title: str) -> Path:
     """Return against wall time, one panel per env: each configuration a point at (median wall seconds, mean final
-    return) with its spread over seeds as a vertical bar ({env: {name: (mean, sd, seconds or None[, timed])}}; a
+    return) with its spread over seeds as a vertical bar ({env: {name: (mean, sd, seconds or None, timed)}}; a
     point without seconds is left out; one whose seconds come from disturbed trials (timed False) is drawn hollow),
     and each published method's mean as a dashed line ({env: {method: mean}}), labelled at the right."""
     plt = _pyplot()
@@ -356,16 +357,17 @@ def plot_front(points: dict[str, dict[str, tuple]], published: dict[str, dict[st
     envs = list(points)
     cols = min(3, len(envs))
     rows = (len(envs) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.25 * len(points)), squeeze=False,
-                             layout="constrained")
     names = sorted({name for env in envs for name in points[env]})
+    # room below the panels for the legend's rows (two entries a row, one more for the hollow marker)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.2 * ((len(names) + 2) // 2)),
+                             squeeze=False, layout="constrained")
     colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
     any_hollow = False
     for ax, env in zip(axes.flat, envs):
-        for name, (mean, sd, seconds, *timed) in points[env].items():
+        for name, (mean, sd, seconds, timed) in points[env].items():
             if seconds is None:
                 continue
-            hollow = bool(timed) and not timed[0]
+            hollow = not timed
             any_hollow |= hollow
             ax.errorbar(seconds, mean, yerr=sd, fmt="o", color=colours[name], capsize=4,
                         markerfacecolor="white" if hollow else colours[name])
