@@ -1,0 +1,119 @@
+"""The image encoder and its augmentation (issue 44): what turns a stack of camera frames into the vector that
+actor and critics read.
+
+The encoder is DrQ's (Kostrikov et al. 2021, "Image Augmentation Is All You Need"; Yarats et al. 2021, SAC-AE):
+four 3x3 convolutions of `channels` filters (strides 2, 1, 1, 1, no padding, ReLU), then a linear layer to
+`features` units, a LayerNorm (with scale and bias) and tanh. Pixels go in as uint8 and are scaled to
+[-0.5, 0.5] inside (DrQ-v2's scaling). One encoder serves actor and critics; the critic loss alone trains it
+and the actor reads its output stopped (`jax.lax.stop_gradient`), as in DrQ and DrQ-v2: the actor's gradient
+through a shared encoder destabilises it (SAC-AE, sec. 4).
+
+`random_shift` is DrQ's augmentation (its K = M = 1 form): each image padded by `pad` pixels (edge copies)
+and cropped back at a uniformly random offset, a fresh shift per image per pass.
+
+Images are channels-last: [batch, height, width, channels], a frame stack's frames one after the other along
+the channels (oldest first).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Params = Any
+
+CONV_STRIDES = (2, 1, 1, 1)
+KERNEL = 3
+LN_EPS = 1e-5  # torch.nn.LayerNorm's, which DrQ's encoder uses
+
+
+def conv_output_size(size: int, strides: tuple[int, ...] = CONV_STRIDES) -> int:
+    """An image side after the convolutions (no padding): 84 -> 41 -> 39 -> 37 -> 35."""
+    for stride in strides:
+        size = (size - KERNEL) // stride + 1
+    return size
+
+
+def smallest_image(strides: tuple[int, ...] = CONV_STRIDES) -> int:
+    """The smallest side the convolutions can take (one pixel out)."""
+    size = 1
+    for stride in reversed(strides):
+        size = (size - 1) * stride + KERNEL
+    return size
+
+
+def _orthogonal(rng: np.random.Generator, fan_in: int, fan_out: int, gain: float) -> np.ndarray:
+    a = rng.standard_normal((max(fan_in, fan_out), min(fan_in, fan_out)))
+    q, r = np.linalg.qr(a)
+    q *= np.sign(np.diag(r))
+    return (gain * (q if fan_in >= fan_out else q.T)).astype(np.float32)
+
+
+def init_encoder(rng: np.random.Generator, image_shape: tuple[int, int, int], channels: int = 32,
+                 features: int = 50) -> Params:
+    """DrQ's initialisation: each convolution delta-orthogonal (an orthogonal matrix with ReLU's gain at the
+    kernel's centre, zeros elsewhere; Xiao et al. 2018), the linear layer orthogonal, biases zero, LayerNorm
+    scale 1 and bias 0."""
+    height, width, in_channels = image_shape
+    convs = []
+    for fan_in in (in_channels, *[channels] * (len(CONV_STRIDES) - 1)):
+        w = np.zeros((KERNEL, KERNEL, fan_in, channels), np.float32)
+        w[KERNEL // 2, KERNEL // 2] = _orthogonal(rng, fan_in, channels, math.sqrt(2.0))
+        convs.append({"w": w, "b": np.zeros(channels, np.float32)})
+    flat = conv_output_size(height) * conv_output_size(width) * channels
+    head = {"w": _orthogonal(rng, flat, features, 1.0), "b": np.zeros(features, np.float32),
+            "ln_scale": np.ones(features, np.float32), "ln_bias": np.zeros(features, np.float32)}
+    return {"convs": convs, "head": head}
+
+
+def encoder_parameters(image_shape: tuple[int, int, int], channels: int = 32, features: int = 50) -> int:
+    """The encoder's parameter count (for the memory check before anything is allocated)."""
+    height, width, in_channels = image_shape
+    convs = sum((KERNEL * KERNEL * fan_in + 1) * channels
+                for fan_in in (in_channels, *[channels] * (len(CONV_STRIDES) - 1)))
+    flat = conv_output_size(height) * conv_output_size(width) * channels
+    return convs + (flat + 1) * features + 2 * features
+
+
+def scale_pixels(images: jax.Array) -> jax.Array:
+    """uint8 pixels to float32 in [-0.5, 0.5]."""
+    return images.astype(jnp.float32) / 255.0 - 0.5
+
+
+def conv_features(params: Params, images: jax.Array) -> jax.Array:
+    """The convolutions' output, flattened: [batch, conv_output_size(h) * conv_output_size(w) * channels]."""
+    x = scale_pixels(images)
+    for layer, stride in zip(params["convs"], CONV_STRIDES):
+        x = jax.lax.conv_general_dilated(x, layer["w"], (stride, stride), "VALID",
+                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        x = jax.nn.relu(x + layer["b"])
+    return x.reshape(x.shape[0], -1)
+
+
+def encode(params: Params, images: jax.Array) -> jax.Array:
+    """uint8 images [batch, h, w, c] to features [batch, features] in (-1, 1)."""
+    head = params["head"]
+    h = conv_features(params, images) @ head["w"] + head["b"]
+    mean = jnp.mean(h, axis=-1, keepdims=True)
+    var = jnp.mean(jnp.square(h - mean), axis=-1, keepdims=True)
+    h = (h - mean) * jax.lax.rsqrt(var + LN_EPS) * head["ln_scale"] + head["ln_bias"]
+    return jnp.tanh(h)
+
+
+def random_shift(images: jax.Array, key: jax.Array, pad: int) -> jax.Array:
+    """Each image of [batch, h, w, c] shifted by its own uniform offset in [-pad, pad] along each axis, the
+    border filled with copies of the edge pixels (DrQ's random shift); pad 0 returns the images."""
+    if pad == 0:
+        return images
+    batch, height, width, channels = images.shape
+    padded = jnp.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")
+    offsets = jax.random.randint(key, (batch, 2), 0, 2 * pad + 1)
+
+    def crop(image: jax.Array, offset: jax.Array) -> jax.Array:
+        return jax.lax.dynamic_slice(image, (offset[0], offset[1], 0), (height, width, channels))
+
+    return jax.vmap(crop)(padded, offsets)

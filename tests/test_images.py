@@ -1,0 +1,221 @@
+"""Image observations (issue 44): the DrQ encoder against a hand computation, the random-shift augmentation's
+statistics, and the frame-once replay buffer against a plain buffer of the same transitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softac.buffer import ReplayBuffer
+from softac.encoder import (CONV_STRIDES, conv_features, conv_output_size, encode, encoder_parameters, init_encoder,
+                            random_shift, smallest_image)
+from softac.errors import SoftacError
+from softac.image_buffer import FrameReplayBuffer
+
+jax = pytest.importorskip("jax")
+jnp = jax.numpy
+
+
+# ---- the encoder -------------------------------------------------------------------------------------------
+
+def test_conv_output_sizes_follow_drq():
+    assert [conv_output_size(84, CONV_STRIDES[:i]) for i in range(5)] == [84, 41, 39, 37, 35]
+    assert conv_output_size(smallest_image()) == 1
+    assert conv_output_size(smallest_image() - 1) < 1
+
+
+def _conv_reference(x: np.ndarray, w: np.ndarray, b: np.ndarray, stride: int) -> np.ndarray:
+    """A VALID 2-D convolution (cross-correlation, as every DL framework), [h, w, c_in] -> [h', w', c_out]."""
+    k = w.shape[0]
+    out_h, out_w = (x.shape[0] - k) // stride + 1, (x.shape[1] - k) // stride + 1
+    out = np.zeros((out_h, out_w, w.shape[-1]))
+    for i in range(out_h):
+        for j in range(out_w):
+            patch = x[i * stride:i * stride + k, j * stride:j * stride + k]  # [k, k, c_in]
+            out[i, j] = np.einsum("abc,abcd->d", patch, w) + b
+    return out
+
+
+def test_encoder_matches_a_hand_computation():
+    rng = np.random.default_rng(0)
+    shape = (15, 13, 6)
+    params = init_encoder(rng, shape, channels=4, features=5)
+    # random weights everywhere (the delta-orthogonal init is mostly zeros, which would hide index mistakes)
+    params = {"convs": [{"w": rng.normal(size=c["w"].shape).astype(np.float32) * 0.3,
+                         "b": rng.normal(size=c["b"].shape).astype(np.float32) * 0.1} for c in params["convs"]],
+              "head": {k: rng.normal(size=v.shape).astype(np.float32) * 0.3 for k, v in params["head"].items()}}
+    images = rng.integers(0, 256, (2, *shape), dtype=np.uint8)
+    expected = []
+    for image in images:
+        x = image.astype(np.float64) / 255.0 - 0.5
+        for layer, stride in zip(params["convs"], CONV_STRIDES):
+            x = np.maximum(_conv_reference(x, layer["w"], layer["b"], stride), 0.0)
+        h = x.reshape(-1) @ params["head"]["w"] + params["head"]["b"]
+        h = (h - h.mean()) / np.sqrt(h.var() + 1e-5) * params["head"]["ln_scale"] + params["head"]["ln_bias"]
+        expected.append(np.tanh(h))
+    got = np.asarray(jax.jit(encode)(params, images))
+    assert got.shape == (2, 5)
+    # float32 convolutions of a few hundred terms, then tanh: errors of order 1e-6 relative; 1e-4 leaves room
+    np.testing.assert_allclose(got, np.array(expected), rtol=0, atol=1e-4)
+    assert np.asarray(conv_features(params, images)).shape == (2, conv_output_size(15) * conv_output_size(13) * 4)
+
+
+def test_encoder_init_is_drq_and_counts_its_parameters():
+    rng = np.random.default_rng(1)
+    params = init_encoder(rng, (84, 84, 9))
+    first = params["convs"][0]["w"]
+    assert first.shape == (3, 3, 9, 32)
+    centre = first[1, 1]  # delta-orthogonal: an orthogonal 9x32 matrix (gain sqrt 2) at the centre, zero elsewhere
+    np.testing.assert_allclose(centre @ centre.T, 2.0 * np.eye(9), atol=1e-5)
+    assert np.count_nonzero(first) == np.count_nonzero(centre)
+    assert params["head"]["w"].shape == (35 * 35 * 32, 50)
+    count = sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params))
+    assert count == encoder_parameters((84, 84, 9))
+    features = np.asarray(encode(params, np.zeros((1, 84, 84, 9), np.uint8)))
+    assert features.shape == (1, 50) and np.all(np.abs(features) < 1.0)
+
+
+def test_encoder_is_differentiable_in_its_parameters():
+    rng = np.random.default_rng(2)
+    params = init_encoder(rng, (15, 15, 3), channels=4, features=3)
+    images = rng.integers(0, 256, (4, 15, 15, 3), dtype=np.uint8)
+    grads = jax.grad(lambda p: jnp.sum(encode(p, images) * jnp.arange(3.0)))(params)
+    assert all(np.all(np.isfinite(g)) for g in jax.tree_util.tree_leaves(grads))
+    assert np.any(np.asarray(grads["convs"][0]["w"]) != 0)
+
+
+# ---- random shift --------------------------------------------------------------------------------------------
+
+def test_random_shift_crops_the_edge_padded_image_at_offsets_within_pad():
+    rng = np.random.default_rng(3)
+    images = rng.integers(0, 256, (64, 10, 9, 2), dtype=np.uint8)
+    pad = 2
+    shifted = np.asarray(jax.jit(random_shift, static_argnums=2)(images, jax.random.PRNGKey(0), pad))
+    assert shifted.shape == images.shape and shifted.dtype == np.uint8
+    padded = np.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")
+    offsets = []
+    for image, padded_image in zip(shifted, padded):
+        found = [(dy, dx) for dy in range(2 * pad + 1) for dx in range(2 * pad + 1)
+                 if np.array_equal(padded_image[dy:dy + 10, dx:dx + 9], image)]
+        assert found, "each output is a crop of its edge-padded image"
+        offsets.append(found[0])
+    # 64 draws of 25 equally likely offsets: all the same would be a broken draw (chance 25^-63)
+    assert len(set(offsets)) > 5
+    assert {dy for dy, _ in offsets} == set(range(2 * pad + 1))
+
+
+def test_random_shift_without_pad_and_of_a_flat_image_changes_nothing():
+    images = np.full((3, 8, 8, 3), 7, np.uint8)
+    key = jax.random.PRNGKey(1)
+    np.testing.assert_array_equal(np.asarray(random_shift(images, key, 4)), images)
+    varied = np.arange(3 * 8 * 8 * 3, dtype=np.uint8).reshape(3, 8, 8, 3)
+    assert random_shift(varied, key, 0) is varied
+
+
+# ---- the frame-once replay buffer ----------------------------------------------------------------------------
+
+def _stacked_episodes(rng: np.random.Generator, n_envs: int, steps: int, k: int, episode_len: int,
+                      frame: tuple[int, int, int] = (5, 4, 3)):
+    """Transitions as a frame-stacking env yields them: each env's stack moves on by one frame a step, and a
+    new episode starts with k copies of its first frame (Gymnasium's FrameStackObservation)."""
+    h, w, c = frame
+    stacks = [None] * n_envs
+    t = np.zeros(n_envs, int)
+
+    def fresh():
+        first = rng.integers(0, 256, frame, dtype=np.uint8)
+        return [first] * k
+
+    out = []
+    for step in range(steps):
+        obs, next_obs, terminated, done = [], [], [], []
+        for e in range(n_envs):
+            if stacks[e] is None:
+                stacks[e] = fresh()
+            new = rng.integers(0, 256, frame, dtype=np.uint8)
+            nxt = stacks[e][1:] + [new]
+            t[e] += 1
+            end = t[e] % episode_len == 0
+            obs.append(np.concatenate(stacks[e], axis=-1))
+            next_obs.append(np.concatenate(nxt, axis=-1))
+            terminated.append(end and e % 2 == 0)
+            done.append(end)
+            stacks[e] = fresh() if end else nxt
+        actions = rng.normal(size=(n_envs, 2)).astype(np.float32)
+        rewards = rng.normal(size=n_envs).astype(np.float32)
+        out.append((np.array(obs), actions, rewards, np.array(next_obs), np.array(terminated, np.float32),
+                    np.array(done)))
+    return out
+
+
+@pytest.mark.parametrize("n_step", [1, 3])
+def test_frame_buffer_gives_the_transitions_a_plain_buffer_gives(n_step):
+    rng = np.random.default_rng(4)
+    n_envs, k, frame = 2, 3, (5, 4, 3)
+    obs_shape = (5, 4, 9)
+    frames = FrameReplayBuffer(64, obs_shape, k, 2, n_envs=n_envs, n_step=n_step)
+    plain = ReplayBuffer(64, int(np.prod(obs_shape)), 2, n_envs=n_envs, n_step=n_step)
+    for obs, actions, rewards, next_obs, terminated, done in _stacked_episodes(rng, n_envs, 50, k, 40, frame):
+        frames.add(obs, actions, rewards, next_obs, terminated, done)
+        plain.add(obs.reshape(n_envs, -1), actions, rewards, next_obs.reshape(n_envs, -1), terminated, done)
+    # 100 transitions through 64 rows: the ring wrapped, and with episodes of 40 steps every row kept its frames
+    assert frames._valid(np.arange(frames.size)).all()
+    got = frames.sample(np.random.default_rng(5), 16, 3)
+    want = plain.sample(np.random.default_rng(5), 16, 3)
+    assert got["obs"].dtype == np.uint8 and got["obs"].shape == (3, 16, *obs_shape)
+    for key in ("obs", "next_obs"):
+        np.testing.assert_array_equal(got[key].reshape(3, 16, -1), want[key].astype(np.uint8))
+    for key in ("actions", "rewards", "terminated", "steps"):
+        np.testing.assert_array_equal(got[key], want[key])
+    # a step stores one frame; each episode's start k: far fewer than the 2k of two whole observations
+    assert frames.frames_written == 100 + 2 * n_envs * k  # one frame a step, k at each of the 4 episodes' starts
+
+
+def test_frame_buffer_never_samples_a_row_that_lost_its_frames():
+    rng = np.random.default_rng(6)
+    k = 4
+    buffer = FrameReplayBuffer(16, (3, 3, 4), k, 2, n_envs=1)
+    # one-step episodes store k + 1 frames per transition: the frame ring (16 + 2 + 4) overwrites rows' frames
+    for obs, actions, rewards, next_obs, terminated, done in _stacked_episodes(rng, 1, 40, k, 1, (3, 3, 1)):
+        buffer.add(obs, actions, rewards, next_obs, terminated, done)
+    valid = buffer._valid(np.arange(buffer.size))
+    assert 0 < valid.sum() < buffer.size
+    batch = buffer.sample(np.random.default_rng(7), 64)
+    # every sampled obs is one the env produced: its frames are k copies of an episode's first frame
+    for obs in batch["obs"][0]:
+        assert all(np.array_equal(obs[..., i], obs[..., 0]) for i in range(k))
+
+
+def test_frame_buffer_resumes_exactly_and_states_its_memory():
+    rng = np.random.default_rng(8)
+    data = _stacked_episodes(rng, 2, 30, 3, 9)
+    a = FrameReplayBuffer(50, (5, 4, 9), 3, 2, n_envs=2)
+    for t in data[:20]:
+        a.add(*t)
+    b = FrameReplayBuffer(50, (5, 4, 9), 3, 2, n_envs=2)
+    b.load_state_dict({k: np.array(v) for k, v in a.state_dict().items()})
+    for t in data[20:]:
+        a.add(*t)
+        b.add(*t)
+    for key, value in a.state_dict().items():
+        np.testing.assert_array_equal(b.state_dict()[key], value)
+    sa, sb = a.sample(np.random.default_rng(9), 8), b.sample(np.random.default_rng(9), 8)
+    for key in sa:
+        np.testing.assert_array_equal(sa[key], sb[key])
+    per = FrameReplayBuffer.bytes_per_transition((84, 84, 9), 3, 6, 100_000, 1)
+    assert 84 * 84 * 3 < per < 1.2 * 84 * 84 * 3  # one RGB frame and a little
+    text = FrameReplayBuffer(1000, (84, 84, 9), 3, 6).describe_memory()
+    assert text.startswith("1,000 transitions x 23.") and text.endswith("MiB")  # ~24 KiB each, ~23.5 MiB
+
+
+def test_frame_buffer_refuses_what_does_not_fit_or_match():
+    with pytest.raises(SoftacError, match="buffer_size"):
+        FrameReplayBuffer(10**12, (84, 84, 9), 3, 6)
+    with pytest.raises(SoftacError, match="stacked frames"):
+        FrameReplayBuffer(10, (8, 8, 7), 3, 1)
+    buffer = FrameReplayBuffer(10, (4, 4, 3), 1, 1)
+    with pytest.raises(SoftacError, match="no complete transition"):
+        buffer.sample(np.random.default_rng(0), 4)
+    other = FrameReplayBuffer(10, (4, 4, 6), 2, 1)
+    with pytest.raises(SoftacError, match="image shape"):
+        buffer.load_state_dict(other.state_dict())
