@@ -3,6 +3,7 @@
     taskset -c 0 python benchmarks/update_time.py --preset HalfCheetah-v5 --obs 17 --act 6
     taskset -c 0 python benchmarks/update_time.py --preset sac-100k --set matmul_dtype=bfloat16
     taskset -c 0 python benchmarks/update_time.py --peer sbx-crossq-softac --env Hopper-v5   # needs [bench]
+    taskset -c 0 python benchmarks/update_time.py --preset InvertedPendulum-v5 --image 84x84x9 --act 1  # pixels
 
 Isolates the jitted update from the env and the loop (docs/performance.md, "The MuJoCo presets' update"):
 warm-up updates first (compilation), then rounds of updates each timed to completion; prints the median
@@ -25,6 +26,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
     p.add_argument("--obs", type=int, default=17, help="observation size (HalfCheetah-v5: 17)")
     p.add_argument("--act", type=int, default=6, help="action size (HalfCheetah-v5: 6)")
+    p.add_argument("--image", default=None, metavar="HxWxC",
+                   help="image observations of this shape (uint8; C = frames x 3) through the encoder, instead of --obs")
     p.add_argument("--rounds", type=int, default=7)
     p.add_argument("--updates", type=int, default=100, help="updates per round")
     p.add_argument("--peer", default=None, help="a peer (softac.peers.PEERS) to time instead of softac")
@@ -40,16 +43,20 @@ def main(argv: list[str] | None = None) -> int:
     from softac.config import SACConfig
 
     config = SACConfig.preset(a.preset).with_overrides(a.set)
-    fns = sac.build(config, a.obs, a.act)
+    image = tuple(int(n) for n in a.image.lower().split("x")) if a.image else None
+    fns = sac.build(config, a.obs, a.act, image_shape=image)
     state = fns.init(0)
     rng = np.random.default_rng(0)
     size = (config.gradient_steps, config.batch_size)
 
+    def observations() -> np.ndarray:
+        if image is not None:
+            return rng.integers(0, 256, (*size, *image), dtype=np.uint8)
+        return rng.standard_normal((*size, a.obs), dtype=np.float32)
+
     def batch() -> sac.Batch:
-        return sac.Batch(obs=rng.standard_normal((*size, a.obs), dtype=np.float32),
-                         actions=rng.uniform(-1, 1, (*size, a.act)).astype(np.float32),
-                         rewards=rng.standard_normal(size, dtype=np.float32),
-                         next_obs=rng.standard_normal((*size, a.obs), dtype=np.float32),
+        return sac.Batch(obs=observations(), actions=rng.uniform(-1, 1, (*size, a.act)).astype(np.float32),
+                         rewards=rng.standard_normal(size, dtype=np.float32), next_obs=observations(),
                          terminated=np.zeros(size, np.float32), steps=np.ones(size, np.float32))
 
     batches = [batch() for _ in range(8)]

@@ -229,7 +229,56 @@ class DictObsEnv(DriftEnv):
         return {"position": np.array([self.x], np.float32), "velocity": np.array([self.t], np.float32)}
 
 
+class DotImageEnv(gym.Env):
+    """Image observations (issue 44): a bright square at a random column of a dark 16x16 image, drawn afresh each
+    step. The reward pays the action pointing to the square's side: 1 - (a - side)^2, side -1 left, +1 right, so
+    the best action depends on what the image shows. `channels_first` gives [3, 16, 16] (PyTorch's layout).
+    Renders rgb_array (a 30x40 picture of the same) for pixels=true."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, channels_first: bool = False, render_mode: str | None = None):
+        self.channels_first = channels_first
+        self.render_mode = render_mode
+        shape = (3, 16, 16) if channels_first else (16, 16, 3)
+        self.observation_space = gym.spaces.Box(0, 255, shape, np.uint8)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.column = 0
+        self.t = 0
+
+    def _draw(self, height: int, width: int) -> np.ndarray:
+        image = np.full((height, width, 3), 20, np.uint8)
+        left = self.column * width // 16
+        image[height // 3:height // 3 + max(3 * height // 16, 1), left:left + max(3 * width // 16, 1)] = (250, 200, 90)
+        return image
+
+    def _obs(self) -> np.ndarray:
+        image = self._draw(16, 16)
+        return np.transpose(image, (2, 0, 1)).copy() if self.channels_first else image
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.column, self.t = int(self.np_random.integers(0, 14)), 0
+        return self._obs(), {}
+
+    def step(self, action):
+        side = -1.0 if self.column < 7 else 1.0
+        reward = 1.0 - (float(np.asarray(action).reshape(-1)[0]) - side) ** 2
+        self.column, self.t = int(self.np_random.integers(0, 14)), self.t + 1
+        return self._obs(), reward, False, False, {}
+
+    def render(self):
+        return self._draw(30, 40)
+
+    def save_state(self):
+        return np.array([self.column, self.t], np.float64)
+
+    def load_state(self, state):
+        self.column, self.t = int(state[0]), int(state[1])
+
+
 gym.register("Drift-v0", entry_point=DriftEnv, max_episode_steps=25)
+gym.register("DotImage-v0", entry_point=DotImageEnv, max_episode_steps=20)
 gym.register("PointGoal-v0", entry_point=PointGoalEnv, max_episode_steps=20)
 gym.register("OneGoalReward-v0", entry_point=OneGoalRewardEnv, max_episode_steps=20)
 gym.register("DictObs-v0", entry_point=DictObsEnv, max_episode_steps=25)

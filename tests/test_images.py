@@ -8,7 +8,7 @@ import pytest
 
 from softac.buffer import ReplayBuffer
 from softac.encoder import (CONV_STRIDES, conv_features, conv_output_size, encode, encoder_parameters, init_encoder,
-                            random_shift, smallest_image)
+                            random_shift, smallest_image, stack_channels)
 from softac.errors import SoftacError
 from softac.image_buffer import FrameReplayBuffer
 
@@ -84,6 +84,14 @@ def test_encoder_is_differentiable_in_its_parameters():
     assert np.any(np.asarray(grads["convs"][0]["w"]) != 0)
 
 
+def test_stack_channels_lays_the_frames_along_the_channels_oldest_first():
+    stacks = np.random.default_rng(9).integers(0, 256, (2, 3, 5, 4, 3), dtype=np.uint8)  # [batch, k, h, w, c]
+    images = np.asarray(stack_channels(stacks))
+    assert images.shape == (2, 5, 4, 9)
+    for b in range(2):
+        np.testing.assert_array_equal(images[b], np.concatenate(list(stacks[b]), axis=-1))
+
+
 # ---- random shift --------------------------------------------------------------------------------------------
 
 def test_random_shift_crops_the_edge_padded_image_at_offsets_within_pad():
@@ -136,8 +144,8 @@ def _stacked_episodes(rng: np.random.Generator, n_envs: int, steps: int, k: int,
             nxt = stacks[e][1:] + [new]
             t[e] += 1
             end = t[e] % episode_len == 0
-            obs.append(np.concatenate(stacks[e], axis=-1))
-            next_obs.append(np.concatenate(nxt, axis=-1))
+            obs.append(np.stack(stacks[e]))
+            next_obs.append(np.stack(nxt))
             terminated.append(end and e % 2 == 0)
             done.append(end)
             stacks[e] = fresh() if end else nxt
@@ -152,8 +160,8 @@ def _stacked_episodes(rng: np.random.Generator, n_envs: int, steps: int, k: int,
 def test_frame_buffer_gives_the_transitions_a_plain_buffer_gives(n_step):
     rng = np.random.default_rng(4)
     n_envs, k, frame = 2, 3, (5, 4, 3)
-    obs_shape = (5, 4, 9)
-    frames = FrameReplayBuffer(64, obs_shape, k, 2, n_envs=n_envs, n_step=n_step)
+    obs_shape = (k, *frame)
+    frames = FrameReplayBuffer(64, obs_shape, 2, n_envs=n_envs, n_step=n_step)
     plain = ReplayBuffer(64, int(np.prod(obs_shape)), 2, n_envs=n_envs, n_step=n_step)
     for obs, actions, rewards, next_obs, terminated, done in _stacked_episodes(rng, n_envs, 50, k, 40, frame):
         frames.add(obs, actions, rewards, next_obs, terminated, done)
@@ -174,7 +182,7 @@ def test_frame_buffer_gives_the_transitions_a_plain_buffer_gives(n_step):
 def test_frame_buffer_never_samples_a_row_that_lost_its_frames():
     rng = np.random.default_rng(6)
     k = 4
-    buffer = FrameReplayBuffer(16, (3, 3, 4), k, 2, n_envs=1)
+    buffer = FrameReplayBuffer(16, (k, 3, 3, 1), 2, n_envs=1)
     # one-step episodes store k + 1 frames per transition: the frame ring (16 + 2 + 4) overwrites rows' frames
     for obs, actions, rewards, next_obs, terminated, done in _stacked_episodes(rng, 1, 40, k, 1, (3, 3, 1)):
         buffer.add(obs, actions, rewards, next_obs, terminated, done)
@@ -183,16 +191,16 @@ def test_frame_buffer_never_samples_a_row_that_lost_its_frames():
     batch = buffer.sample(np.random.default_rng(7), 64)
     # every sampled obs is one the env produced: its frames are k copies of an episode's first frame
     for obs in batch["obs"][0]:
-        assert all(np.array_equal(obs[..., i], obs[..., 0]) for i in range(k))
+        assert all(np.array_equal(obs[i], obs[0]) for i in range(k))
 
 
 def test_frame_buffer_resumes_exactly_and_states_its_memory():
     rng = np.random.default_rng(8)
     data = _stacked_episodes(rng, 2, 30, 3, 9)
-    a = FrameReplayBuffer(50, (5, 4, 9), 3, 2, n_envs=2)
+    a = FrameReplayBuffer(50, (3, 5, 4, 3), 2, n_envs=2)
     for t in data[:20]:
         a.add(*t)
-    b = FrameReplayBuffer(50, (5, 4, 9), 3, 2, n_envs=2)
+    b = FrameReplayBuffer(50, (3, 5, 4, 3), 2, n_envs=2)
     b.load_state_dict({k: np.array(v) for k, v in a.state_dict().items()})
     for t in data[20:]:
         a.add(*t)
@@ -202,20 +210,179 @@ def test_frame_buffer_resumes_exactly_and_states_its_memory():
     sa, sb = a.sample(np.random.default_rng(9), 8), b.sample(np.random.default_rng(9), 8)
     for key in sa:
         np.testing.assert_array_equal(sa[key], sb[key])
-    per = FrameReplayBuffer.bytes_per_transition((84, 84, 9), 3, 6, 100_000, 1)
+    per = FrameReplayBuffer.bytes_per_transition((3, 84, 84, 3), 6, 100_000, 1)
     assert 84 * 84 * 3 < per < 1.2 * 84 * 84 * 3  # one RGB frame and a little
-    text = FrameReplayBuffer(1000, (84, 84, 9), 3, 6).describe_memory()
+    text = FrameReplayBuffer(1000, (3, 84, 84, 3), 6).describe_memory()
     assert text.startswith("1,000 transitions x 23.") and text.endswith("MiB")  # ~24 KiB each, ~23.5 MiB
 
 
 def test_frame_buffer_refuses_what_does_not_fit_or_match():
     with pytest.raises(SoftacError, match="buffer_size"):
-        FrameReplayBuffer(10**12, (84, 84, 9), 3, 6)
-    with pytest.raises(SoftacError, match="stacked frames"):
-        FrameReplayBuffer(10, (8, 8, 7), 3, 1)
-    buffer = FrameReplayBuffer(10, (4, 4, 3), 1, 1)
+        FrameReplayBuffer(10**12, (3, 84, 84, 3), 6)
+    with pytest.raises(SoftacError, match="frame stacks"):
+        FrameReplayBuffer(10, (8, 8, 9), 1)
+    buffer = FrameReplayBuffer(10, (1, 4, 4, 3), 1)
     with pytest.raises(SoftacError, match="no complete transition"):
         buffer.sample(np.random.default_rng(0), 4)
-    other = FrameReplayBuffer(10, (4, 4, 6), 2, 1)
+    other = FrameReplayBuffer(10, (2, 4, 4, 3), 1)
     with pytest.raises(SoftacError, match="image shape"):
         buffer.load_state_dict(other.state_dict())
+
+
+# ---- the wrappers ----------------------------------------------------------------------------------------------
+
+def test_resize_averages_areas_when_shrinking_and_repeats_pixels_when_growing():
+    from softac.pixels import resize
+
+    image = np.arange(4 * 6 * 1, dtype=np.uint8).reshape(4, 6, 1) * 10
+    small = resize(image, 2)
+    # each output pixel the mean of a 2x3 block
+    expected = image.reshape(2, 2, 2, 3, 1).mean(axis=(1, 3)).round()
+    np.testing.assert_array_equal(small, expected.astype(np.uint8))
+    big = resize(np.array([[[1], [2]], [[3], [4]]], np.uint8), 4)
+    np.testing.assert_array_equal(big[..., 0], [[1, 1, 2, 2], [1, 1, 2, 2], [3, 3, 4, 4], [3, 3, 4, 4]])
+
+
+def test_frame_stack_pads_with_the_first_frame_moves_on_and_restores_its_frames():
+    from softac.pixels import FrameStack
+    from softac_test_envs import DotImageEnv
+
+    env = FrameStack(DotImageEnv(), 3)
+    assert env.observation_space.shape == (3, 16, 16, 3)
+    obs, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(obs[0], obs[2])  # k copies of the first frame
+    frames = [obs[2]]
+    for _ in range(3):
+        obs, *_ = env.step(np.zeros(1))
+        frames.append(obs[2])
+    np.testing.assert_array_equal(obs, np.stack(frames[-3:]))  # oldest first
+    other = FrameStack(DotImageEnv(), 3)
+    other.reset(seed=1)
+    other.load_frames(obs)
+    other.unwrapped.load_state(env.unwrapped.save_state())
+    other.unwrapped.np_random.bit_generator.state = env.unwrapped.np_random.bit_generator.state
+    np.testing.assert_array_equal(other.step(np.zeros(1))[0], env.step(np.zeros(1))[0])
+
+
+# ---- training on images ----------------------------------------------------------------------------------------
+
+IMAGE = dict(encoder_channels=8, encoder_features=16, augment_pad=2, frame_stack=2)
+
+
+def test_an_agent_learns_from_images_what_the_image_shows(tiny):
+    """DotImage pays the action that points to the square's side: only an agent that reads the image can beat
+    a constant action's return of 0 per episode (the best is 20; uniform actions average -6.7)."""
+    from softac import SAC, evaluate
+
+    agent = SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, learning_starts=200, actor_lr=3e-3, critic_lr=3e-3,
+                     alpha_lr=3e-3))
+    assert agent.spaces.image_shape == (2, 16, 16, 3)
+    agent.learn(1000, progress=False)
+    stats = evaluate(agent, episodes=4)
+    assert stats["mean_return"] > 12.0, stats
+    env = agent.make_env()
+    obs, _ = env.reset(seed=3)
+    assert agent.predict(obs).shape == (1,) and agent.predict(np.stack([obs, obs])).shape == (2, 1)
+    with pytest.raises(SoftacError, match="expects uint8 frame stacks of shape"):
+        agent.predict(obs[:1])
+    env.close()
+
+
+def test_channels_first_images_and_rendered_frames_become_channels_last_stacks(tiny):
+    from softac import SAC
+    from softac.pixels import resize
+    from softac_test_envs import DotImageEnv
+
+    first = SAC(tiny("DotImage", **{**IMAGE, "frame_stack": 3}), env=DotImageEnv(channels_first=True))
+    assert first.spaces.image_shape == (3, 16, 16, 3)
+    obs, _ = first.make_env().reset(seed=0)
+    assert obs.shape == (3, 16, 16, 3) and obs.dtype == np.uint8
+    # pixels=true: the env's 30x40 rendering, resized to pixel_size, in place of its own observation
+    rendered = SAC(tiny("softac_test_envs:DotImage-v0", **{**IMAGE, "frame_stack": 1}, pixels=True, pixel_size=20))
+    assert rendered.spaces.image_shape == (1, 20, 20, 3)
+    env = rendered.make_env()
+    obs, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(obs[0], resize(env.render(), 20))
+    rendered.learn(250, progress=False)
+    assert rendered.num_steps == 250
+
+
+@pytest.mark.numerics
+def test_resume_with_images_is_exact(tiny, tmp_path):
+    """N+M steps in one go equals N, save, load, M: the frame buffer, the envs' frame stacks and the encoder
+    with its optimiser carry over bit for bit."""
+    from conftest import assert_same_training
+    from softac import SAC
+
+    cfg = tiny("softac_test_envs:DotImage-v0", **IMAGE, n_envs=2, gradient_steps=2, eval_interval=300,
+               learning_starts=100)
+    straight = SAC(cfg)
+    straight.learn(500, run_dir=tmp_path / "straight", progress=False)
+    first = SAC(cfg)
+    first.learn(300, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    assert len(resumed.collector.buffer) == 300
+    resumed.learn(200, run_dir=tmp_path / "split", progress=False)
+    assert_same_training(straight, resumed)
+    for name in ("eval.csv", "episodes.csv"):
+        assert (tmp_path / "straight" / name).read_text() == (tmp_path / "split" / name).read_text(), name
+
+
+def test_image_settings_that_cannot_work_are_refused(tiny):
+    from softac import SAC, SACConfig
+    from softac.config import ConfigError
+    from softac_test_envs import DriftEnv
+
+    with pytest.raises(ConfigError, match="obs_norm"):
+        SACConfig().replace(pixels=True, obs_norm=True)
+    with pytest.raises(SoftacError, match="obs_norm normalises vector observations"):
+        SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, obs_norm=True))
+    from softac.learner import check_model_memory
+
+    with pytest.raises(SoftacError, match="smaller than the encoder's smallest input, 15x15"):
+        check_model_memory(tiny(), 12 * 12 * 3, 1, image_shape=(1, 12, 12, 3))
+    with pytest.raises(SoftacError, match="renders rgb_array"):
+        SAC(tiny("Drift", pixels=True), env=DriftEnv())
+
+
+def test_image_envs_in_worker_processes_give_the_same_run(tiny):
+    """Frames come back from env worker processes as uint8 images, and the run is the in-process one."""
+    from conftest import assert_same_training
+    from softac import SAC
+
+    runs = []
+    for env_workers in (0, 2):
+        agent = SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, n_envs=2, env_workers=env_workers,
+                         learning_starts=100))
+        agent.learn(200, progress=False)
+        runs.append(agent)
+    assert_same_training(*runs)
+    assert runs[1].collector.buffer.frames_written == runs[0].collector.buffer.frames_written > 200
+
+
+def test_the_cli_trains_evaluates_films_and_reports_a_pixel_run_and_export_says_what_it_covers(tmp_path):
+    """InvertedPendulum-v5 from its rendered frames, as a new user would type it; the video shows the agent's
+    own view, enlarged."""
+    from conftest import assert_clean_error, run_cli
+    from softac.gl import working_gl_backend
+    from softac.logs import read_csv
+
+    if working_gl_backend() is None:
+        pytest.skip("no EGL or OSMesa here (make system-deps installs libosmesa6)")
+    run = tmp_path / "run"
+    result = run_cli("train", "--env", "InvertedPendulum-v5", "--steps", "200", "--out", str(run), "--no-progress",
+                     "--set", "pixels=true", "pixel_size=24", "encoder_channels=8", "encoder_features=16",
+                     "hidden_sizes=32,32", "batch_size=16", "learning_starts=100", "eval_interval=200",
+                     "eval_episodes=1", "buffer_size=1000")
+    assert result.returncode == 0, result.stderr
+    assert [int(float(r["step"])) for r in read_csv(run / "eval.csv")] == [200]
+    video = run_cli("video", str(run), "--out", str(tmp_path / "p.mp4"), "--max-steps", "10")
+    assert video.returncode == 0, video.stderr
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(tmp_path / "p.mp4", format="FFMPEG") as reader:
+        frame = reader.get_data(0)
+    assert frame.shape == (480, 480, 3) and frame.std() > 5  # 24x24 frames enlarged 20x: the agent's view
+    report = run_cli("report", str(run))
+    assert report.returncode == 0, report.stderr
+    assert_clean_error(run_cli("export", str(run), "--format", "numpy"), "observes images")

@@ -49,13 +49,18 @@ def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
     assert summary["steps"] == steps and summary["last_eval"] is not None
 
 
+# drq learns from 84x84 frames with 1024-wide networks at batch 512: 50 such updates take minutes on a CPU, so its
+# run here keeps its flags (pixels, frame stack, augmentation, tanh log std, delays) at a CPU test's sizes
+SHRUNK = {"drq": ["pixel_size=24", "batch_size=16", "hidden_sizes=64,64", "encoder_channels=8"]}
+
+
 @pytest.mark.parametrize("name", GENERIC_PRESETS)
 def test_generic_preset_trains_any_env_a_few_hundred_steps(name, tmp_path):
-    """`--preset NAME` on an env it was not written for (a 4-value observation, 1 action)."""
+    """`--preset NAME` on an env it was not written for (a 4-value observation, 1 action; drq: its frames)."""
     run = tmp_path / "run"
     r = run_cli("train", "--env", "InvertedPendulum-v5", "--preset", name, "--steps", "150", "--out", str(run),
                 "--no-progress", "--set", "learning_starts=100", "buffer_size=5000", "eval_interval=150",
-                "eval_episodes=1", timeout=600)
+                "eval_episodes=1", *SHRUNK.get(name, []), timeout=600)
     assert r.returncode == 0, r.stderr
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["env_id"] == "InvertedPendulum-v5"

@@ -24,7 +24,7 @@ from softac import snapshot
 from softac.collector import Collector
 from softac.config import SACConfig
 from softac.device import select_device
-from softac.envs import EnvSource, check_spaces, copy_env, env_name, make_env, with_action_repeat
+from softac.envs import EnvSource, check_spaces, copy_env, env_name, training_env_source
 from softac.exploration import exploration_noise
 from softac.her import her_setup
 from softac.learner import Learner
@@ -50,14 +50,12 @@ class SAC:
         self.env_source: EnvSource = env
         self.device = select_device(config.device)
 
-        probe = make_env(env)
+        self.env_source, probe = training_env_source(env, config)
         self.spaces = check_spaces(probe)
-        her = her_setup(config, probe, self.spaces)  # checked now: a goal env's compute_reward must take batches
+        # checked now: a goal env's compute_reward must take batches (an env observed through images has no HER)
+        her = her_setup(config, probe, self.spaces) if self.spaces.image_shape is None else None
         if isinstance(env, str) and her is None:
             probe.close()
-        elif not isinstance(env, str):
-            self.env_source = probe  # the (possibly flattened) user instance
-        self.env_source = with_action_repeat(self.env_source, config.action_repeat)
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
         self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer

@@ -18,6 +18,7 @@ from softac.buffer import ObsOnceReplayBuffer, ReplayBuffer, buffer_bytes_per_tr
 from softac.config import SACConfig
 from softac.envs import EnvFailed, EnvPool, EnvSource, SpaceInfo, StepResult, copy_env, env_name
 from softac.her import HerReplayBuffer, HerSetup
+from softac.image_buffer import FrameReplayBuffer
 
 if TYPE_CHECKING:
     from softac.env_workers import WorkerEnvPool
@@ -39,7 +40,7 @@ class Collector:
 
     def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, her: HerSetup | None = None):
         self.config, self.env_source, self.spaces, self.her = config, env_source, spaces, her
-        self.buffer: ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | None = None
+        self.buffer: ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | FrameReplayBuffer | None = None
         self.pool: EnvPool | WorkerEnvPool | None = None
         self.started = False  # the envs were reset (or restored) once; they go on from where they are
         # the envs' state (the pool's get_state()) while no pool holds it: loaded from a checkpoint, or kept
@@ -50,13 +51,19 @@ class Collector:
     def bytes_per_transition(self) -> float:
         if self.her is not None:
             return HerReplayBuffer.bytes_per_transition(self.spaces.obs_dim, self.spaces.act_dim)
+        if self.spaces.image_shape is not None:
+            return FrameReplayBuffer.bytes_per_transition(self.spaces.image_shape, self.spaces.act_dim,
+                                                          self.config.buffer_size, self.config.n_envs)
         return buffer_bytes_per_transition(self.config, self.spaces.obs_dim, self.spaces.act_dim)
 
-    def _make_buffer(self) -> ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer:
+    def _make_buffer(self) -> ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | FrameReplayBuffer:
         cfg, her = self.config, self.her
         if her is not None:
             return HerReplayBuffer(cfg.buffer_size, her.layout, self.spaces.act_dim, cfg.n_envs, her.reward_fn,
                                    her.strategy, her.k, gamma=cfg.gamma)
+        if self.spaces.image_shape is not None:  # each frame of the stacks (pixels.FrameStack) once
+            return FrameReplayBuffer(cfg.buffer_size, self.spaces.image_shape, self.spaces.act_dim, cfg.n_envs,
+                                     n_step=cfg.n_step, gamma=cfg.gamma)
         return make_buffer(cfg, self.spaces.obs_dim, self.spaces.act_dim)
 
     def _envs_reset(self) -> None:

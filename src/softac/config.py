@@ -42,6 +42,9 @@ class SACConfig:
     seed: int = _f(0, "seed for networks, exploration, replay sampling and environments")
     n_envs: int = _f(1, "environments stepped together (a vector env)")
     action_repeat: int = _f(1, "each action applied this many times, the rewards summed (the DMC papers use 2); steps count the agent's actions, so frames = steps * action_repeat")
+    pixels: bool = _f(False, "observe the env's rendered RGB frames (pixel_size square) instead of its observation: Gymnasium's MuJoCo envs, the DeepMind Control Suite, any env that renders rgb_array; learned through the image encoder")
+    pixel_size: int = _f(84, "with pixels: the frames' side in pixels (84 as DrQ; rendered at that size where the renderer takes one, else resized)")
+    frame_stack: int = _f(3, "image observations (pixels, or an env's own uint8 HxWxC or CxHxW Box): the last k frames stacked along the channels (3 as DrQ); 1 = none")
     env_workers: int = _f(0, "worker processes stepping the n_envs envs (0 = in-process, the default: MuJoCo's fast envs gain nothing); for slow simulators")
     device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
     # replay
@@ -69,6 +72,9 @@ class SACConfig:
     policy_delay: int = _f(1, "critic updates per actor/alpha update, with no catch-up (TD3's policy_delay): 2 halves the actor's steps and takes ~20% off the update's compute")
     reset_interval: int = _f(0, "environment steps between resets of actor, critics and their optimisers (the buffer and alpha stay; none at or past total_steps; Nikishin et al. 2022); 0 = never")
     n_step: int = _f(1, "rewards summed before bootstrapping (n-step returns, as RLlib's n_step; the walk stops at episode ends); 1 = plain SAC")
+    encoder_channels: int = _f(32, "image observations: filters of each of the encoder's 4 convolutions (DrQ's encoder: 3x3, strides 2,1,1,1, then Linear, LayerNorm, tanh)")
+    encoder_features: int = _f(50, "image observations: the encoder's output width, what actor and critics read (DrQ: 50)")
+    augment_pad: int = _f(4, "image observations: DrQ's random shift, each image padded by this many edge pixels and cropped back at a random offset in every update (0 = no augmentation)")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (TQC: pools their quantiles)")
     target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")
     n_quantiles: int = _f(0, "TQC (Kuznetsov et al. 2020): quantiles each critic predicts (25 in the paper), trained with the quantile Huber loss on the pooled, truncated next-state atoms; 0 = one Q-value per critic (SAC)")
@@ -198,6 +204,13 @@ class SACConfig:
         need(self.n_envs >= 1, "n_envs", "must be >= 1")
         need(self.n_envs <= 1024, "n_envs", "must be <= 1024")
         need(1 <= self.action_repeat <= 1000, "action_repeat", "must be between 1 and 1000")
+        need(15 <= self.pixel_size <= 1024, "pixel_size", "must be between 15 (the encoder's smallest input) and 1024")
+        need(1 <= self.frame_stack <= 16, "frame_stack", "must be between 1 (none) and 16")
+        need(not (self.pixels and self.obs_norm), "obs_norm",
+             "normalises vector observations; with pixels the encoder scales the images to [-0.5, 0.5]")
+        need(1 <= self.encoder_channels <= 1024, "encoder_channels", "must be between 1 and 1024")
+        need(1 <= self.encoder_features <= 65_536, "encoder_features", "must be between 1 and 65536")
+        need(0 <= self.augment_pad <= 64, "augment_pad", "must be between 0 (no augmentation) and 64")
         need(0 <= self.env_workers <= self.n_envs, "env_workers",
              f"must be between 0 (the envs stepped in-process) and n_envs={self.n_envs}")
         need(self.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")
@@ -281,7 +294,7 @@ class SACConfig:
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
-GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-wn", "sac-100k", "tqc", "simba", "droq")
+GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-wn", "sac-100k", "tqc", "simba", "droq", "drq")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
                     "buffer_bytes_per_transition", "cpus", "machine", "segments")

@@ -11,8 +11,9 @@ through a shared encoder destabilises it (SAC-AE, sec. 4).
 `random_shift` is DrQ's augmentation (its K = M = 1 form): each image padded by `pad` pixels (edge copies)
 and cropped back at a uniformly random offset, a fresh shift per image per pass.
 
-Images are channels-last: [batch, height, width, channels], a frame stack's frames one after the other along
-the channels (oldest first).
+The encoder takes channels-last images, [batch, height, width, channels]; `stack_channels` lays a batch of
+frame stacks ([batch, k, h, w, c], as the envs and the replay buffer hold them) out so, the frames one after
+the other along the channels, oldest first.
 """
 
 from __future__ import annotations
@@ -77,6 +78,19 @@ def encoder_parameters(image_shape: tuple[int, int, int], channels: int = 32, fe
                 for fan_in in (in_channels, *[channels] * (len(CONV_STRIDES) - 1)))
     flat = conv_output_size(height) * conv_output_size(width) * channels
     return convs + (flat + 1) * features + 2 * features
+
+
+def stack_channels(stacks: jax.Array) -> jax.Array:
+    """[batch, k, h, w, c] frame stacks as [batch, h, w, k * c] images (on the device: the host moves whole
+    frames only)."""
+    batch, k, height, width, channels = stacks.shape
+    return jnp.moveaxis(stacks, 1, 3).reshape(batch, height, width, k * channels)
+
+
+def stacked_image_shape(stack_shape: tuple[int, int, int, int]) -> tuple[int, int, int]:
+    """The encoder's input shape [h, w, k * c] for frame stacks of shape [k, h, w, c]."""
+    k, height, width, channels = stack_shape
+    return height, width, k * channels
 
 
 def scale_pixels(images: jax.Array) -> jax.Array:

@@ -101,7 +101,7 @@ def serve(conn: Connection, recipe: bytes, name: str, seed: int, first_index: in
                                  f"{exc}".splitlines()[0]))
         return
     try:
-        conn.send(("ok", pool.obs.shape[1]))
+        conn.send(("ok", (pool.obs.shape[1:], pool.obs.dtype.str)))
         while (request := conn.recv())[0] != "close":
             conn.send(_answer(pool, *request))
     except (EOFError, OSError):  # the parent is gone: nobody needs these envs any more
@@ -205,15 +205,16 @@ class WorkerEnvPool:
                 process.start()
                 child_end.close()  # so the parent sees EOF when the worker dies
                 self.workers.append(_Worker(process, parent_end, start, stop, name))
-            obs_dim = self._ready()
+            obs_shape, obs_dtype = self._ready()
         except BaseException:
             self.close()
             raise
         self.pids = [worker.process.pid for worker in self.workers]
-        self.obs = np.zeros((n, obs_dim), np.float32)
+        self.obs = np.zeros((n, *obs_shape), np.dtype(obs_dtype))
 
-    def _ready(self) -> int:
-        """Each worker's observation size once it has made its envs; a worker that could not is bad input."""
+    def _ready(self) -> tuple[tuple[int, ...], str]:
+        """Each worker's observation shape and dtype once it has made its envs; a worker that could not is bad
+        input."""
         try:
             dims = [worker.receive(None) for worker in self.workers]
         except WorkerDied as exc:

@@ -29,6 +29,7 @@ from gymnasium.envs.registration import EnvSpec
 from softac import dmc
 from softac.errors import EnvError, EnvFailed, SoftacError
 from softac.her import DictLayout, dict_layout, dict_observation_space, is_goal_env
+from softac.pixels import frame_stack_of, is_frame_stack_space, is_image_space, with_image_wrappers
 
 EnvSource = Any  # a Gymnasium id string or a gym.Env instance
 
@@ -140,7 +141,8 @@ def copy_env(source: EnvSource, render_mode: str | None = None, **kwargs: Any) -
 
 def _flatten_obs_if_needed(env: gym.Env) -> gym.Env:
     space = env.observation_space
-    if isinstance(space, gym.spaces.Box) and len(space.shape) == 1:
+    if isinstance(space, gym.spaces.Box) and len(space.shape) == 1 or is_image_space(space) \
+            or is_frame_stack_space(space):
         return env
     try:
         gym.spaces.flatdim(space)
@@ -180,6 +182,29 @@ def with_action_repeat(source: EnvSource, repeat: int) -> EnvSource:
     return dataclasses.replace(spec, additional_wrappers=(*spec.additional_wrappers, wrapper))
 
 
+def training_env_source(env: EnvSource, config: Any) -> tuple[EnvSource, gym.Env]:
+    """What a run makes its envs from, and a probe env made from it: `env` with config's action repeat and,
+    where observations are images (config.pixels, or the env's own), the image wrappers after it (a repeated
+    action yields one frame; softac.pixels). For an instance, the probe is the (wrapped) instance itself, which
+    is then the source too; for an id the caller closes the probe."""
+    if config.pixels:  # MuJoCo's headless GL backend is chosen once per process, before it is imported
+        from softac.gl import choose_gl_backend
+
+        choose_gl_backend()
+    probe = make_env(env)
+    if not (config.pixels or is_image_space(probe.observation_space)):
+        return with_action_repeat(env if isinstance(env, (str, EnvSpec)) else probe, config.action_repeat), probe
+    raw_space = probe.observation_space
+    if isinstance(env, (str, EnvSpec)):
+        probe.close()
+        base: EnvSource = gym.spec(resolve_env_id(env)) if isinstance(env, str) else env
+    else:
+        base = probe
+    source = with_image_wrappers(with_action_repeat(base, config.action_repeat), raw_space, config.pixels,
+                                 config.pixel_size, config.frame_stack)
+    return source, make_env(source)
+
+
 @dataclass(frozen=True)
 class SpaceInfo:
     obs_dim: int
@@ -188,6 +213,7 @@ class SpaceInfo:
     high: np.ndarray
     layout: DictLayout | None = None  # a dict observation's keys in the flat vector (their space's order)
     goal_env: bool = False  # observation, achieved_goal, desired_goal and compute_reward: HER can train it
+    image_shape: tuple[int, int, int, int] | None = None  # stacked image observations, uint8 [k, h, w, c]
 
 
 def check_spaces(env: gym.Env) -> SpaceInfo:
@@ -204,11 +230,13 @@ def check_spaces(env: gym.Env) -> SpaceInfo:
                        "(wrap it with gymnasium.wrappers.ClipAction or RescaleAction)")
     if np.any(high <= low):
         raise EnvError(f"env {name} has action bounds with high <= low")
-    obs_dim = int(np.prod(env.observation_space.shape))
+    obs_space = env.observation_space
+    obs_dim = int(np.prod(obs_space.shape))
+    image = tuple(int(n) for n in obs_space.shape) if is_frame_stack_space(obs_space) else None
     dict_space = dict_observation_space(env)
     layout = dict_layout(dict_space) if dict_space is not None else None
     return SpaceInfo(obs_dim, int(space.shape[0]), low.astype(np.float32), high.astype(np.float32), layout,
-                     is_goal_env(env))
+                     is_goal_env(env), image)
 
 
 # ---- exact env state, for resume -----------------------------------------------
@@ -296,6 +324,13 @@ class Episode(NamedTuple):
     success: float | None = None
 
 
+def observation_array(obs: Any) -> np.ndarray:
+    """An env's observation as the policy takes it: images (uint8 [k, h, w, c] or [h, w, c]) as they are, else a
+    float32 vector."""
+    obs = np.asarray(obs)
+    return obs if obs.dtype == np.uint8 and obs.ndim in (3, 4) else obs.astype(np.float32).reshape(-1)
+
+
 def success_of(info: Any) -> float | None:
     """1.0 or 0.0 from a step's info["is_success"] (or "success"), None when the env reports neither."""
     if not isinstance(info, dict):
@@ -328,7 +363,12 @@ class EnvPool:
         self.seed = seed
         self.n = n
         self.first_index = first_index
-        self.obs = np.zeros((n, int(np.prod(self.envs[0].observation_space.shape))), np.float32)
+        space = self.envs[0].observation_space
+        # images stay uint8 (they are stored and sent as they are); every other observation a float32 vector
+        images = is_image_space(space) or is_frame_stack_space(space)
+        self.obs_shape = tuple(space.shape) if images else (int(np.prod(space.shape)),)
+        self.obs_dtype = np.uint8 if images else np.float32
+        self.obs = np.zeros((n, *self.obs_shape), self.obs_dtype)
         self.episode_return = np.zeros(n, np.float64)
         self.episode_length = np.zeros(n, np.int64)
         self.resets = np.zeros(n, np.int64)  # resets so far per env: each reset gets its own seed
@@ -340,7 +380,7 @@ class EnvPool:
             obs, _ = self.envs[i].reset(seed=seed)
         except Exception as exc:
             raise EnvFailed(f"env {self.name} raised in reset at step {step}: {type(exc).__name__}: {exc}") from None
-        self.obs[i] = np.asarray(obs, np.float32).reshape(-1)
+        self.obs[i] = np.asarray(obs, self.obs_dtype).reshape(self.obs_shape)
         self.resets[i] += 1
         self.episode_return[i] = 0.0
         self.episode_length[i] = 0
@@ -363,7 +403,7 @@ class EnvPool:
             except Exception as exc:
                 raise EnvFailed(f"env {self.name} raised in step at step {step}: "
                                f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
-            next_obs[i] = np.asarray(obs, np.float32).reshape(-1)
+            next_obs[i] = np.asarray(obs, self.obs_dtype).reshape(self.obs_shape)
             rewards[i], terminated[i], truncated[i] = reward, term, trunc
             self.episode_return[i] += float(reward)
             self.episode_length[i] += 1
@@ -399,7 +439,10 @@ class EnvPool:
             if not set_env_state(env, meta["envs"][i], arrays.get(f"physics_{i}")):
                 exact = False
         if exact:
-            self.obs = np.asarray(arrays["obs"], np.float32).copy()
+            self.obs = np.asarray(arrays["obs"], self.obs_dtype).copy()
+            for env, obs in zip(self.envs, self.obs):
+                if (stack := frame_stack_of(env)) is not None:  # the frames an image observation stacks live there
+                    stack.load_frames(obs)
             self.episode_return = np.asarray(meta["episode_return"], np.float64)
             self.episode_length = np.asarray(meta["episode_length"], np.int64)
         else:

@@ -15,7 +15,7 @@ from typing import Any, Callable, Protocol
 import gymnasium as gym
 import numpy as np
 
-from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name, success_of
+from softac.envs import EnvError, EnvFailed, EnvSource, copy_env, env_name, observation_array, success_of
 
 
 class Evaluable(Protocol):
@@ -52,7 +52,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
         except Exception as exc:
             raise EnvFailed(f"env {env_name(envs[slot])} raised in reset during evaluation: "
                            f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
-        obs[slot] = np.asarray(o, np.float32).reshape(-1)
+        obs[slot] = observation_array(o)
         active[slot] = ep
 
     for slot in range(min(len(envs), episodes)):
@@ -72,7 +72,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], make_env: Callable[
             returns[ep] += float(r)
             lengths[ep] += 1
             add_reward_terms(terms, info, ep, episodes)
-            obs[slot] = np.asarray(o, np.float32).reshape(-1)
+            obs[slot] = observation_array(o)
             if terminated or truncated:
                 success = success_of(info)
                 if success is not None:

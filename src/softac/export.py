@@ -267,6 +267,9 @@ def export_policy(agent_or_path: Any, path: str | Path | None = None, format: st
     if learner.config.network != "mlp":
         raise SoftacError(f"export covers MLP actors; this agent's are network={learner.config.network} "
                           "(load it with softac.SAC.load and call predict instead)")
+    if learner.spaces.image_shape is not None:
+        raise SoftacError("export covers agents that observe vectors; this one observes images (load it with "
+                          "softac.SAC.load and call predict instead)")
     arrays = policy_arrays(learner, step)
     data = numpy_bytes(arrays) if format == "numpy" else onnx_model(arrays).SerializeToString()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,11 +1,11 @@
 """A replay buffer for image observations that stores each camera frame once (issue 44).
 
-An image observation is a stack of the last `k` frames ([h, w, k * c], oldest first). Stored as it comes,
+An image observation is a stack of the last `k` frames ([k, h, w, c], oldest first). Stored as it comes,
 a transition would hold 2k frames; here each transition holds the indices of its observation's k frames
 in one ring of frames, and the next observation is the same indices shifted by one with the newest frame
 appended. A step stores one frame (the next observation's newest); an episode's first observation stores
 its k frames (k - 1 of them at most once more than needed). 100k transitions of 84x84 RGB frames take
-~2.1 GB instead of ~12.7 GB (k = 3, two observations per transition).
+~2.4 GB instead of ~12.7 GB (k = 3, two observations per transition).
 
 Frames carry absolute numbers (how many frames were written before them), so a transition whose frames the
 ring has overwritten is recognised and never sampled. The frame ring holds an eighth more frames than the
@@ -22,23 +22,22 @@ from softac.errors import SoftacError
 
 
 class FrameReplayBuffer(_Ring):
-    """Transitions (obs, action, reward, next_obs, terminated, done) of image observations [h, w, k * c]
-    (uint8), each frame stored once; the same sampling, n-step returns and checkpoint interface as
-    `ReplayBuffer`."""
+    """Transitions (obs, action, reward, next_obs, terminated, done) of frame stacks [k, h, w, c] (uint8), each
+    frame stored once; the same sampling, n-step returns and checkpoint interface as `ReplayBuffer`."""
 
-    def __init__(self, capacity: int, obs_shape: tuple[int, int, int], frame_stack: int, act_dim: int,
-                 n_envs: int = 1, memory_fraction: float = 0.8, n_step: int = 1, gamma: float = 0.99):
-        height, width, stacked = obs_shape
-        if frame_stack < 1 or stacked % frame_stack:
-            raise SoftacError(f"image observations of {stacked} channels cannot hold {frame_stack} stacked frames")
+    def __init__(self, capacity: int, obs_shape: tuple[int, int, int, int], act_dim: int, n_envs: int = 1,
+                 memory_fraction: float = 0.8, n_step: int = 1, gamma: float = 0.99):
+        if len(obs_shape) != 4:
+            raise SoftacError(f"image replay holds frame stacks [k, h, w, c], not observations of shape {obs_shape}")
+        frame_stack = int(obs_shape[0])
         self.capacity, self.act_dim, self.n_envs = int(capacity), act_dim, n_envs
         self.n_step, self.gamma = n_step, gamma
         self.k = frame_stack
-        self.obs_shape = (height, width, stacked)
-        self.frame_shape = (height, width, stacked // frame_stack)
+        self.obs_shape = tuple(int(n) for n in obs_shape)
+        self.frame_shape = self.obs_shape[1:]
         self.frame_capacity = self.frame_ring_size(self.capacity, frame_stack, n_envs)
-        check_buffer_memory(self.capacity, self.bytes_per_transition(obs_shape, frame_stack, act_dim, self.capacity,
-                                                                     n_envs), memory_fraction)
+        check_buffer_memory(self.capacity, self.bytes_per_transition(self.obs_shape, act_dim, self.capacity, n_envs),
+                            memory_fraction)
         self.frames = np.zeros((self.frame_capacity, *self.frame_shape), np.uint8)
         self.frames_written = 0
         # each observation as the absolute numbers of its frames, oldest first
@@ -58,15 +57,14 @@ class FrameReplayBuffer(_Ring):
         return capacity + capacity // 8 + frame_stack * n_envs
 
     @classmethod
-    def bytes_per_transition(cls, obs_shape: tuple[int, int, int], frame_stack: int, act_dim: int, capacity: int,
+    def bytes_per_transition(cls, obs_shape: tuple[int, int, int, int], act_dim: int, capacity: int,
                              n_envs: int) -> float:
-        height, width, stacked = obs_shape
-        frame = height * width * (stacked // frame_stack)
+        frame_stack, height, width, channels = obs_shape
         row = 8 * 2 * frame_stack + 4 * (act_dim + 2) + 1
-        return row + frame * cls.frame_ring_size(capacity, frame_stack, n_envs) / capacity
+        return row + height * width * channels * cls.frame_ring_size(capacity, frame_stack, n_envs) / capacity
 
     def describe_memory(self) -> str:
-        per = self.bytes_per_transition(self.obs_shape, self.k, self.act_dim, self.capacity, self.n_envs)
+        per = self.bytes_per_transition(self.obs_shape, self.act_dim, self.capacity, self.n_envs)
         return f"{self.capacity:,} transitions x {_human(per)} = {_human(per * self.capacity)}"
 
     # ---- writing ---------------------------------------------------------------------------------------
@@ -78,11 +76,6 @@ class FrameReplayBuffer(_Ring):
         self.frames_written += len(frames)
         return numbers
 
-    def _split(self, obs: np.ndarray) -> np.ndarray:
-        """[h, w, k * c] -> [k, h, w, c]."""
-        h, w, c = self.frame_shape
-        return np.moveaxis(obs.reshape(h, w, self.k, c), 2, 0)
-
     def _alive(self, numbers: np.ndarray) -> np.ndarray:
         return (numbers >= 0) & (numbers >= self.frames_written - self.frame_capacity)
 
@@ -92,7 +85,7 @@ class FrameReplayBuffer(_Ring):
         last = self.last_next[env]
         if np.all(self._alive(last)) and np.array_equal(self._stacks(last), obs):
             return last.copy()
-        return self._store(self._split(obs))
+        return self._store(obs)
 
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray, next_obs: np.ndarray,
             terminated: np.ndarray, done: np.ndarray | None = None) -> None:
@@ -104,8 +97,8 @@ class FrameReplayBuffer(_Ring):
         idx = self._rows(n)
         for j in range(n):
             numbers = self._obs_numbers(j, obs[j])
-            next_frames = self._split(next_obs[j])
-            if np.array_equal(next_frames[:-1], self._split(obs[j])[1:]):  # the stack moved on by one frame
+            next_frames = next_obs[j]
+            if np.array_equal(next_frames[:-1], obs[j][1:]):  # the stack moved on by one frame
                 next_numbers = np.append(numbers[1:], self._store(next_frames[-1:]))
             else:  # an env that stacks its own way: the next observation's frames written whole
                 next_numbers = self._store(next_frames)
@@ -128,15 +121,13 @@ class FrameReplayBuffer(_Ring):
         return self._alive(self.obs_frames[idx, 0]) & self._alive(np.min(self.next_obs_frames[idx], axis=-1))
 
     def _stacks(self, numbers: np.ndarray) -> np.ndarray:
-        """Observations [..., h, w, k * c] of frame numbers [..., k]."""
-        frames = self.frames[numbers % self.frame_capacity]  # [..., k, h, w, c]
-        lead = numbers.shape[:-1]
-        h, w, c = self.frame_shape
-        return np.moveaxis(frames, -4, -2).reshape(*lead, h, w, self.k * c)
+        """Observations [..., k, h, w, c] of frame numbers [..., k]: whole frames gathered, nothing transposed."""
+        return self.frames[numbers % self.frame_capacity]
 
     def sample(self, rng: np.random.Generator, batch_size: int, n_batches: int = 1) -> dict[str, np.ndarray]:
         """`n_batches` independent batches stacked as [n_batches, batch_size, ...]; observations uint8."""
-        if self.size == 0 or not self._valid(np.arange(self.size)).any():
+        # the newest row's frames are the newest: when it has lost them, so has every row (a frame ring too small)
+        if self.size == 0 or not self._valid(np.array([(self.pos - 1) % self.capacity]))[0]:
             raise SoftacError("replay buffer holds no complete transition to sample yet")
         idx = rng.integers(0, self.size, size=(n_batches, batch_size))
         bad = ~self._valid(idx)

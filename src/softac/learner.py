@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from softac.buffer import ReplayBuffer
 from softac.checkpoint import CheckpointError
 from softac.config import SACConfig
 from softac.envs import SpaceInfo
@@ -39,21 +38,36 @@ def network_parameters(in_dim: int, hidden: list[int], out_dim: int, network: st
     return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
 
 
-def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5) -> None:
+def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5,
+                       image_shape: tuple[int, int, int, int] | None = None) -> None:
     """Refuse networks and batches the machine cannot hold, before allocating anything."""
     from softac.buffer import _human, available_memory_bytes
 
+    batch_obs_bytes = 4 * obs_dim
+    encoder, conv_activations = 0, 0
+    if image_shape is not None:  # uint8 images in the batch; the networks read the encoder's features
+        from softac.encoder import conv_output_size, encoder_parameters, smallest_image, stacked_image_shape
+
+        _, h, w, _ = image_shape
+        if min(h, w) < smallest_image():
+            raise SoftacError(f"image observations of {h}x{w} are smaller than the encoder's smallest input, "
+                              f"{smallest_image()}x{smallest_image()}; raise pixel_size")
+        batch_obs_bytes, obs_dim = obs_dim, config.encoder_features
+        encoder = encoder_parameters(stacked_image_shape(image_shape), config.encoder_channels,
+                                     config.encoder_features)
+        # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
+        conv_activations = 4 * 2 * 4 * conv_output_size(h) * conv_output_size(w) * config.encoder_channels
     actor_hidden = config.actor_hidden_sizes or config.hidden_sizes
     critic_hidden = config.critic_hidden_sizes or config.hidden_sizes
     actor = network_parameters(obs_dim, actor_hidden, 2 * act_dim, config.network)
     critics = config.n_critics * network_parameters(obs_dim + act_dim, critic_hidden, config.n_quantiles or 1,
                                                     config.network)
-    parameters = 4 * (3 * actor + 4 * critics)  # weights + Adam moments; critics also have targets
+    parameters = 4 * (3 * actor + 4 * critics + 3 * encoder)  # weights + Adam moments; critics also have targets
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
-    # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides
+    # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
     widths = sum(actor_hidden) + sum(critic_hidden) * config.n_critics
-    activations = 4 * config.batch_size * widths * 4 * (6 if config.network == "simba" else 1)
-    batch = config.batch_size * config.gradient_steps * ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
+    activations = 4 * config.batch_size * (widths * 4 * (6 if config.network == "simba" else 1) + conv_activations)
+    batch = config.batch_size * config.gradient_steps * (2 * batch_obs_bytes + 4 * (act_dim + 3))
     need, have = parameters + activations + batch, available_memory_bytes()
     if need > fraction * have:
         raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "
@@ -65,16 +79,20 @@ class Learner:
     """The networks, optimisers, alpha, observation statistics and action scaling of one config and env shape."""
 
     def __init__(self, config: SACConfig, spaces: SpaceInfo):
-        check_model_memory(config, spaces.obs_dim, spaces.act_dim)
+        check_model_memory(config, spaces.obs_dim, spaces.act_dim, image_shape=spaces.image_shape)
         from softac import sac
 
         self.config, self.spaces = config, spaces
         self.Batch = sac.Batch
-        self.functions: SACFunctions = sac.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high)
+        self.functions: SACFunctions = sac.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high,
+                                                 spaces.image_shape)
         self.scaler = self.functions.scaler
         self.state: SACState = self.functions.init(config.seed)
         self.totals: dict[str, Any] | None = None  # metric sums since the last take_metrics(), on the device
         # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
+        if config.obs_norm and spaces.image_shape is not None:
+            raise SoftacError("obs_norm normalises vector observations; this env's are images, which the encoder "
+                              "scales to [-0.5, 0.5]: set obs_norm=false")
         self.obs_norm = RunningObsNorm(spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
 
     @property
@@ -98,8 +116,17 @@ class Learner:
         return obs if self.obs_norm is None else self.obs_norm.normalize(obs)
 
     def as_batch(self, obs: Any) -> tuple[np.ndarray, bool]:
-        """One observation or a batch of them as a float32 batch, and whether it was one. A dict observation
-        (one, or a dict of batches) is flattened in its space's key order, as the training envs' were."""
+        """One observation or a batch of them as a float32 batch (images: uint8 [batch, k, h, w, c]), and whether
+        it was one. A dict observation (one, or a dict of batches) is flattened in its space's key order, as the
+        training envs' were."""
+        image = self.spaces.image_shape
+        if image is not None:
+            obs = np.asarray(obs)
+            single = obs.shape == image
+            if not (single or obs.shape[1:] == image) or obs.dtype != np.uint8:
+                raise SoftacError(f"observation of shape {obs.shape} ({obs.dtype}); this agent expects uint8 frame "
+                                  f"stacks of shape {image} [frames, height, width, channels] (one, or a batch)")
+            return (obs[None] if single else obs), single
         if isinstance(obs, dict):
             if self.spaces.layout is None:
                 raise SoftacError(f"this agent's env observes a {self.spaces.obs_dim}-value vector, not a dict")
@@ -117,19 +144,20 @@ class Learner:
         """Sample actions for a batch of raw observations: (in [-1, 1], env-scaled, the next key)."""
         # NumPy goes straight into the jitted call: jnp.asarray would cost more than an env step
         actions, env_actions, key = self.functions.act(self.state.actor, self.state.actor_stats,
-                                                       self.normalize_obs(obs), key)
+                                                       self.normalize_obs(obs), key, self.state.encoder)
         return np.asarray(actions), np.asarray(env_actions), key
 
     def act_with_noise(self, obs: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Actions tanh(mean + std * noise) for a batch of raw observations and given standard-normal noise:
         (in [-1, 1], env-scaled)."""
         actions, env_actions = self.functions.act_with_noise(self.state.actor, self.state.actor_stats,
-                                                             self.normalize_obs(obs), noise)
+                                                             self.normalize_obs(obs), noise, self.state.encoder)
         return np.asarray(actions), np.asarray(env_actions)
 
     def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
         """The env-scaled mean actions for a batch of raw observations."""
-        actions = self.functions.act_deterministic(self.state.actor, self.state.actor_stats, self.normalize_obs(obs))
+        actions = self.functions.act_deterministic(self.state.actor, self.state.actor_stats, self.normalize_obs(obs),
+                                                   self.state.encoder)
         return self.scaler.to_env(np.asarray(actions))
 
     def predict(self, obs: Any) -> np.ndarray:

@@ -22,6 +22,7 @@ import optax
 
 from softac.config import SACConfig
 from softac.cpus import cpu_has_bf16
+from softac.encoder import encode, init_encoder, random_shift, stack_channels, stacked_image_shape
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
@@ -43,6 +44,8 @@ class SACState(NamedTuple):
     actor_stats: Any = ()  # running statistics of batch renormalisation (CrossQ); () without it
     critic_stats: Any = ()
     target_critic_stats: Any = ()  # the target critics' (CrossQ with target critics, as CrossQ+WN); () without
+    encoder: Any = ()  # the image encoder (image observations); () without
+    encoder_opt: Any = ()
 
 
 @dataclass(frozen=True)
@@ -64,6 +67,8 @@ class UpdateSettings:
     alpha: float
     batch_renorm_warmup: int
     weight_norm: bool
+    encoder_tx: optax.GradientTransformation | None = None  # image observations: the encoder's optimiser
+    augment_pad: int = 0  # image observations: DrQ's random shift (pixels of padding)
 
     @property
     def has_targets(self) -> bool:
@@ -102,6 +107,54 @@ def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings
     if s.weight_norm:
         critic = unit_norm_hidden_units(critic)
     return state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats), metrics
+
+
+# ---- image observations (issue 44; DrQ, Kostrikov et al. 2021; DrQ-v2, Yarats et al. 2022) --------------------
+# The critic loss trains the encoder; the next state's features are a target (stopped), and the actor reads the
+# step's features stopped, computed before the encoder moved, as DrQ-v2 does: the actor's gradient through a
+# shared encoder destabilises it (SAC-AE, Yarats et al. 2021). Each pass augments with its own random shift.
+
+def features_of(encoder: Any, obs: jax.Array) -> jax.Array:
+    """What actor and critics read: the encoder's features of image observations ([batch, k, h, w, c] frame
+    stacks), or vector observations as they are (no encoder)."""
+    return encode(encoder, stack_channels(obs)) if jax.tree_util.tree_leaves(encoder) else obs
+
+
+def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, pad: int) -> Batch:
+    obs_key, next_key = jax.random.split(key)
+
+    def augmented(stacks: jax.Array, k: jax.Array) -> jax.Array:
+        return random_shift(stack_channels(stacks), k, pad)  # one shift for all of an observation's frames
+
+    return batch._replace(obs=encode(encoder, augmented(batch.obs, obs_key)),
+                          next_obs=jax.lax.stop_gradient(encode(encoder, augmented(batch.next_obs, next_key))))
+
+
+def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings,
+                      lr_scale: jax.Array | None = None) -> tuple[SACState, dict, jax.Array]:
+    """`critic_step` through the encoder, which the critic loss trains too; also returns the (stopped)
+    features of the batch's observations, for the actor."""
+    augment_key, loss_key = jax.random.split(key)
+
+    def loss(critic: Any, encoder: Any):
+        encoded = encoded_batch(encoder, batch, augment_key, s.augment_pad)
+        value, (metrics, critic_stats) = soft_q_loss(
+            critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
+            encoded, loss_key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s),
+            state.target_critic_stats)
+        return value, (metrics, critic_stats, encoded.obs)
+
+    (critic_grads, encoder_grads), (metrics, critic_stats, features) = jax.grad(loss, argnums=(0, 1), has_aux=True)(
+        state.critic, state.encoder)
+    updates, critic_opt = s.critic_tx.update(critic_grads, state.critic_opt, state.critic)
+    critic = optax.apply_updates(state.critic, scaled(updates, lr_scale))
+    if s.weight_norm:
+        critic = unit_norm_hidden_units(critic)
+    updates, encoder_opt = s.encoder_tx.update(encoder_grads, state.encoder_opt, state.encoder)
+    encoder = optax.apply_updates(state.encoder, scaled(updates, lr_scale))
+    state = state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats, encoder=encoder,
+                           encoder_opt=encoder_opt)
+    return state, metrics, jax.lax.stop_gradient(features)
 
 
 def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: UpdateSettings,
@@ -183,15 +236,19 @@ def gradient_step(s: UpdateSettings, lr_scale: jax.Array | None, carry: tuple[SA
     state, totals = carry
     key, critic_key, actor_key = jax.random.split(state.key, 3)
     alpha = alpha_of(state, s)
-    state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key, s, lr_scale)
+    if s.encoder_tx is None:
+        state, critic_metrics = critic_step(state._replace(key=key), batch, critic_key, s, lr_scale)
+        actor_obs = batch.obs
+    else:
+        state, critic_metrics, actor_obs = image_critic_step(state._replace(key=key), batch, critic_key, s, lr_scale)
     totals = add_to_totals(totals, {**critic_metrics, "alpha": alpha}, CRITIC_STEPS)
     n = state.n_updates + 1
     period = s.policy_frequency * s.policy_delay
     if period == 1:
-        state, totals = policy_round(state, totals, batch.obs, actor_key, s, lr_scale)
+        state, totals = policy_round(state, totals, actor_obs, actor_key, s, lr_scale)
     else:
         state, totals = jax.lax.cond(n % period == 0,
-                                     lambda st, tot: policy_round(st, tot, batch.obs, actor_key, s, lr_scale),
+                                     lambda st, tot: policy_round(st, tot, actor_obs, actor_key, s, lr_scale),
                                      lambda st, tot: (st, tot), state, totals)
     if s.has_targets:
         state = update_targets(state, n, s)
@@ -210,20 +267,27 @@ def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | No
 
 # ---- acting ------------------------------------------------------------------------------------------
 
+# Each takes the encoder last (`()` for vector observations): the policy reads `features_of(encoder, obs)`.
+
 def act(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
-        key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        key: jax.Array, encoder: Any = ()) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(action in [-1, 1], the same action in env bounds, next key): one call per env step."""
     key, sample_key = jax.random.split(key)
-    action = policy.sample(actor, actor_stats, obs, sample_key)[0]
+    action = policy.sample(actor, actor_stats, features_of(encoder, obs), sample_key)[0]
     return action, scaler.to_env(action, jnp), key
 
 
 def act_with_noise(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
-                   noise: jax.Array) -> tuple[jax.Array, jax.Array]:
+                   noise: jax.Array, encoder: Any = ()) -> tuple[jax.Array, jax.Array]:
     """(action in [-1, 1], in env bounds) for given standard-normal noise (`Policy.with_noise`: coloured noise
     or gSDE's exploration matrices, softac.exploration)."""
-    action = policy.with_noise(actor, actor_stats, obs, noise)
+    action = policy.with_noise(actor, actor_stats, features_of(encoder, obs), noise)
     return action, scaler.to_env(action, jnp)
+
+
+def act_deterministic(policy: Policy, actor: Any, actor_stats: Any, obs: jax.Array, encoder: Any = ()) -> jax.Array:
+    """The mean action in [-1, 1]."""
+    return policy.deterministic(actor, actor_stats, features_of(encoder, obs))
 
 
 # ---- the state: fresh, and reset -----------------------------------------------------------------------
@@ -257,8 +321,16 @@ def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random
             stack([init_norm_stats(critic_sizes_)] * c.n_critics))
 
 
+def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | None, rng: np.random.Generator) -> Any:
+    """A new image encoder for frame stacks of `image_shape` [k, h, w, c] (drawn after the networks, from the
+    same generator), or () for vector observations."""
+    if image_shape is None:
+        return ()
+    return init_encoder(rng, stacked_image_shape(image_shape), config.encoder_channels, config.encoder_features)
+
+
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
-             critic_stats: Any) -> SACState:
+             critic_stats: Any, encoder: Any = ()) -> SACState:
     """A state around fresh networks: targets copied from the critics (and their statistics), fresh optimisers."""
     log_alpha = jnp.asarray(np.log(max(initial_alpha, 1e-30)), jnp.float32)
 
@@ -270,6 +342,7 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
         log_alpha=log_alpha, actor_opt=s.actor_tx.init(actor), critic_opt=s.critic_tx.init(critic),
         alpha_opt=s.alpha_tx.init(log_alpha), key=key, n_updates=jnp.zeros((), jnp.int32),
         actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats),
+        encoder=encoder, encoder_opt=s.encoder_tx.init(encoder) if s.encoder_tx is not None else (),
     )
 
 
@@ -297,7 +370,7 @@ def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
     return float(config.target_entropy)
 
 
-def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> UpdateSettings:
+def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: bool = False) -> UpdateSettings:
     c = config
     norm = BatchRenorm(c.batch_norm_momentum) if c.crossq else None
     # critics with batch renormalisation stay vmapped: unrolled, they were no faster (docs/performance.md)
@@ -313,7 +386,9 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str) -> Updat
         target_entropy=resolve_target_entropy(c, act_dim),
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
-        alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm)
+        alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm,
+        # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
+        encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad)
 
 
 class SACFunctions(NamedTuple):
@@ -330,10 +405,13 @@ class SACFunctions(NamedTuple):
 
 
 def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None = None,
-          high: np.ndarray | None = None) -> SACFunctions:
-    """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1])."""
+          high: np.ndarray | None = None, image_shape: tuple[int, int, int, int] | None = None) -> SACFunctions:
+    """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1]). With
+    `image_shape` (uint8 frame stacks [k, h, w, c]) an encoder turns them into `encoder_features` values first."""
     matmul_dtype = resolve_matmul_dtype(config.matmul_dtype)
-    s = update_settings(config, act_dim, matmul_dtype)
+    s = update_settings(config, act_dim, matmul_dtype, images=image_shape is not None)
+    if image_shape is not None:
+        obs_dim = config.encoder_features
     scaler = ActionScaler(np.full(act_dim, -1.0) if low is None else low, np.ones(act_dim) if high is None else high)
     # one compiled call (cached across processes) instead of dozens of eager ops
     new_state = jax.jit(partial(assemble, s, config.alpha))
@@ -342,14 +420,17 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         rng = np.random.default_rng([seed, 0x5AC])
         actor, critic, actor_stats, critic_stats = fresh_networks(config, obs_dim, act_dim, rng)
         key = rng.integers(0, 2**32, 2, dtype=np.uint32)  # a raw PRNGKey
-        return new_state(actor, critic, key, actor_stats, critic_stats)
+        return new_state(actor, critic, key, actor_stats, critic_stats, fresh_encoder(config, image_shape, rng))
 
     # Periodic resets (Nikishin et al. 2022, "The Primacy Bias in Deep RL"; D'Oro et al. 2023, SR-SAC):
     # new actor, critics, targets and their optimisers, drawn from the k-th reset's own seed; the replay
-    # buffer, the entropy coefficient (with its optimiser), the key and the update counter carry over.
+    # buffer, the entropy coefficient (with its optimiser), the key and the update counter carry over. An image
+    # encoder is drawn afresh too.
     def reset(state: SACState, seed: int, k: int) -> SACState:
-        networks = fresh_networks(config, obs_dim, act_dim, np.random.default_rng([seed, 0x5AC, k]))
-        fresh = new_state(networks[0], networks[1], state.key, networks[2], networks[3])
+        rng = np.random.default_rng([seed, 0x5AC, k])
+        networks = fresh_networks(config, obs_dim, act_dim, rng)
+        fresh = new_state(networks[0], networks[1], state.key, networks[2], networks[3],
+                          fresh_encoder(config, image_shape, rng))
         return fresh._replace(log_alpha=state.log_alpha, alpha_opt=state.alpha_opt, n_updates=state.n_updates)
 
     return SACFunctions(
@@ -357,7 +438,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         reset=reset,
         update=jax.jit(partial(update, s), donate_argnums=(0, 2)),
         act=jax.jit(partial(act, s.policy, scaler)),
-        act_deterministic=jax.jit(s.policy.deterministic),
+        act_deterministic=jax.jit(partial(act_deterministic, s.policy)),
         act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler)),
         policy=s.policy,
         target_entropy=s.target_entropy,

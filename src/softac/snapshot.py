@@ -17,7 +17,7 @@ import numpy as np
 from softac import checkpoint as ckpt
 from softac.collector import Collector
 from softac.config import SACConfig
-from softac.envs import SpaceInfo, check_spaces, make_env
+from softac.envs import SpaceInfo, check_spaces, training_env_source
 from softac.errors import SoftacError
 from softac.learner import Learner
 from softac.rundir import versions
@@ -104,7 +104,7 @@ def load_learner(path: str | Path, which: str | None = None, device: str | None 
     meta, arrays = ckpt.load(directory)
     config = saved_config(meta, directory, device=device)
     select_device(config.device)
-    env = make_env(config.env_id)
+    _, env = training_env_source(config.env_id, config)  # image observations: the wrappers that made them
     try:
         spaces = check_spaces(env)
     finally:

@@ -32,12 +32,15 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
     """Render `episodes` episodes of `agent` into one MP4 at `out`; returns returns and lengths."""
     import imageio.v2 as imageio
 
+    from softac.envs import observation_array
     from softac.errors import EnvError
     from softac.evaluation import EVAL_SEED_OFFSET
 
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
+    images = agent.spaces.image_shape is not None
     try:
-        env = agent.make_env(render_mode="rgb_array", width=width, height=height)
+        # an image agent's env renders what the agent sees (pixels: at pixel_size), enlarged for the video
+        env = agent.make_env(render_mode="rgb_array", **({} if images else {"width": width, "height": height}))
     except EnvError:
         env = agent.make_env(render_mode="rgb_array")
     if env.render_mode != "rgb_array":
@@ -61,14 +64,15 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
                     obs, _ = env.reset(seed=seed + episode)
                     total, steps, done = 0.0, 0, False
                     while not done:
-                        frame = _render(env)
+                        frame = _enlarged(_render(env), height) if images else _render(env)
                         writer.append_data(_label(frame, caption(episode, steps, total)))
-                        action = agent.predict(np.asarray(obs, np.float32).reshape(-1), deterministic=deterministic)
+                        action = agent.predict(observation_array(obs), deterministic=deterministic)
                         obs, reward, terminated, truncated, _ = env.step(action)
                         total += float(reward)
                         steps += 1
                         done = terminated or truncated or (max_steps is not None and steps >= max_steps)
-                    final = _label(_render(env), caption(episode, steps, total))
+                    final = _label(_enlarged(_render(env), height) if images else _render(env),
+                                   caption(episode, steps, total))
                     for _ in range(fps // 2):  # hold the last frame half a second, return visible
                         writer.append_data(final)
                     returns.append(total)
@@ -93,6 +97,12 @@ def _render(env) -> np.ndarray:
     if frame is None:
         raise SoftacError("the env returned no frame; it may not support rgb_array rendering")
     return np.asarray(frame, np.uint8)
+
+
+def _enlarged(frame: np.ndarray, height: int) -> np.ndarray:
+    """A small frame (an image agent's view) repeated pixel by pixel to about `height` rows."""
+    k = max(1, round(height / frame.shape[0]))
+    return np.repeat(np.repeat(frame, k, axis=0), k, axis=1) if k > 1 else frame
 
 
 def default_video_path(run_or_ckpt: Path, step: int, mean_return: float | None = None) -> Path:
