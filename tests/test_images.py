@@ -386,3 +386,36 @@ def test_the_cli_trains_evaluates_films_and_reports_a_pixel_run_and_export_says_
     report = run_cli("report", str(run))
     assert report.returncode == 0, report.stderr
     assert_clean_error(run_cli("export", str(run), "--format", "numpy"), "observes images")
+
+
+def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_before_it_moved(tiny):
+    """DrQ-v2's order: the critic loss's gradient moves the encoder; the actor's features are the step's augmented
+    observations through the encoder as it was, stopped (the actor's loss never reaches the encoder)."""
+    from softac import sac
+    from softac.encoder import random_shift, stack_channels
+
+    config = tiny("softac_test_envs:DotImage-v0", **IMAGE)
+    image = (2, 16, 16, 3)
+    fns = sac.build(config, 0, 1, image_shape=image)
+    state = fns.init(0)
+    s = sac.update_settings(config, 1, fns.matmul_dtype, images=True)
+    rng = np.random.default_rng(0)
+    batch = sac.Batch(obs=rng.integers(0, 256, (8, *image), dtype=np.uint8),
+                      actions=rng.uniform(-1, 1, (8, 1)).astype(np.float32),
+                      rewards=rng.normal(size=8).astype(np.float32),
+                      next_obs=rng.integers(0, 256, (8, *image), dtype=np.uint8),
+                      terminated=np.zeros(8, np.float32), steps=np.ones(8, np.float32))
+    key = jax.random.PRNGKey(3)
+    new, _, features = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s))(state, batch, key)
+    moved = [np.abs(np.asarray(a) - np.asarray(b)).max()
+             for a, b in zip(jax.tree_util.tree_leaves(state.encoder), jax.tree_util.tree_leaves(new.encoder))]
+    assert max(moved) > 0  # the critic loss moved the encoder
+    augment_key = jax.random.split(key)[0]
+    obs_key = jax.random.split(augment_key)[0]
+    expected = encode(state.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
+    # the same float32 arithmetic compiled in two graphs: they may round apart by a few units of 2^-24 of tanh's
+    # inputs (LayerNorm's sums of 16 terms); 1e-5 leaves room, and the moved encoder's features lie far outside it
+    before_gap = np.abs(np.asarray(features) - np.asarray(expected)).max()
+    assert before_gap < 1e-5
+    after = encode(new.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
+    assert np.abs(np.asarray(after) - np.asarray(features)).max() > 1e-4
