@@ -261,7 +261,15 @@ def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | No
     and `totals` (zero_totals() when None) with this call's metrics added (`metric_means` reads them).
     `lr_scale`: the learning rates' factor for this call's steps (lr_schedule), None for constant rates."""
     totals = zero_totals() if totals is None else totals
-    (state, totals), _ = jax.lax.scan(partial(gradient_step, s, lr_scale), (state, totals), batches)
+    step = partial(gradient_step, s, lr_scale)
+    if s.encoder_tx is not None:
+        # unrolled: XLA's CPU backend runs the encoder's convolutions far slower inside scan's while loop (3 frames
+        # of 84x84, batch 32: 14.3 s per update in it, 2.2 s unrolled; docs/performance.md), and image runs take
+        # few gradient steps per env step
+        for i in range(batches.rewards.shape[0]):
+            (state, totals), _ = step((state, totals), jax.tree_util.tree_map(lambda x: x[i], batches))
+        return state, totals
+    (state, totals), _ = jax.lax.scan(step, (state, totals), batches)
     return state, totals
 
 
