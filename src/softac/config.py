@@ -44,7 +44,7 @@ class SACConfig:
     action_repeat: int = _f(1, "each action applied this many times, the rewards summed (the DMC papers use 2); steps count the agent's actions, so frames = steps * action_repeat")
     pixels: bool = _f(False, "observe the env's rendered RGB frames (pixel_size square) instead of its observation: Gymnasium's MuJoCo envs, the DeepMind Control Suite, any env that renders rgb_array; learned through the image encoder")
     pixel_size: int = _f(84, "with pixels: the frames' side in pixels (84 as DrQ; rendered at that size where the renderer takes one, else resized)")
-    frame_stack: int = _f(3, "image observations (pixels, or an env's own uint8 HxWxC or CxHxW Box): the last k frames stacked along the channels (3 as DrQ); 1 = none")
+    frame_stack: int = _f(3, "image observations (pixels, or an env's own uint8 HxWxC or CxHxW Box): the last k frames as one observation [k, h, w, c], oldest first (3 as DrQ; the encoder reads them along the channels); 1 = the latest alone")
     env_workers: int = _f(0, "worker processes stepping the n_envs envs (0 = in-process, the default: MuJoCo's fast envs gain nothing); for slow simulators")
     device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
     # replay
