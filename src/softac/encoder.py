@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softac.networks import _orthogonal
+
 Params = Any
 
 CONV_STRIDES = (2, 1, 1, 1)
@@ -45,13 +47,6 @@ def smallest_image(strides: tuple[int, ...] = CONV_STRIDES) -> int:
     for stride in reversed(strides):
         size = (size - 1) * stride + KERNEL
     return size
-
-
-def _orthogonal(rng: np.random.Generator, fan_in: int, fan_out: int, gain: float) -> np.ndarray:
-    a = rng.standard_normal((max(fan_in, fan_out), min(fan_in, fan_out)))
-    q, r = np.linalg.qr(a)
-    q *= np.sign(np.diag(r))
-    return (gain * (q if fan_in >= fan_out else q.T)).astype(np.float32)
 
 
 def init_encoder(rng: np.random.Generator, image_shape: tuple[int, int, int], channels: int = 32,

@@ -43,7 +43,9 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     """Refuse networks and batches the machine cannot hold, before allocating anything."""
     from softac.buffer import _human, available_memory_bytes
 
-    batch_obs_bytes = 4 * obs_dim
+    from softac.buffer import ReplayBuffer
+
+    batch_row = ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
     encoder, conv_activations = 0, 0
     if image_shape is not None:  # uint8 images in the batch; the networks read the encoder's features
         from softac.encoder import conv_output_size, encoder_parameters, smallest_image, stacked_image_shape
@@ -52,7 +54,9 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
         if min(h, w) < smallest_image():
             raise SoftacError(f"image observations of {h}x{w} are smaller than the encoder's smallest input, "
                               f"{smallest_image()}x{smallest_image()}; raise pixel_size")
-        batch_obs_bytes, obs_dim = obs_dim, config.encoder_features
+        # two uint8 frame stacks a row (obs_dim bytes each) where ReplayBuffer's row holds two float32 vectors
+        batch_row += obs_dim * (2 - 8)
+        obs_dim = config.encoder_features
         encoder = encoder_parameters(stacked_image_shape(image_shape), config.encoder_channels,
                                      config.encoder_features)
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
@@ -67,7 +71,7 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
     widths = sum(actor_hidden) + sum(critic_hidden) * config.n_critics
     activations = 4 * config.batch_size * (widths * 4 * (6 if config.network == "simba" else 1) + conv_activations)
-    batch = config.batch_size * config.gradient_steps * (2 * batch_obs_bytes + 4 * (act_dim + 3))
+    batch = config.batch_size * config.gradient_steps * batch_row
     need, have = parameters + activations + batch, available_memory_bytes()
     if need > fraction * have:
         raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "
@@ -79,6 +83,9 @@ class Learner:
     """The networks, optimisers, alpha, observation statistics and action scaling of one config and env shape."""
 
     def __init__(self, config: SACConfig, spaces: SpaceInfo):
+        if config.obs_norm and spaces.image_shape is not None:  # before anything is built or compiled
+            raise SoftacError("obs_norm normalises vector observations; this env's are images, which the encoder "
+                              "scales to [-0.5, 0.5]: set obs_norm=false")
         check_model_memory(config, spaces.obs_dim, spaces.act_dim, image_shape=spaces.image_shape)
         from softac import sac
 
@@ -90,9 +97,6 @@ class Learner:
         self.state: SACState = self.functions.init(config.seed)
         self.totals: dict[str, Any] | None = None  # metric sums since the last take_metrics(), on the device
         # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
-        if config.obs_norm and spaces.image_shape is not None:
-            raise SoftacError("obs_norm normalises vector observations; this env's are images, which the encoder "
-                              "scales to [-0.5, 0.5]: set obs_norm=false")
         self.obs_norm = RunningObsNorm(spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
 
     @property
