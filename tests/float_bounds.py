@@ -193,6 +193,74 @@ def mlp_bound(layers: list, x: np.ndarray, activation: str) -> tuple[np.ndarray,
     return network_bound(layers, x, np.zeros_like(x), activation)
 
 
+def _conv(x: np.ndarray, w: np.ndarray, stride: int) -> np.ndarray:
+    """A VALID convolution of [batch, h, w, c] with HWIO weights, in float64."""
+    windows = np.lib.stride_tricks.sliding_window_view(x, w.shape[:2], axis=(1, 2))[:, ::stride, ::stride]
+    return np.tensordot(windows, w, axes=([3, 4, 5], [2, 0, 1]))
+
+
+def _layer_norm(h: np.ndarray, e: np.ndarray, scale: np.ndarray, bias: np.ndarray,
+                eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of LayerNorm over the last axis, (h - mean) / sqrt(var + eps) * scale + bias, for inputs
+    within e of h, computed in float32 in any order (mean and variance as sums divided by n, or times 1/n;
+    1/sqrt as rsqrt, or a square root and a division): first order, each step's rounding carried through."""
+    n = h.shape[-1]
+    mean = h.mean(axis=-1, keepdims=True)
+    e_mean = e.mean(axis=-1, keepdims=True) + gamma(n + 2) * (np.abs(h) + e).mean(axis=-1, keepdims=True)
+    c = h - mean
+    e_c = e + e_mean + U * (np.abs(c) + e + e_mean)
+    var = (c * c).mean(axis=-1, keepdims=True)
+    e_var = (2 * np.abs(c) * e_c + e_c**2).mean(axis=-1, keepdims=True) \
+        + gamma(n + 2) * ((np.abs(c) + e_c) ** 2).mean(axis=-1, keepdims=True)
+    total = var + eps
+    e_total = e_var + U * (total + e_var) + U * eps  # the sum, and eps's own float32 rounding
+    r = 1.0 / np.sqrt(total)
+    # |d r / d total| = r^3 / 2, largest at the smallest total the error allows (eps keeps it positive)
+    e_r = 0.5 * np.maximum(total - e_total, eps / 2) ** -1.5 * e_total + RSQRT_REL * (r + 0.5 * eps**-1.5 * e_total)
+    y = c * r * scale + bias
+    m = (np.abs(c) + e_c) * (r + e_r) * np.abs(scale)
+    return y, (e_c * r + (np.abs(c) + e_c) * e_r) * np.abs(scale) + 2 * U * m + U * (m + np.abs(bias))
+
+
+def image_input_bound(agent, stacks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of what an image agent's actor reads for uint8 frame stacks [batch, k, h, w, c]: the
+    encoder's features (softac.encoder.encode: pixels / 255 - 0.5, the convolutions, each output a sum of 9 c_in
+    products as a dense layer's, the linear layer, LayerNorm, tanh), then the state values packed beside the
+    images (exact: their float32 bytes)."""
+    from softac.encoder import CONV_STRIDES, LN_EPS, image_only_shape, stack_channels
+    from softac.pixels import state_rows
+
+    state_dim = agent.spaces.image_state_dim
+    k, height, width, channels = image_only_shape(agent.spaces.image_shape, state_dim)
+    stacks = np.asarray(stacks, np.uint8).reshape(-1, *agent.spaces.image_shape)
+    images = np.asarray(stack_channels(stacks[:, :, :height])).astype(np.float64)
+    scaled = images / 255.0
+    x = scaled - 0.5
+    e = 3 * U * scaled + U * np.abs(x)  # the division (or a product by 1/255) and the subtraction
+    encoder = agent.learner.state.encoder
+    for layer, stride in zip(encoder["convs"], CONV_STRIDES):
+        w, b = _weights(layer)
+        n = w.shape[0] * w.shape[1] * w.shape[2]
+        z = _conv(x, w, stride) + b
+        e = _conv(e, np.abs(w), stride) + gamma(n + 1) * (_conv(np.abs(x) + e, np.abs(w), stride) + np.abs(b)) \
+            + TINY * (n + 1) * (1.0 + np.abs(w).max())
+        x, e = _activation_error("relu", z, e)
+    head = encoder["head"]
+    w, b = _weights(head)
+    x, e = x.reshape(len(x), -1), e.reshape(len(e), -1)
+    z, e, magnitude = _dense(x, e, w, b, False)
+    e = e + gamma(w.shape[0] + 1) * magnitude + TINY * (w.shape[0] + 1) * (1.0 + np.abs(w).max())
+    z, e = _layer_norm(z, e, np.asarray(head["ln_scale"], np.float64), np.asarray(head["ln_bias"], np.float64),
+                       LN_EPS)
+    features, e = _activation_error("tanh", z, e)
+    if state_dim == 0:
+        return features, e
+    rows = state_rows(state_dim, width, channels)
+    raw = np.ascontiguousarray(stacks[:, -1, -rows:]).reshape(len(stacks), -1)[:, : 4 * state_dim]
+    state = raw.copy().view("<f4").astype(np.float64)
+    return np.concatenate([features, state], axis=1), np.concatenate([e, np.zeros_like(state)], axis=1)
+
+
 def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound), both float64 [batch, act_dim]: the exact deterministic actions of `agent` for the
     float32 observations `obs` [batch, obs_dim], and a bound on |a - reference| for the actions `a` of any
@@ -202,8 +270,11 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     "float32" for a program that skips the bf16 roundings, as JAX 0.4.30's jitted bf16 layers do."""
     from softac.normalization import EPSILON
 
-    x = np.asarray(obs, np.float32).reshape(-1, agent.spaces.obs_dim).astype(np.float64)
-    e = np.zeros_like(x)
+    if agent.spaces.image_shape is not None:
+        x, e = image_input_bound(agent, obs)
+    else:
+        x = np.asarray(obs, np.float32).reshape(-1, agent.spaces.obs_dim).astype(np.float64)
+        e = np.zeros_like(x)
     if agent.learner.obs_norm is not None:
         # clip((obs - mean) / std) with the float32 mean and std that predict() and the export use: a
         # subtraction and a division, u each (4u: also a division done as a multiplication by 1/std)

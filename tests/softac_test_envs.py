@@ -232,15 +232,17 @@ class DictObsEnv(DriftEnv):
 class DotImageEnv(gym.Env):
     """Image observations (issue 44): a bright square at a random column of a dark 16x16 image, drawn afresh each
     step. The reward pays the action pointing to the square's side: 1 - (a - side)^2, side -1 left, +1 right, so
-    the best action depends on what the image shows. `channels_first` gives [3, 16, 16] (PyTorch's layout).
+    the best action depends on what the image shows. `channels_first` gives [3, 16, 16] (PyTorch's layout); `size`
+another side than 16.
     Renders rgb_array (a 30x40 picture of the same) for pixels=true."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
-    def __init__(self, channels_first: bool = False, render_mode: str | None = None):
+    def __init__(self, channels_first: bool = False, render_mode: str | None = None, size: int = 16):
         self.channels_first = channels_first
         self.render_mode = render_mode
-        shape = (3, 16, 16) if channels_first else (16, 16, 3)
+        self.size = size
+        shape = (3, size, size) if channels_first else (size, size, 3)
         self.observation_space = gym.spaces.Box(0, 255, shape, np.uint8)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
         self.column = 0
@@ -253,7 +255,7 @@ class DotImageEnv(gym.Env):
         return image
 
     def _obs(self) -> np.ndarray:
-        image = self._draw(16, 16)
+        image = self._draw(self.size, self.size)
         return np.transpose(image, (2, 0, 1)).copy() if self.channels_first else image
 
     def reset(self, *, seed=None, options=None):
@@ -277,8 +279,46 @@ class DotImageEnv(gym.Env):
         self.column, self.t = int(state[0]), int(state[1])
 
 
+class DotStateImageEnv(DotImageEnv):
+    """A dict observation of an image beside state values (issue 44): DotImage's picture under "camera" (CxHxW
+    with `channels_first`), and under "flip" a value of -1 or +1 drawn each step, beside a "clock" of two values.
+    The reward pays the action pointing to the square's side times flip: 1 - (a - side * flip)^2, so the best
+    action needs the image and the state together."""
+
+    def __init__(self, channels_first: bool = False, render_mode: str | None = None, size: int = 16):
+        super().__init__(channels_first, render_mode, size)
+        image = self.observation_space
+        self.observation_space = gym.spaces.Dict({
+            "camera": image, "flip": gym.spaces.Box(-1.0, 1.0, (1,), np.float32),
+            "clock": gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)})
+        self.flip = 1.0
+
+    def _obs(self):
+        return {"camera": super()._obs(), "flip": np.array([self.flip], np.float32),
+                "clock": np.array([self.t / 20.0, -self.t / 3.0], np.float32)}
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = super().reset(seed=seed, options=options)
+        self.flip = float(self.np_random.choice([-1.0, 1.0]))
+        return self._obs(), info
+
+    def step(self, action):
+        side = (-1.0 if self.column < 7 else 1.0) * self.flip
+        reward = 1.0 - (float(np.asarray(action).reshape(-1)[0]) - side) ** 2
+        self.column, self.t = int(self.np_random.integers(0, 14)), self.t + 1
+        self.flip = float(self.np_random.choice([-1.0, 1.0]))
+        return self._obs(), reward, False, False, {}
+
+    def save_state(self):
+        return np.array([self.column, self.t, self.flip], np.float64)
+
+    def load_state(self, state):
+        self.column, self.t, self.flip = int(state[0]), int(state[1]), float(state[2])
+
+
 gym.register("Drift-v0", entry_point=DriftEnv, max_episode_steps=25)
 gym.register("DotImage-v0", entry_point=DotImageEnv, max_episode_steps=20)
+gym.register("DotStateImage-v0", entry_point=DotStateImageEnv, max_episode_steps=20)
 gym.register("PointGoal-v0", entry_point=PointGoalEnv, max_episode_steps=20)
 gym.register("OneGoalReward-v0", entry_point=OneGoalRewardEnv, max_episode_steps=20)
 gym.register("DictObs-v0", entry_point=DictObsEnv, max_episode_steps=25)

@@ -308,13 +308,14 @@ def test_channels_first_images_and_rendered_frames_become_channels_last_stacks(t
 
 
 @pytest.mark.numerics
-def test_resume_with_images_is_exact(tiny, tmp_path):
+@pytest.mark.parametrize("env_id", ["DotImage-v0", "DotStateImage-v0"])
+def test_resume_with_images_is_exact(tiny, tmp_path, env_id):
     """N+M steps in one go equals N, save, load, M: the frame buffer, the envs' frame stacks and the encoder
-    with its optimiser carry over bit for bit."""
+    with its optimiser carry over bit for bit (images alone, and an image beside state values)."""
     from conftest import assert_same_training
     from softac import SAC
 
-    cfg = tiny("softac_test_envs:DotImage-v0", **IMAGE, n_envs=2, gradient_steps=2, eval_interval=300,
+    cfg = tiny(f"softac_test_envs:{env_id}", **IMAGE, n_envs=2, gradient_steps=2, eval_interval=300,
                learning_starts=100)
     straight = SAC(cfg)
     straight.learn(500, run_dir=tmp_path / "straight", progress=False)
@@ -326,6 +327,65 @@ def test_resume_with_images_is_exact(tiny, tmp_path):
     assert_same_training(straight, resumed)
     for name in ("eval.csv", "episodes.csv"):
         assert (tmp_path / "straight" / name).read_text() == (tmp_path / "split" / name).read_text(), name
+
+
+# ---- an image beside state values ---------------------------------------------------------------------------
+
+def test_state_values_packed_beside_an_image_come_back_bit_for_bit():
+    """ImageWithState's packing (NumPy, on the host) and the learner's unpacking (XLA, in the jitted functions)
+    agree exactly, whatever the values: the state's float32 bytes travel as uint8 pixels."""
+    import gymnasium as gym
+
+    from softac.encoder import image_only_shape, split_image_and_state
+    from softac.pixels import ImageStateLayout, state_rows
+
+    space = gym.spaces.Dict({"joints": gym.spaces.Box(-np.inf, np.inf, (2, 3), np.float32),
+                             "camera": gym.spaces.Box(0, 255, (3, 5, 4), np.uint8),  # channels-first
+                             "touch": gym.spaces.Box(0, 1, (1,), np.float32)})
+    layout = ImageStateLayout.of(space)
+    assert (layout.image_key, layout.state_keys, layout.state_dim, layout.channels_first) == \
+        ("camera", ("joints", "touch"), 7, True)
+    assert state_rows(7, 4, 3) == 3 and state_rows(3, 16, 3) == 1 and state_rows(0, 16, 3) == 0
+    rng = np.random.default_rng(0)
+    values = [np.array([1e-30, -3.5, 1e30, np.pi, -0.0, 65504.0, 7.0], np.float32), rng.normal(size=7).astype(np.float32)]
+    stacks, images = [], []
+    for state in values:
+        image = rng.integers(0, 256, (3, 5, 4), dtype=np.uint8)  # [c, h, w]
+        obs = {"camera": image, "joints": state[:6].reshape(2, 3), "touch": state[6:]}
+        frame = layout.pack(layout.image(obs["camera"]), layout.state(obs))
+        assert frame.shape == (5 + 3, 4, 3)
+        stacks.append(np.stack([np.zeros_like(frame), frame]))  # k = 2: the newest frame's state is read
+        images.append(np.transpose(image, (1, 2, 0)))
+    assert image_only_shape(stacks[0].shape, 7) == (2, 5, 4, 3)
+    got_images, got_state = jax.jit(split_image_and_state, static_argnums=1)(np.stack(stacks), 7)
+    np.testing.assert_array_equal(np.asarray(got_images)[:, 1], np.stack(images))
+    np.testing.assert_array_equal(np.asarray(got_state).view(np.uint32), np.stack(values).view(np.uint32))
+
+
+def test_an_agent_learns_from_an_image_and_state_values_together(tiny):
+    """DotStateImage pays the action pointing to the square's side times the state's flip: an agent that reads
+    only the image, or only the state, cannot beat a return of 0 per episode (the best is 20)."""
+    from softac import SAC, evaluate
+
+    agent = SAC(tiny("softac_test_envs:DotStateImage-v0", **IMAGE, learning_starts=200, actor_lr=3e-3,
+                     critic_lr=3e-3, alpha_lr=3e-3))
+    # 3 state values (12 bytes) ride in one extra row of each 16x16 RGB frame; the networks read 16 + 3 values
+    assert agent.spaces.image_shape == (2, 17, 16, 3) and agent.spaces.image_state_dim == 3
+    assert agent.learner.state.actor[0]["w"].shape[0] == 16 + 3
+    agent.learn(1000, progress=False)
+    stats = evaluate(agent, episodes=4)
+    assert stats["mean_return"] > 12.0, stats
+    # predict takes the packed stacks the agent's env makes, or the env's own dict with the image as a stack
+    env = agent.make_env()
+    packed, _ = env.reset(seed=3)
+    raw = env.unwrapped._obs()
+    as_dict = {"camera": np.stack([raw["camera"]] * 2), "flip": raw["flip"], "clock": raw["clock"]}
+    np.testing.assert_array_equal(agent.predict(as_dict), agent.predict(packed))
+    batch = {key: np.stack([value, value]) for key, value in as_dict.items()}
+    assert agent.predict(batch).shape == (2, 1)
+    with pytest.raises(SoftacError, match="lacks flip"):
+        agent.predict({"camera": as_dict["camera"], "clock": raw["clock"]})
+    env.close()
 
 
 def test_image_settings_that_cannot_work_are_refused(tiny):
@@ -343,6 +403,19 @@ def test_image_settings_that_cannot_work_are_refused(tiny):
         check_model_memory(tiny(), 12 * 12 * 3, 1, image_shape=(1, 12, 12, 3))
     with pytest.raises(SoftacError, match="renders rgb_array"):
         SAC(tiny("Drift", pixels=True), env=DriftEnv())
+    import gymnasium as gym
+
+    from softac_test_envs import DotStateImageEnv
+
+    two_cameras = DotStateImageEnv()
+    two_cameras.observation_space = gym.spaces.Dict({**two_cameras.observation_space.spaces,
+                                                     "wrist": gym.spaces.Box(0, 255, (16, 16, 3), np.uint8)})
+    with pytest.raises(SoftacError, match="2 image keys \\(camera, wrist\\); softac's encoder takes one"):
+        SAC(tiny("TwoCameras", **IMAGE), env=two_cameras)
+    discrete = DotStateImageEnv()
+    discrete.observation_space = gym.spaces.Dict({**discrete.observation_space.spaces, "mode": gym.spaces.Discrete(3)})
+    with pytest.raises(SoftacError, match="mode are not Box spaces"):
+        SAC(tiny("DiscreteBeside", **IMAGE), env=discrete)
 
 
 def test_image_envs_in_worker_processes_give_the_same_run(tiny):
@@ -360,7 +433,7 @@ def test_image_envs_in_worker_processes_give_the_same_run(tiny):
     assert runs[1].collector.buffer.frames_written == runs[0].collector.buffer.frames_written > 200
 
 
-def test_the_cli_trains_evaluates_films_and_reports_a_pixel_run_and_export_says_what_it_covers(tmp_path):
+def test_the_cli_trains_evaluates_films_reports_and_exports_a_pixel_run(tmp_path):
     """InvertedPendulum-v5 from its rendered frames, as a new user would type it; the video shows the agent's
     own view, enlarged."""
     from conftest import assert_clean_error, run_cli
@@ -385,7 +458,9 @@ def test_the_cli_trains_evaluates_films_and_reports_a_pixel_run_and_export_says_
     assert frame.shape == (480, 480, 3) and frame.std() > 5  # 24x24 frames enlarged 20x: the agent's view
     report = run_cli("report", str(run))
     assert report.returncode == 0, report.stderr
-    assert_clean_error(run_cli("export", str(run), "--format", "numpy"), "observes images")
+    exported = run_cli("export", str(run), "--format", "numpy")
+    assert exported.returncode == 0, exported.stderr
+    assert (run / "export" / "policy.npz").exists()
 
 
 def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_before_it_moved(tiny):
@@ -419,3 +494,59 @@ def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_be
     assert before_gap < 1e-5
     after = encode(new.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
     assert np.abs(np.asarray(after) - np.asarray(features)).max() > 1e-4
+
+
+# ---- export ------------------------------------------------------------------------------------------------------
+
+@pytest.mark.numerics
+@pytest.mark.parametrize("with_state", [False, True])
+def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state):
+    """The ONNX graph and the NumPy pass of an image agent (the encoder, and the state values beside an image)
+    each give predict()'s actions within the float32 bound of the exact ones (tests/float_bounds.py: the
+    convolutions as dense layers' sums, LayerNorm step by step), for a batch and for one observation; and an
+    export with its features flattened in the wrong order, or a kernel transposed, falls outside it."""
+    onnxruntime = pytest.importorskip("onnxruntime")
+    from float_bounds import action_bound, assert_within_bound
+    from softac import SAC
+    from softac.export import export_policy
+    from softac.export_numpy import policy_forward
+    from softac_test_envs import DotImageEnv, DotStateImageEnv
+
+    # 20x20 frames: the convolutions end at 3x3 (at 16x16, 1x1, where any flattening order is the same)
+    env = (DotStateImageEnv if with_state else DotImageEnv)(size=20)
+    agent = SAC(tiny("DotImage20", **IMAGE, learning_starts=100), env=env)
+    agent.learn(300, progress=False)  # the encoder moved from its init, which is mostly zeros
+    env = agent.make_env()
+    env.action_space.seed(0)
+    obs, _ = env.reset(seed=0)
+    rows = []
+    for _ in range(60):
+        rows.append(obs)
+        obs = env.step(env.action_space.sample())[0]
+    env.close()
+    stacks = np.stack(rows)
+    reference, bound = action_bound(agent, stacks)
+    assert_within_bound(agent.predict(stacks), reference, bound, "predict()")
+    onnx_path = export_policy(agent, tmp_path / "policy.onnx", "onnx")
+    with np.load(export_policy(agent, tmp_path / "policy.npz", "numpy")) as npz:
+        params = dict(npz)
+    layout = agent.spaces.image_state
+    if layout is None:  # the frame stacks; the ONNX graph's input is named obs
+        inputs, one = stacks, stacks[0]
+    else:  # the env's own dict: the image key's frame stacks and each state key's values (keys sorted by the Dict)
+        assert layout.state_keys == ("clock", "flip")
+        state = stacks[:, -1, 20:].reshape(len(stacks), -1)[:, :12].copy().view("<f4")
+        inputs = {"camera": stacks[:, :, :20], "clock": state[:, :2], "flip": state[:, 2:]}
+        one = {key: value[0] for key, value in inputs.items()}
+    session = onnxruntime.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    feed = {"obs": inputs} if layout is None else inputs
+    assert_within_bound(session.run(["action"], feed)[0], reference, bound, "onnx")
+    assert_within_bound(policy_forward(params, inputs), reference, bound, "numpy")
+    assert_within_bound(policy_forward(params, one), reference[0], bound[0], "numpy, one observation")
+    # the bound is a worst case (every rounding the same way), far above the actual errors, yet tight enough
+    # to catch an export that flattens the 3x3x8 features channels-first, or transposes a kernel
+    w, channels = params["enc_w"], params["conv0_w"].shape[-1]
+    nchw = {**params, "enc_w": w.reshape(3, 3, channels, -1).transpose(2, 0, 1, 3).reshape(w.shape)}
+    transposed = {**params, "conv1_w": np.ascontiguousarray(np.transpose(params["conv1_w"], (1, 0, 2, 3)))}
+    for wrong in (nchw, transposed):
+        assert np.any(np.abs(policy_forward(wrong, inputs) - reference) > bound)

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softac.networks import _orthogonal
+from softac.pixels import state_rows
 
 Params = Any
 
@@ -80,6 +81,24 @@ def stack_channels(stacks: jax.Array) -> jax.Array:
     frames only)."""
     batch, k, height, width, channels = stacks.shape
     return jnp.moveaxis(stacks, 1, 3).reshape(batch, height, width, k * channels)
+
+
+def split_image_and_state(stacks: jax.Array, state_dim: int) -> tuple[jax.Array, jax.Array | None]:
+    """Frame stacks [batch, k, h + r, w, c] that carry `state_dim` state values in each frame's last r rows
+    (softac.pixels.ImageWithState) as the images [batch, k, h, w, c] and the newest frame's state [batch,
+    state_dim] (float32, its bytes as packed); `state_dim` 0: the stacks as they are, and None."""
+    if state_dim == 0:
+        return stacks, None
+    batch, _, height, width, channels = stacks.shape
+    rows = state_rows(state_dim, width, channels)
+    raw = stacks[:, -1, height - rows:].reshape(batch, -1)[:, : 4 * state_dim].reshape(batch, state_dim, 4)
+    return stacks[:, :, : height - rows], jax.lax.bitcast_convert_type(raw, jnp.float32)
+
+
+def image_only_shape(stack_shape: tuple[int, int, int, int], state_dim: int) -> tuple[int, int, int, int]:
+    """The images' stack shape [k, h, w, c] within frame stacks of `stack_shape` that carry `state_dim` values."""
+    k, height, width, channels = stack_shape
+    return k, height - state_rows(state_dim, width, channels), width, channels
 
 
 def stacked_image_shape(stack_shape: tuple[int, int, int, int]) -> tuple[int, int, int]:

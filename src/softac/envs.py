@@ -29,7 +29,8 @@ from gymnasium.envs.registration import EnvSpec
 from softac import dmc
 from softac.errors import EnvError, EnvFailed, SoftacError
 from softac.her import DictLayout, dict_layout, dict_observation_space, is_goal_env
-from softac.pixels import frame_stack_of, is_frame_stack_space, is_image_space, with_image_wrappers
+from softac.pixels import (ImageStateLayout, ImageWithState, frame_stack_of, image_key_of, is_frame_stack_space,
+                           is_image_space, with_image_wrappers, wrapper_of)
 
 EnvSource = Any  # a Gymnasium id string or a gym.Env instance
 
@@ -142,7 +143,7 @@ def copy_env(source: EnvSource, render_mode: str | None = None, **kwargs: Any) -
 def _flatten_obs_if_needed(env: gym.Env) -> gym.Env:
     space = env.observation_space
     if isinstance(space, gym.spaces.Box) and len(space.shape) == 1 or is_image_space(space) \
-            or is_frame_stack_space(space):
+            or is_frame_stack_space(space) or image_key_of(space) is not None:  # an image dict: ImageWithState
         return env
     try:
         gym.spaces.flatdim(space)
@@ -192,7 +193,7 @@ def training_env_source(env: EnvSource, config: Any) -> tuple[EnvSource, gym.Env
 
         choose_gl_backend()
     probe = make_env(env)
-    if not (config.pixels or is_image_space(probe.observation_space)):
+    if not (config.pixels or is_image_space(probe.observation_space) or image_key_of(probe.observation_space)):
         return with_action_repeat(env if isinstance(env, (str, EnvSpec)) else probe, config.action_repeat), probe
     raw_space = probe.observation_space
     if isinstance(env, (str, EnvSpec)):
@@ -214,6 +215,12 @@ class SpaceInfo:
     layout: DictLayout | None = None  # a dict observation's keys in the flat vector (their space's order)
     goal_env: bool = False  # observation, achieved_goal, desired_goal and compute_reward: HER can train it
     image_shape: tuple[int, int, int, int] | None = None  # stacked image observations, uint8 [k, h, w, c]
+    image_state: ImageStateLayout | None = None  # a dict of an image and state values, packed (ImageWithState)
+
+    @property
+    def image_state_dim(self) -> int:
+        """The state values beside an image (0 for images alone)."""
+        return 0 if self.image_state is None else self.image_state.state_dim
 
 
 def check_spaces(env: gym.Env) -> SpaceInfo:
@@ -233,10 +240,11 @@ def check_spaces(env: gym.Env) -> SpaceInfo:
     obs_space = env.observation_space
     obs_dim = int(np.prod(obs_space.shape))
     image = tuple(int(n) for n in obs_space.shape) if is_frame_stack_space(obs_space) else None
-    dict_space = dict_observation_space(env)
+    packed = wrapper_of(env, ImageWithState)
+    dict_space = dict_observation_space(env) if packed is None else None
     layout = dict_layout(dict_space) if dict_space is not None else None
     return SpaceInfo(obs_dim, int(space.shape[0]), low.astype(np.float32), high.astype(np.float32), layout,
-                     is_goal_env(env), image)
+                     packed is None and is_goal_env(env), image, packed.layout if packed else None)
 
 
 # ---- exact env state, for resume -----------------------------------------------

@@ -1,7 +1,8 @@
 """`softac export`: a run's deterministic policy as an ONNX graph or a NumPy .npz, to act without JAX.
 
 Both formats hold the same float32 arrays (`policy_arrays`, laid out as softac.export_numpy describes):
-observation normalisation (obs_norm), the actor's layers up to the mean action, and the action bounds;
+observation normalisation (obs_norm), an image agent's encoder, the actor's layers up to the mean action,
+and the action bounds;
 the graph computes what `softac.export_numpy.policy_forward` does, which is what
 `agent.predict(obs, deterministic=True)` does, bf16 matmuls included: an agent whose hidden layers multiply
 in bfloat16 (matmul_dtype bfloat16, or auto where it picks bf16) is exported with those layers' weights
@@ -130,6 +131,8 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
         from softac.policy import SDE_CLIP_MEAN
 
         arrays["mean_clip"] = np.asarray(SDE_CLIP_MEAN, np.float32)
+    if learner.spaces.image_shape is not None:
+        arrays.update(encoder_arrays(learner))
     arrays["activation"] = np.asarray(learner.config.activation)
     arrays["action_low"] = learner.scaler.low.astype(np.float32)
     arrays["action_high"] = learner.scaler.high.astype(np.float32)
@@ -141,6 +144,26 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     arrays["env_id"] = np.asarray(learner.config.env_id)
     arrays["step"] = np.asarray(step, np.int64)
     arrays["softac_version"] = np.asarray(__version__)
+    return arrays
+
+
+def encoder_arrays(learner: Learner) -> dict[str, np.ndarray]:
+    """An image agent's encoder (softac.encoder, float32 as it computes), the shape of the frame stacks it takes
+    ([k, h, w, c], the images alone) and, for an image beside state values, the keys the state comes from."""
+    from softac.encoder import CONV_STRIDES, image_only_shape
+
+    encoder, state_dim = learner.state.encoder, learner.spaces.image_state_dim
+    arrays = {"image_shape": np.asarray(image_only_shape(learner.spaces.image_shape, state_dim), np.int64),
+              "conv_strides": np.asarray(CONV_STRIDES, np.int64)}
+    for i, layer in enumerate(encoder["convs"]):
+        arrays[f"conv{i}_w"], arrays[f"conv{i}_b"] = (np.asarray(layer[k], np.float32) for k in ("w", "b"))
+    for key, value in encoder["head"].items():
+        arrays[f"enc_{key}"] = np.asarray(value, np.float32)
+    layout = learner.spaces.image_state
+    if layout is not None:
+        arrays["image_key"] = np.asarray(layout.image_key)
+        arrays["obs_keys"] = np.asarray(list(layout.state_keys))
+        arrays["obs_key_sizes"] = np.asarray(layout.state_sizes, np.int64)
     return arrays
 
 
@@ -160,9 +183,9 @@ class _Graph:
         self.nodes: list[Any] = []
         self.constants: dict[str, Any] = {}
 
-    def const(self, name: str, value: np.ndarray | float) -> str:
+    def const(self, name: str, value: np.ndarray | float, dtype: Any = np.float32) -> str:
         if name not in self.constants:
-            array = np.asarray(value, np.float32)
+            array = np.asarray(value, dtype)
             self.constants[name] = self.onnx.numpy_helper.from_array(array, name)
         return name
 
@@ -188,14 +211,51 @@ def _onnx_activation(g: _Graph, name: str, x: str) -> str:
     raise SoftacError(f"cannot export activation '{name}'")
 
 
+def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
+    """softac.encoder.encode on uint8 frame stacks [batch, k, h, w, c]: the frames laid along the channels
+    (ONNX's Conv takes [batch, channels, h, w]), the convolutions, the features flattened in JAX's [h, w,
+    channels] order, the linear layer, LayerNorm as JAX computes it, tanh."""
+    onnx = g.onnx
+    k, height, width, channels = (int(n) for n in arrays["image_shape"])
+    x = g.op("Sub", g.op("Div", g.op("Cast", images, to=onnx.TensorProto.FLOAT), g.const("pixel_scale", 255.0)),
+             g.const("pixel_offset", 0.5))
+    x = g.op("Reshape", g.op("Transpose", x, perm=[0, 1, 4, 2, 3]),
+             g.const("stacked_shape", [-1, k * channels, height, width], np.int64))
+    for i, stride in enumerate(int(n) for n in arrays["conv_strides"]):
+        w = np.ascontiguousarray(np.transpose(arrays[f"conv{i}_w"], (3, 2, 0, 1)))  # HWIO -> OIHW
+        x = g.op("Relu", g.op("Conv", x, g.const(f"conv{i}_w", w), g.const(f"conv{i}_b", arrays[f"conv{i}_b"]),
+                              strides=[stride, stride]))
+    x = g.op("Reshape", g.op("Transpose", x, perm=[0, 2, 3, 1]), g.const("flat_shape", [0, -1], np.int64))
+    h = g.op("Add", g.op("MatMul", x, g.const("enc_w", arrays["enc_w"])), g.const("enc_b", arrays["enc_b"]))
+    centred = g.op("Sub", h, g.op("ReduceMean", h, axes=[-1], keepdims=1))
+    variance = g.op("ReduceMean", g.op("Mul", centred, centred), axes=[-1], keepdims=1)
+    from softac.encoder import LN_EPS
+
+    inv_std = g.op("Reciprocal", g.op("Sqrt", g.op("Add", variance, g.const("ln_eps", LN_EPS))))
+    normed = g.op("Add", g.op("Mul", g.op("Mul", centred, inv_std), g.const("enc_ln_scale", arrays["enc_ln_scale"])),
+                  g.const("enc_ln_bias", arrays["enc_ln_bias"]))
+    return g.op("Tanh", normed)
+
+
 def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     """The graph of export_numpy.policy_forward: input `obs` [batch, obs_dim] (for a dict-observing env, one
     input per key, [batch, size] each, concatenated in the flat observation's order), output `action`
-    [batch, act_dim]."""
+    [batch, act_dim]. An image agent's input `obs` is uint8 frame stacks [batch, k, h, w, c]; for an image
+    beside state values, the image key's input is those and each state key's [batch, size] float32."""
     onnx = require_onnx()
     g = _Graph(onnx)
     obs_dim = arrays["w0"].shape[0]
-    if "obs_keys" in arrays:
+    if "image_shape" in arrays:
+        image_input = str(arrays.get("image_key", "obs"))
+        stack = ["batch", *(int(n) for n in arrays["image_shape"])]
+        inputs = [onnx.helper.make_tensor_value_info(image_input, onnx.TensorProto.UINT8, stack)]
+        x = _onnx_encoder(g, arrays, image_input)
+        if "obs_keys" in arrays:
+            keys = [str(k) for k in arrays["obs_keys"]]
+            inputs += [onnx.helper.make_tensor_value_info(k, onnx.TensorProto.FLOAT, ["batch", int(n)])
+                       for k, n in zip(keys, arrays["obs_key_sizes"])]
+            x = g.op("Concat", x, *keys, axis=1)
+    elif "obs_keys" in arrays:
         keys = [str(k) for k in arrays["obs_keys"]]
         inputs = [onnx.helper.make_tensor_value_info(k, onnx.TensorProto.FLOAT, ["batch", int(n)])
                   for k, n in zip(keys, arrays["obs_key_sizes"])]
@@ -267,9 +327,6 @@ def export_policy(agent_or_path: Any, path: str | Path | None = None, format: st
     if learner.config.network != "mlp":
         raise SoftacError(f"export covers MLP actors; this agent's are network={learner.config.network} "
                           "(load it with softac.SAC.load and call predict instead)")
-    if learner.spaces.image_shape is not None:
-        raise SoftacError("export covers agents that observe vectors; this one observes images (load it with "
-                          "softac.SAC.load and call predict instead)")
     arrays = policy_arrays(learner, step)
     data = numpy_bytes(arrays) if format == "numpy" else onnx_model(arrays).SerializeToString()
     path.parent.mkdir(parents=True, exist_ok=True)

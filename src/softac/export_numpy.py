@@ -4,7 +4,8 @@ This module imports nothing but NumPy, so it can be copied into any project:
 
     params = dict(np.load("policy.npz"))
     action = policy_forward(params, obs)   # obs [obs_dim] or [batch, obs_dim]; action in the env's bounds
-                                           # (a dict env's obs: the dict, or a dict of batches)
+                                           # (a dict env's obs: the dict, or a dict of batches; an image
+                                           # agent's: uint8 frame stacks [k, h, w, c] or [batch, k, h, w, c])
 
 policy.npz holds
     obs_mean, obs_std, obs_clip   float32: observation normalisation, only when the run had obs_norm
@@ -19,7 +20,14 @@ policy.npz holds
     action_low, action_high       float32: the env's action bounds
     activation                    the hidden activation's name: relu, tanh, elu or gelu
     obs_keys, obs_key_sizes       only for envs that observe a dict (goal envs): its keys in the order the
-                                  flat observation concatenates them, and each one's size
+                                  flat observation concatenates them, and each one's size (beside an image:
+                                  the state keys, after the encoder's features)
+    image_shape                   int64 [k, h, w, c], only for image agents: the frame stacks they take
+                                  (uint8, channels-last, oldest frame first), and then:
+    conv_strides, convI_w, convI_b  the encoder's convolutions (3x3, HWIO weights, no padding, ReLU)
+    enc_w, enc_b, enc_ln_scale,   its linear layer, LayerNorm (eps 1e-5) and tanh
+    enc_ln_bias
+    image_key                     only for an image beside state values: the dict key of the image
 and, for the record, env_id, step (the checkpoint's env step) and softac_version.
 """
 
@@ -64,8 +72,42 @@ def flat_observation(params: dict, obs) -> np.ndarray:
     return np.concatenate([p.reshape(len(p), n) for p, n in zip(parts, sizes)], axis=1)
 
 
+def conv2d(x: np.ndarray, w: np.ndarray, stride: int) -> np.ndarray:
+    """A VALID convolution (cross-correlation) of images [batch, h, w, c] with HWIO weights, in float32."""
+    kh, kw = w.shape[:2]
+    windows = np.lib.stride_tricks.sliding_window_view(x, (kh, kw), axis=(1, 2))[:, ::stride, ::stride]
+    return np.tensordot(windows, w, axes=([3, 4, 5], [2, 0, 1]))  # windows: [batch, h', w', c, kh, kw]
+
+
+def encoded(params: dict, obs) -> np.ndarray:
+    """An image agent's actor input: the encoder's features of uint8 frame stacks [batch, k, h, w, c] (or one
+    [k, h, w, c]), followed, for an image beside state values (a dict), by the state keys' values."""
+    state = None
+    if isinstance(obs, dict):
+        image = np.asarray(obs[str(params["image_key"])], np.uint8)
+        state = flat_observation(params, {k: v for k, v in obs.items() if k != str(params["image_key"])})
+    else:
+        image = np.asarray(obs, np.uint8)
+    k, height, width, channels = (int(n) for n in params["image_shape"])
+    stacks = image.reshape(-1, k, height, width, channels)
+    x = np.moveaxis(stacks, 1, 3).reshape(len(stacks), height, width, k * channels)  # frames along the channels
+    x = x.astype(np.float32) / np.float32(255.0) - np.float32(0.5)
+    for i, stride in enumerate(params["conv_strides"]):
+        x = np.maximum(conv2d(x, params[f"conv{i}_w"], int(stride)) + params[f"conv{i}_b"], 0)
+    h = x.reshape(len(x), -1) @ params["enc_w"] + params["enc_b"]
+    centred = h - h.mean(axis=-1, keepdims=True)
+    inv_std = np.float32(1.0) / np.sqrt((centred * centred).mean(axis=-1, keepdims=True) + np.float32(1e-5))
+    features = np.tanh(centred * inv_std * params["enc_ln_scale"] + params["enc_ln_bias"])
+    return features if state is None else np.concatenate([features, state.reshape(len(features), -1)], axis=1)
+
+
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
+    if "image_shape" in params:
+        single = np.ndim(obs[str(params["image_key"])] if isinstance(obs, dict) else obs) == 4
+        actions = policy_forward({k: v for k, v in params.items() if k != "image_shape" and k != "obs_keys"},
+                                 encoded(params, obs))
+        return actions[0] if single else actions
     x = flat_observation(params, obs)
     if "obs_mean" in params:
         clip = params["obs_clip"]

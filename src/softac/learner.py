@@ -39,7 +39,7 @@ def network_parameters(in_dim: int, hidden: list[int], out_dim: int, network: st
 
 
 def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5,
-                       image_shape: tuple[int, int, int, int] | None = None) -> None:
+                       image_shape: tuple[int, int, int, int] | None = None, image_state_dim: int = 0) -> None:
     """Refuse networks and batches the machine cannot hold, before allocating anything."""
     from softac.buffer import _human, available_memory_bytes
 
@@ -48,16 +48,18 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     batch_row = ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
     encoder, conv_activations = 0, 0
     if image_shape is not None:  # uint8 images in the batch; the networks read the encoder's features
-        from softac.encoder import conv_output_size, encoder_parameters, smallest_image, stacked_image_shape
+        from softac.encoder import (conv_output_size, encoder_parameters, image_only_shape, smallest_image,
+                                    stacked_image_shape)
 
-        _, h, w, _ = image_shape
+        _, h, w, _ = image_only_shape(image_shape, image_state_dim)
         if min(h, w) < smallest_image():
             raise SoftacError(f"image observations of {h}x{w} are smaller than the encoder's smallest input, "
                               f"{smallest_image()}x{smallest_image()}; raise pixel_size")
         # two uint8 frame stacks a row (obs_dim bytes each) where ReplayBuffer's row holds two float32 vectors
         batch_row += obs_dim * (2 - 8)
-        obs_dim = config.encoder_features
-        encoder = encoder_parameters(stacked_image_shape(image_shape), config.encoder_channels,
+        obs_dim = config.encoder_features + image_state_dim
+        encoder = encoder_parameters(stacked_image_shape(image_only_shape(image_shape, image_state_dim)),
+                                     config.encoder_channels,
                                      config.encoder_features)
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
         conv_activations = 4 * 2 * 4 * conv_output_size(h) * conv_output_size(w) * config.encoder_channels
@@ -86,13 +88,14 @@ class Learner:
         if config.obs_norm and spaces.image_shape is not None:  # before anything is built or compiled
             raise SoftacError("obs_norm normalises vector observations; this env's are images, which the encoder "
                               "scales to [-0.5, 0.5]: set obs_norm=false")
-        check_model_memory(config, spaces.obs_dim, spaces.act_dim, image_shape=spaces.image_shape)
+        check_model_memory(config, spaces.obs_dim, spaces.act_dim, image_shape=spaces.image_shape,
+                           image_state_dim=spaces.image_state_dim)
         from softac import sac
 
         self.config, self.spaces = config, spaces
         self.Batch = sac.Batch
         self.functions: SACFunctions = sac.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high,
-                                                 spaces.image_shape)
+                                                 spaces.image_shape, spaces.image_state_dim)
         self.scaler = self.functions.scaler
         self.state: SACState = self.functions.init(config.seed)
         self.totals: dict[str, Any] | None = None  # metric sums since the last take_metrics(), on the device
@@ -124,6 +127,8 @@ class Learner:
         it was one. A dict observation (one, or a dict of batches) is flattened in its space's key order, as the
         training envs' were."""
         image = self.spaces.image_shape
+        if image is not None and isinstance(obs, dict):
+            obs = self.pack_image_and_state(obs)
         if image is not None:
             obs = np.asarray(obs)
             single = obs.shape == image
@@ -141,6 +146,23 @@ class Learner:
         if batch.shape[1] != self.spaces.obs_dim:
             raise SoftacError(f"observation has {batch.shape[1]} values; this agent expects {self.spaces.obs_dim}")
         return batch, single
+
+    def pack_image_and_state(self, obs: dict[str, Any]) -> np.ndarray:
+        """A dict observation of an image and state values (one, or a dict of batches) as the frame stacks the
+        training envs make (pixels.ImageWithState): the image key holds a frame stack [k, h, w, c] (or one [h, w, c]
+        frame with frame_stack 1; channels-first where the env gives them so), the state keys their current values."""
+        layout = self.spaces.image_state
+        if layout is None:
+            raise SoftacError("this agent's env observes images alone, not a dict of an image and state values")
+        k, _, _, channels = self.spaces.image_shape
+        images = layout.image(obs[layout.image_key]) if layout.image_key in obs else None
+        state = layout.state(obs)
+        if images is not None and images.ndim == 3 and k == 1:
+            images = images[None]  # frame_stack 1: one frame is the stack
+        if images is None or images.ndim not in (4, 5) or state.shape[-1] != layout.state_dim:
+            raise SoftacError(f"observation dict's {layout.image_key!r} must hold frame stacks [{k}, h, w, {channels}] "
+                              f"(one, or a batch) and its state keys {layout.state_dim} values in all")
+        return layout.pack(images, np.broadcast_to(state[..., None, :], (*images.shape[:-3], layout.state_dim)))
 
     # ---- acting -------------------------------------------------------------------------------------
 

@@ -8,6 +8,13 @@ made at that size where the renderer takes one: Gymnasium's MuJoCo envs and the 
 episode starts with k copies of its first frame, as Gymnasium's FrameStackObservation pads). That layout keeps
 each frame contiguous: the replay buffer stores and gathers whole frames, and the encoder lays the stack out
 along the channels on the device.
+
+A dict observation of one image beside state values (a robot's camera and its joint readings) is carried as one
+uint8 frame too (`ImageWithState`): the image's rows, then rows holding the state vector's float32 bytes
+(the other keys in the space's order, each flattened; zero-padded to whole rows). Stacked, stored, sent to env
+workers and checkpointed like any frame, the state rides along at one row or two per frame; the learner reads
+the newest frame's state bytes back as float32 (`softac.encoder.split_image_and_state`) and puts the values
+beside the encoder's features.
 """
 
 from __future__ import annotations
@@ -34,6 +41,22 @@ def is_image_space(space: gym.Space) -> bool:
 def is_frame_stack_space(space: gym.Space) -> bool:
     """A stack of images as FrameStack makes it: a uint8 Box [k, h, w, c]."""
     return isinstance(space, gym.spaces.Box) and space.dtype == np.uint8 and len(space.shape) == 4
+
+
+def image_key_of(space: gym.Space) -> str | None:
+    """The key of a Dict space's one image subspace (None for a Dict without one, or any other space)."""
+    if not isinstance(space, gym.spaces.Dict):
+        return None
+    keys = [key for key, sub in space.spaces.items() if is_image_space(sub)]
+    if len(keys) > 1:
+        raise EnvError(f"the observation dict has {len(keys)} image keys ({', '.join(keys)}); softac's encoder takes "
+                       "one (stack the cameras into one image's channels, or drop all but one)")
+    return keys[0] if keys else None
+
+
+def state_rows(state_dim: int, width: int, channels: int) -> int:
+    """The rows of a [*, width, channels] uint8 frame that hold `state_dim` float32 values."""
+    return -(-4 * state_dim // (width * channels))
 
 
 def channels_first(shape: tuple[int, ...]) -> bool:
@@ -69,6 +92,75 @@ class ChannelsLast(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(np.transpose(observation, (1, 2, 0)))
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageStateLayout:
+    """How `ImageWithState` packs a dict observation: the image key, the state keys in the space's order with
+    their flattened sizes, and whether the image comes channels-first."""
+    image_key: str
+    state_keys: tuple[str, ...]
+    state_sizes: tuple[int, ...]
+    channels_first: bool
+
+    @classmethod
+    def of(cls, space: gym.spaces.Dict) -> ImageStateLayout:
+        image_key = image_key_of(space)
+        keys = tuple(key for key in space.spaces if key != image_key)
+        odd = [key for key in keys if not isinstance(space[key], gym.spaces.Box)]
+        if odd:
+            raise EnvError(f"beside its image, the observation dict's {', '.join(odd)} are not Box spaces; softac "
+                           "reads the state beside an image from Box keys only")
+        sizes = tuple(int(gym.spaces.flatdim(space[key])) for key in keys)
+        return cls(image_key, keys, sizes, channels_first(space[image_key].shape))
+
+    @property
+    def state_dim(self) -> int:
+        return sum(self.state_sizes)
+
+    def image(self, image: Any) -> np.ndarray:
+        """An image (or a stack, or a batch: the last three axes) as uint8 channels-last."""
+        image = np.asarray(image, np.uint8)
+        return np.moveaxis(image, -3, -1) if self.channels_first else image
+
+    def state(self, obs: dict[str, Any]) -> np.ndarray:
+        """The state keys' values as one float32 vector, or [batch, state_dim] for a dict of batches."""
+        missing = [key for key in (self.image_key, *self.state_keys) if key not in obs]
+        if missing:
+            raise EnvError(f"observation dict lacks {', '.join(missing)}; this agent expects keys "
+                           f"{', '.join((self.image_key, *self.state_keys))}")
+        parts = [np.asarray(obs[key], np.float32) for key in self.state_keys]
+        if all(part.size == size for part, size in zip(parts, self.state_sizes)):
+            return np.concatenate([part.reshape(-1) for part in parts] or [np.zeros(0, np.float32)])
+        batch = len(parts[0])
+        return np.concatenate([part.reshape(batch, size) for part, size in zip(parts, self.state_sizes)], axis=1)
+
+    def pack(self, image: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Channels-last images [..., h, w, c] and state vectors [..., state_dim] as frames [..., h + r, w, c]:
+        r rows hold the state's float32 bytes (little-endian, as x86 and ARM hosts and XLA read them)."""
+        *lead, height, width, channels = image.shape
+        rows = state_rows(self.state_dim, width, channels)
+        raw = np.zeros((*lead, rows * width * channels), np.uint8)
+        raw[..., : 4 * self.state_dim] = np.ascontiguousarray(state, "<f4").view(np.uint8).reshape(*lead, -1)
+        return np.concatenate([image, raw.reshape(*lead, rows, width, channels)], axis=-3)
+
+
+class ImageWithState(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
+    """A dict observation of one image (HxWxC or CxHxW uint8) and state values as one frame [h + r, w, c]: the
+    image, then r rows of the state vector's float32 bytes (`ImageStateLayout.pack`)."""
+
+    def __init__(self, env: gym.Env):
+        gym.utils.RecordConstructorArgs.__init__(self)
+        gym.ObservationWrapper.__init__(self, env)
+        self.layout = ImageStateLayout.of(env.observation_space)
+        shape = env.observation_space[self.layout.image_key].shape
+        height, width, channels = (shape[1], shape[2], shape[0]) if self.layout.channels_first else shape
+        self.image_height = int(height)
+        rows = state_rows(self.layout.state_dim, width, channels)
+        self.observation_space = gym.spaces.Box(0, 255, (height + rows, width, channels), np.uint8)
+
+    def observation(self, observation: dict[str, Any]) -> np.ndarray:
+        return self.layout.pack(self.layout.image(observation[self.layout.image_key]), self.layout.state(observation))
 
 
 class PixelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -150,13 +242,18 @@ class FrameStack(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.frames = [np.array(frame, np.uint8) for frame in stacked]
 
 
-def frame_stack_of(env: gym.Env) -> FrameStack | None:
-    """The FrameStack wrapper around `env` (the outermost), or None."""
+def wrapper_of(env: gym.Env, cls: type) -> Any:
+    """The outermost wrapper of class `cls` around `env`, or None."""
     while isinstance(env, gym.Wrapper):
-        if isinstance(env, FrameStack):
+        if isinstance(env, cls):
             return env
         env = env.env
     return None
+
+
+def frame_stack_of(env: gym.Env) -> FrameStack | None:
+    """The FrameStack wrapper around `env` (the outermost), or None."""
+    return wrapper_of(env, FrameStack)
 
 
 def _wrapper_spec(cls: type, **kwargs: Any) -> gym.envs.registration.WrapperSpec:
@@ -165,14 +262,16 @@ def _wrapper_spec(cls: type, **kwargs: Any) -> gym.envs.registration.WrapperSpec
 
 def with_image_wrappers(source: Any, observation_space: gym.Space, pixels: bool, size: int, frame_stack: int) -> Any:
     """`source` (a spec, or an instance) whose raw observations are `observation_space`, with them made images
-    where asked (pixels), turned channels-last where they are channels-first, and stacked ([frame_stack, h, w,
-    c]). A spec keeps the wrappers among its own, so copies and env workers make the env the same way. Apply
-    after ActionRepeat: a repeated action yields one frame."""
-    image = pixels or is_image_space(observation_space)
-    first = not pixels and image and channels_first(observation_space.shape)
+    where asked (pixels), turned channels-last where they are channels-first, a dict of an image and state values
+    packed into one frame (ImageWithState), and stacked ([frame_stack, h, w, c]). A spec keeps the wrappers
+    among its own, so copies and env workers make the env the same way. Apply after ActionRepeat: a repeated
+    action yields one frame."""
+    with_state = not pixels and image_key_of(observation_space) is not None
+    first = not pixels and is_image_space(observation_space) and channels_first(observation_space.shape)
     if isinstance(source, gym.Env):
         env = PixelObservation(source, size) if pixels else source
         env = ChannelsLast(env) if first else env
+        env = ImageWithState(env) if with_state else env
         return FrameStack(env, frame_stack)
     spec, wrappers = source, list(source.additional_wrappers)
     if pixels:
@@ -183,5 +282,7 @@ def with_image_wrappers(source: Any, observation_space: gym.Space, pixels: bool,
         wrappers.append(_wrapper_spec(PixelObservation, size=size))
     if first:
         wrappers.append(_wrapper_spec(ChannelsLast))
+    if with_state:
+        wrappers.append(_wrapper_spec(ImageWithState))
     wrappers.append(_wrapper_spec(FrameStack, k=frame_stack))
     return dataclasses.replace(spec, additional_wrappers=tuple(wrappers))

@@ -22,7 +22,8 @@ import optax
 
 from softac.config import SACConfig
 from softac.cpus import cpu_has_bf16
-from softac.encoder import encode, init_encoder, random_shift, stack_channels, stacked_image_shape
+from softac.encoder import (encode, image_only_shape, init_encoder, random_shift, split_image_and_state, stack_channels,
+                            stacked_image_shape)
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
@@ -69,6 +70,7 @@ class UpdateSettings:
     weight_norm: bool
     encoder_tx: optax.GradientTransformation | None = None  # image observations: the encoder's optimiser
     augment_pad: int = 0  # image observations: DrQ's random shift (pixels of padding)
+    image_state_dim: int = 0  # image observations: state values packed beside each image (pixels.ImageWithState)
 
     @property
     def has_targets(self) -> bool:
@@ -114,20 +116,28 @@ def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings
 # step's features stopped, computed before the encoder moved, as DrQ-v2 does: the actor's gradient through a
 # shared encoder destabilises it (SAC-AE, Yarats et al. 2021). Each pass augments with its own random shift.
 
-def features_of(encoder: Any, obs: jax.Array) -> jax.Array:
-    """What actor and critics read: the encoder's features of image observations ([batch, k, h, w, c] frame
-    stacks), or vector observations as they are (no encoder)."""
-    return encode(encoder, stack_channels(obs)) if jax.tree_util.tree_leaves(encoder) else obs
+def image_features(encoder: Any, stacks: jax.Array, state_dim: int = 0, key: jax.Array | None = None,
+                   pad: int = 0) -> jax.Array:
+    """The encoder's features of frame stacks [batch, k, h, w, c], followed by the state values the frames carry
+    (`state_dim` of them); with `key`, each observation shifted at random first (one shift for all its frames)."""
+    images, state = split_image_and_state(stacks, state_dim)
+    images = stack_channels(images)
+    features = encode(encoder, images if key is None else random_shift(images, key, pad))
+    return features if state is None else jnp.concatenate([features, state], axis=-1)
 
 
-def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, pad: int) -> Batch:
+def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0) -> jax.Array:
+    """What actor and critics read: `image_features` of image observations, or vector observations as they are
+    (no encoder)."""
+    return image_features(encoder, obs, state_dim) if jax.tree_util.tree_leaves(encoder) else obs
+
+
+def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings) -> Batch:
     obs_key, next_key = jax.random.split(key)
-
-    def augmented(stacks: jax.Array, k: jax.Array) -> jax.Array:
-        return random_shift(stack_channels(stacks), k, pad)  # one shift for all of an observation's frames
-
-    return batch._replace(obs=encode(encoder, augmented(batch.obs, obs_key)),
-                          next_obs=jax.lax.stop_gradient(encode(encoder, augmented(batch.next_obs, next_key))))
+    return batch._replace(
+        obs=image_features(encoder, batch.obs, s.image_state_dim, obs_key, s.augment_pad),
+        next_obs=jax.lax.stop_gradient(image_features(encoder, batch.next_obs, s.image_state_dim, next_key,
+                                                      s.augment_pad)))
 
 
 def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings,
@@ -137,7 +147,7 @@ def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSe
     augment_key, loss_key = jax.random.split(key)
 
     def loss(critic: Any, encoder: Any):
-        encoded = encoded_batch(encoder, batch, augment_key, s.augment_pad)
+        encoded = encoded_batch(encoder, batch, augment_key, s)
         value, (metrics, critic_stats) = soft_q_loss(
             critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
             encoded, loss_key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s),
@@ -275,27 +285,29 @@ def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | No
 
 # ---- acting ------------------------------------------------------------------------------------------
 
-# Each takes the encoder last (`()` for vector observations): the policy reads `features_of(encoder, obs)`.
+# Each takes the encoder last (`()` for vector observations): the policy reads `features_of(encoder, obs,
+# state_dim)`, `state_dim` bound when built.
 
 def act(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
-        key: jax.Array, encoder: Any = ()) -> tuple[jax.Array, jax.Array, jax.Array]:
+        key: jax.Array, encoder: Any = (), state_dim: int = 0) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(action in [-1, 1], the same action in env bounds, next key): one call per env step."""
     key, sample_key = jax.random.split(key)
-    action = policy.sample(actor, actor_stats, features_of(encoder, obs), sample_key)[0]
+    action = policy.sample(actor, actor_stats, features_of(encoder, obs, state_dim), sample_key)[0]
     return action, scaler.to_env(action, jnp), key
 
 
 def act_with_noise(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
-                   noise: jax.Array, encoder: Any = ()) -> tuple[jax.Array, jax.Array]:
+                   noise: jax.Array, encoder: Any = (), state_dim: int = 0) -> tuple[jax.Array, jax.Array]:
     """(action in [-1, 1], in env bounds) for given standard-normal noise (`Policy.with_noise`: coloured noise
     or gSDE's exploration matrices, softac.exploration)."""
-    action = policy.with_noise(actor, actor_stats, features_of(encoder, obs), noise)
+    action = policy.with_noise(actor, actor_stats, features_of(encoder, obs, state_dim), noise)
     return action, scaler.to_env(action, jnp)
 
 
-def act_deterministic(policy: Policy, actor: Any, actor_stats: Any, obs: jax.Array, encoder: Any = ()) -> jax.Array:
+def act_deterministic(policy: Policy, actor: Any, actor_stats: Any, obs: jax.Array, encoder: Any = (),
+                      state_dim: int = 0) -> jax.Array:
     """The mean action in [-1, 1]."""
-    return policy.deterministic(actor, actor_stats, features_of(encoder, obs))
+    return policy.deterministic(actor, actor_stats, features_of(encoder, obs, state_dim))
 
 
 # ---- the state: fresh, and reset -----------------------------------------------------------------------
@@ -329,12 +341,14 @@ def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random
             stack([init_norm_stats(critic_sizes_)] * c.n_critics))
 
 
-def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | None, rng: np.random.Generator) -> Any:
-    """A new image encoder for frame stacks of `image_shape` [k, h, w, c] (drawn after the networks, from the
-    same generator), or () for vector observations."""
+def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | None, rng: np.random.Generator,
+                  state_dim: int = 0) -> Any:
+    """A new image encoder for frame stacks of `image_shape` [k, h, w, c] that carry `state_dim` values (drawn
+    after the networks, from the same generator), or () for vector observations."""
     if image_shape is None:
         return ()
-    return init_encoder(rng, stacked_image_shape(image_shape), config.encoder_channels, config.encoder_features)
+    return init_encoder(rng, stacked_image_shape(image_only_shape(image_shape, state_dim)), config.encoder_channels,
+                        config.encoder_features)
 
 
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
@@ -378,7 +392,8 @@ def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
     return float(config.target_entropy)
 
 
-def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: bool = False) -> UpdateSettings:
+def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: bool = False,
+                    image_state_dim: int = 0) -> UpdateSettings:
     c = config
     norm = BatchRenorm(c.batch_norm_momentum) if c.crossq else None
     # critics with batch renormalisation stay vmapped: unrolled, they were no faster (docs/performance.md)
@@ -396,7 +411,8 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
         alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm,
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
-        encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad)
+        encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad,
+        image_state_dim=image_state_dim)
 
 
 class SACFunctions(NamedTuple):
@@ -413,13 +429,15 @@ class SACFunctions(NamedTuple):
 
 
 def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None = None,
-          high: np.ndarray | None = None, image_shape: tuple[int, int, int, int] | None = None) -> SACFunctions:
+          high: np.ndarray | None = None, image_shape: tuple[int, int, int, int] | None = None,
+          image_state_dim: int = 0) -> SACFunctions:
     """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1]). With
-    `image_shape` (uint8 frame stacks [k, h, w, c]) an encoder turns them into `encoder_features` values first."""
+    `image_shape` (uint8 frame stacks [k, h, w, c]) an encoder turns them into `encoder_features` values first,
+    followed by the `image_state_dim` state values the frames carry."""
     matmul_dtype = resolve_matmul_dtype(config.matmul_dtype)
-    s = update_settings(config, act_dim, matmul_dtype, images=image_shape is not None)
+    s = update_settings(config, act_dim, matmul_dtype, images=image_shape is not None, image_state_dim=image_state_dim)
     if image_shape is not None:
-        obs_dim = config.encoder_features
+        obs_dim = config.encoder_features + image_state_dim
     scaler = ActionScaler(np.full(act_dim, -1.0) if low is None else low, np.ones(act_dim) if high is None else high)
     # one compiled call (cached across processes) instead of dozens of eager ops
     new_state = jax.jit(partial(assemble, s, config.alpha))
@@ -428,7 +446,8 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         rng = np.random.default_rng([seed, 0x5AC])
         actor, critic, actor_stats, critic_stats = fresh_networks(config, obs_dim, act_dim, rng)
         key = rng.integers(0, 2**32, 2, dtype=np.uint32)  # a raw PRNGKey
-        return new_state(actor, critic, key, actor_stats, critic_stats, fresh_encoder(config, image_shape, rng))
+        return new_state(actor, critic, key, actor_stats, critic_stats,
+                         fresh_encoder(config, image_shape, rng, image_state_dim))
 
     # Periodic resets (Nikishin et al. 2022, "The Primacy Bias in Deep RL"; D'Oro et al. 2023, SR-SAC):
     # new actor, critics, targets and their optimisers, drawn from the k-th reset's own seed; the replay
@@ -438,16 +457,16 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         rng = np.random.default_rng([seed, 0x5AC, k])
         networks = fresh_networks(config, obs_dim, act_dim, rng)
         fresh = new_state(networks[0], networks[1], state.key, networks[2], networks[3],
-                          fresh_encoder(config, image_shape, rng))
+                          fresh_encoder(config, image_shape, rng, image_state_dim))
         return fresh._replace(log_alpha=state.log_alpha, alpha_opt=state.alpha_opt, n_updates=state.n_updates)
 
     return SACFunctions(
         init=init,
         reset=reset,
         update=jax.jit(partial(update, s), donate_argnums=(0, 2)),
-        act=jax.jit(partial(act, s.policy, scaler)),
-        act_deterministic=jax.jit(partial(act_deterministic, s.policy)),
-        act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler)),
+        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim)),
+        act_deterministic=jax.jit(partial(act_deterministic, s.policy, state_dim=image_state_dim)),
+        act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler, state_dim=image_state_dim)),
         policy=s.policy,
         target_entropy=s.target_entropy,
         scaler=scaler,
