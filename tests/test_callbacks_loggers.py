@@ -218,12 +218,12 @@ def test_wandb_and_mlflow_offline_get_the_metrics_and_a_resume_continues_their_r
 
 
 def _readme_block(containing: str) -> str:
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    readme = (Path(__file__).resolve().parent.parent / "docs" / "guides" / "callbacks-and-loggers.md").read_text()
     blocks = [b.split("```", 1)[0] for b in readme.split("```python\n")[1:]]
     return next(b for b in blocks if containing in b)
 
 
-def test_the_readme_curriculum_example_changes_the_training_envs_only(tiny):
+def test_the_guides_curriculum_example_changes_the_training_envs_only(tiny):
     code = _readme_block("class HeavierPole").split("agent.learn(")[0]  # the class, not the 30k-step run
     namespace: dict = {}
     exec(code, namespace)

@@ -63,7 +63,8 @@ def test_env_workers_must_be_between_0_and_n_envs(tiny):
 @pytest.mark.parametrize("argv", [["--set", "env_workers=4", "--n-envs", "4"], ["--env-workers", "4", "--set", "n_envs=4"],
                                   ["--set", "env_workers=4", "n_envs=4"]])
 def test_env_workers_and_n_envs_are_checked_together_whichever_option_sets_them(argv):
-    from softac.cli import _resolve_train_config, build_parser
+    from softac.cli import build_parser
+    from softac.commands import _resolve_train_config
 
     config = _resolve_train_config(build_parser().parse_args(["train", "--env", "InvertedPendulum-v5", *argv]))
     assert (config.n_envs, config.env_workers) == (4, 4)

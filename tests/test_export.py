@@ -251,9 +251,8 @@ def test_the_numpy_forward_pass_imports_only_numpy():
     assert imported == {"numpy", "__future__"}
 
 
-def test_the_readme_forward_pass_is_the_modules(tmp_path):
-    readme = (TESTS.parent / "README.md").read_text()
-    section = readme.split("## Exporting a policy")[1].split("\n## ")[0]
+def test_the_export_guides_forward_pass_is_the_modules(tmp_path):
+    section = (TESTS.parent / "docs" / "guides" / "export.md").read_text()
     code = next(block for block in section.split("```python\n") if "def policy_forward" in block).split("```")[0]
     readme_module = {}
     exec(code, readme_module)
@@ -270,10 +269,10 @@ def test_the_readme_forward_pass_is_the_modules(tmp_path):
     obs = rng.normal(loc=[0.1, 10.0], scale=[0.3, 15.0], size=(300, 2)).astype(np.float32)
     with np.load(export_policy(agent, tmp_path / "policy.npz", "numpy")) as npz:
         actions = readme_module["policy_forward"](dict(npz), obs)
-    assert_within_bound(actions, *action_bound(agent, obs), "the README's forward pass")
+    assert_within_bound(actions, *action_bound(agent, obs), "the export guide's forward pass")
     assert_predict_acts_as_the_network(agent, obs)
 
-    # bf16 layers and CrossQ's kept-apart normalisation: the README's pass is the module's to the bit
+    # bf16 layers and CrossQ's kept-apart normalisation: the guide's pass is the module's to the bit
     from softac.export_numpy import policy_forward
 
     agent = SAC(tiny_config("Pusher-v5", crossq=True, obs_norm=True, matmul_dtype="bfloat16"))

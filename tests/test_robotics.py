@@ -1,5 +1,5 @@
 """Gymnasium-Robotics' goal envs (the [robotics] extra; issue 31): every env a preset names, and the three the
-README shows, construct with the MuJoCo the extra installs, are recognised as goal envs, restore their state
+goal-env guide shows, construct with the MuJoCo the extra installs, are recognised as goal envs, restore their state
 exactly (the goal included) and train a few steps with HER. The next MuJoCo release that breaks them fails
 here, not in a user's run."""
 
@@ -20,7 +20,7 @@ SHOWN = ("FetchReach-v4", "FetchPush-v4", "PointMaze_UMaze-v3")
 
 
 def robotics_envs() -> list[str]:
-    """The robotics env ids the presets name (as their file name or env_id), and those the README shows."""
+    """The robotics env ids the presets name (as their file name or env_id), and those the goal-env guide shows."""
     named = set(SHOWN)
     for name in preset_names():
         env_id = load_preset(name).get("env_id", name)

@@ -114,7 +114,8 @@ def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
     --preset and --set, with the sampled values in place of an override of the same key."""
     import shlex
 
-    from softac.cli import build_parser, sweep_spec_from_args
+    from softac.cli import build_parser
+    from softac.commands import sweep_spec_from_args
 
     search = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=3000, seeds=[0], preset="sb3",
                              overrides=["tau=0.01", "hidden_sizes=[64,64]", "gamma=0.98"], search="random",
@@ -222,8 +223,8 @@ def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
     assert not (tmp_path / "sweep" / "_ray").exists()
 
 
-def test_readme_lists_the_default_search_space():
-    readme = (TESTS.parent / "README.md").read_text()
+def test_the_sweep_guide_lists_the_default_search_space():
+    readme = (TESTS.parent / "docs" / "guides" / "sweeps.md").read_text()
     block = readme.split("The default search space")[1].split("```yaml\n")[1].split("```")[0]
     assert __import__("yaml").safe_load(block) == sweep.DEFAULT_SPACE
 

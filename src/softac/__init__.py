@@ -2,9 +2,9 @@
 
 from softac.config import ConfigError, SACConfig
 from softac.errors import SoftacError, TrainingInterrupted
+from softac.version import __version__
 
-__version__ = "0.1.0"
-__all__ = ["SAC", "SACConfig", "evaluate", "ConfigError", "SoftacError", "TrainingInterrupted", "__version__"]
+__all__ = ["SAC", "SACConfig", "evaluate", "show", "ConfigError", "SoftacError", "TrainingInterrupted", "__version__"]
 
 
 def __getattr__(name: str):
@@ -17,4 +17,8 @@ def __getattr__(name: str):
         from softac.evaluation import evaluate
 
         return evaluate
+    if name == "show":
+        from softac.notebook import show
+
+        return show
     raise AttributeError(name)

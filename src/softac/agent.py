@@ -76,6 +76,19 @@ class SAC:
     def buffer_bytes_per_transition(self) -> float:
         return self.collector.bytes_per_transition
 
+    def __repr__(self) -> str:
+        run = self.run_state.run_dir
+        return (f"SAC(env={self.config.env_id!r}, steps={self.num_steps}, episodes={self.num_episodes}, "
+                f"last_eval={self.run_state.last_eval if self.run_state.last_eval is None else round(self.run_state.last_eval, 2)}, "
+                f"run_dir={str(run) if run else None!r})")
+
+    def show(self, plots: bool = True, evaluations: bool = True, video: bool | None = None) -> list[Path]:
+        """In Jupyter, show the run this agent trained into: learning curve, metric grid, evaluations and a
+        video (softac.notebook.show); elsewhere, write them and print where."""
+        from softac.notebook import show
+
+        return show(self, plots=plots, evaluations=evaluations, video=video)
+
     def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
         """A fresh copy of the agent's env (what evaluate() and videos run on)."""
         return copy_env(self.env_source, render_mode, **kwargs)

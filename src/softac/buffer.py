@@ -2,38 +2,14 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from softac.errors import SoftacError
+from softac.memory import available_memory_bytes, human_bytes, transition_bytes
 
 
 class BufferMemoryError(SoftacError):
     pass
-
-
-def available_memory_bytes() -> int:
-    """MemAvailable from /proc/meminfo, else physical memory, else a large number."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 1 << 62
-
-
-def _human(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"
 
 
 def check_buffer_memory(capacity: int, bytes_each: float, memory_fraction: float = 0.8) -> None:
@@ -42,8 +18,8 @@ def check_buffer_memory(capacity: int, bytes_each: float, memory_fraction: float
     have = available_memory_bytes()
     if need > memory_fraction * have:
         raise BufferMemoryError(
-            f"replay buffer of {capacity:,} transitions needs {_human(need)} but only "
-            f"{_human(have)} is available; lower buffer_size (--set buffer_size=N)")
+            f"replay buffer of {capacity:,} transitions needs {human_bytes(need)} but only "
+            f"{human_bytes(have)} is available; lower buffer_size (--set buffer_size=N)")
 
 
 class _Ring:
@@ -126,7 +102,7 @@ class ReplayBuffer(_Ring):
 
     @staticmethod
     def bytes_per_transition(obs_dim: int, act_dim: int) -> int:
-        return 4 * (2 * obs_dim + act_dim + 2) + 1
+        return transition_bytes(obs_dim, act_dim)
 
     def add(self, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray,
             next_obs: np.ndarray, terminated: np.ndarray, done: np.ndarray | None = None) -> None:

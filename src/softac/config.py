@@ -1,7 +1,7 @@
 """SACConfig: every hyperparameter once, with its one-line doc.
 
 The command line (`--set KEY=VALUE`), the YAML presets in `presets/` and the
-README table all come from the fields below, so there is one source of truth.
+configuration reference (docs/reference/config.md) all come from the fields below, so there is one source of truth.
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ class SACConfig:
 
     @classmethod
     def markdown_table(cls) -> str:
-        """The README's table of keys, defaults and docs (`make docs` writes it there)."""
+        """The table of keys, defaults and docs in docs/reference/config.md (`make docs` writes it there)."""
         default = cls()
         rows = ["| key | default | meaning |", "| --- | --- | --- |"]
         for f in fields(cls):

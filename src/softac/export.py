@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from softac import __version__
+from softac.version import __version__
 from softac.checkpoint import is_checkpoint
 from softac.errors import SoftacError
 from softac.export_numpy import layer_count, round_bf16

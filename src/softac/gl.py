@@ -1,7 +1,9 @@
 """Headless OpenGL for MuJoCo's rendering: EGL or OSMesa, whichever can make a context here.
 
-MuJoCo (and dm_control, separately) picks its OpenGL backend from MUJOCO_GL when it is first imported, so
-`choose_gl_backend()` must run before any MuJoCo env is made in the process.
+Gymnasium's MuJoCo renderer reads MUJOCO_GL when it makes its first context, and PyOpenGL fixes its platform
+when first imported (which that first context does), so `choose_gl_backend()` must run before the process
+renders anything: the CLI calls it first, `softac.video.record` before it makes its env (a notebook that
+trained an agent can then film it). dm_control picks its own backend when imported (softac.dmc).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ def choose_gl_backend() -> str:
     chosen = os.environ.get("MUJOCO_GL")
     if chosen:
         return chosen
-    if "mujoco" in sys.modules:  # too late to choose for this process; keep what MuJoCo picked
+    if "OpenGL" in sys.modules:  # PyOpenGL fixed its platform when imported: too late to choose for this process
         return "preset"
     backend = working_gl_backend()
     if backend is None:

@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from softac.buffer import _human, _Ring, check_buffer_memory
+from softac.buffer import _Ring, check_buffer_memory
+from softac.memory import human_bytes
 from softac.errors import SoftacError
 
 
@@ -65,7 +66,7 @@ class FrameReplayBuffer(_Ring):
 
     def describe_memory(self) -> str:
         per = self.bytes_per_transition(self.obs_shape, self.act_dim, self.capacity, self.n_envs)
-        return f"{self.capacity:,} transitions x {_human(per)} = {_human(per * self.capacity)}"
+        return f"{self.capacity:,} transitions x {human_bytes(per)} = {human_bytes(per * self.capacity)}"
 
     # ---- writing ---------------------------------------------------------------------------------------
 

@@ -41,11 +41,9 @@ def network_parameters(in_dim: int, hidden: list[int], out_dim: int, network: st
 def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5,
                        image_shape: tuple[int, int, int, int] | None = None, image_state_dim: int = 0) -> None:
     """Refuse networks and batches the machine cannot hold, before allocating anything."""
-    from softac.buffer import _human, available_memory_bytes
+    from softac.memory import available_memory_bytes, human_bytes, transition_bytes
 
-    from softac.buffer import ReplayBuffer
-
-    batch_row = ReplayBuffer.bytes_per_transition(obs_dim, act_dim)
+    batch_row = transition_bytes(obs_dim, act_dim)
     encoder, conv_activations = 0, 0
     if image_shape is not None:  # uint8 images in the batch; the networks read the encoder's features
         from softac.encoder import (conv_output_size, encoder_parameters, image_only_shape, smallest_image,
@@ -76,8 +74,8 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     batch = config.batch_size * config.gradient_steps * batch_row
     need, have = parameters + activations + batch, available_memory_bytes()
     if need > fraction * have:
-        raise SoftacError(f"networks and batches need about {_human(need)} ({(actor + critics):,} parameters, "
-                          f"batch_size={config.batch_size}) but only {_human(have)} is available; "
+        raise SoftacError(f"networks and batches need about {human_bytes(need)} ({(actor + critics):,} parameters, "
+                          f"batch_size={config.batch_size}) but only {human_bytes(have)} is available; "
                           "lower hidden_sizes or batch_size")
 
 

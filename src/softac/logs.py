@@ -115,19 +115,45 @@ def _fmt(value: Any) -> Any:
     return value
 
 
-def read_csv(path: Path) -> list[dict[str, str]]:
+def read_csv(path: str | Path) -> list[dict[str, str]]:
+    path = Path(path)
     if not path.exists():
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
 
 
+def in_notebook() -> bool:
+    """Whether this process is a Jupyter kernel (IPython's kernel shell), where stderr is not a terminal yet
+    output shows live in the notebook."""
+    ipython = sys.modules.get("IPython")
+    if ipython is None:
+        return False
+    shell = ipython.get_ipython()
+    return shell is not None and type(shell).__name__ == "ZMQInteractiveShell"
+
+
+def notebook_bar_class() -> Any:
+    """tqdm's notebook bar (a live widget) when this process is a Jupyter kernel with ipywidgets, else None."""
+    if not in_notebook():
+        return None
+    try:
+        import ipywidgets  # noqa: F401  (tqdm.notebook draws with it)
+        from tqdm.notebook import tqdm as notebook_tqdm
+    except ImportError:
+        return None
+    return notebook_tqdm
+
+
 class Progress:
-    """A tqdm bar on a terminal; plain log lines every `every_s` seconds otherwise."""
+    """A tqdm bar on a terminal, tqdm's notebook bar in Jupyter (a kernel's stderr is not a terminal; a kernel
+    without ipywidgets gets the terminal bar, which Jupyter redraws in place too); plain log lines every `every_s`
+    seconds elsewhere (CI, files)."""
 
     def __init__(self, start: int, end: int, enabled: bool | None = None, every_s: float = 10.0):
         self.start, self.end = start, end
-        self.tty = sys.stderr.isatty() if enabled is None else enabled
+        notebook = enabled is not False and in_notebook()
+        self.tty = (sys.stderr.isatty() or notebook) if enabled is None else enabled
         self.every_s = every_s
         self.t0 = time.perf_counter()
         self.last_line = self.t0
@@ -136,8 +162,11 @@ class Progress:
         if self.tty:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=end - start, unit="step", dynamic_ncols=True, file=sys.stderr,
-                            bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_fmt}{postfix}]")
+            bar = (notebook_bar_class() if notebook else None) or tqdm
+            kwargs = {} if bar is not tqdm else {"dynamic_ncols": True, "file": sys.stderr}
+            self.bar = bar(total=end - start, unit="step",
+                           bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_fmt}{postfix}]",
+                           **kwargs)
 
     def update(self, step: int, **info: Any) -> None:
         for k, v in info.items():

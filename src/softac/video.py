@@ -36,6 +36,9 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
     from softac.errors import EnvError
     from softac.evaluation import EVAL_SEED_OFFSET
 
+    from softac.gl import choose_gl_backend
+
+    choose_gl_backend()  # before the env's first render: EGL or OSMesa where MUJOCO_GL leaves it open
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
     images = agent.spaces.image_shape is not None
     try:
