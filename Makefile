@@ -58,12 +58,12 @@ demo: $(STAMP) render-deps
 	@echo "  report:  $(DEMO)/report.html"
 
 # the suite on two pytest-xdist workers (the Ray sweeps on one of them, in turn: tests/conftest.py);
-# PYTEST_WORKERS=0 runs it in this one process
+# PYTEST_WORKERS=0 runs it in this one process; the 30 slowest tests are listed at the end (CI's 20-minute aim)
 PYTEST_WORKERS ?= 2
 XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
 
 test: $(TEST_STAMP) system-deps
-	$(BIN)/python -m pytest -q $(XDIST)
+	$(BIN)/python -m pytest -q $(XDIST) --durations=30
 
 # without the learning test, the kill/signal campaigns, the Ray sweeps and the bench runs (CI runs them all)
 test-fast: $(TEST_STAMP)

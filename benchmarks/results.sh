@@ -22,11 +22,13 @@
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
+#   pixels:  issue 44 from pixels on a CPU (48x48 frames, batch 32, else the drq preset): DMC cartpole-swingup at
+#            action repeat 8 and 100k frames (3 seeds), InvertedPendulum-v5 (2 seeds)
 #   robotics: issue 31's goal envs (the [robotics] extra): softac's presets (SAC + HER) beside SB3's and SBX's SAC + HER
 #            at their defaults (sb3-her, sbx-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|dmc|robotics|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|dmc|pixels|robotics|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -96,6 +98,17 @@ dmc() {
   $SOFTAC sweep --env dmc:$1 --seeds 1 --steps 50000 --preset crossq --set action_repeat=2 --out $SWEEPS/dmc-$1-softac-crossq-ar2
 }
 
+pixels() {
+  # issue 44 on a CPU: an update at 84x84 takes 1-6 s on one core here (7-20 hours a run), at 48x48 and batch 32
+  # about 0.2-0.3 s (benchmarks/update_time.py --image 3x48x48x3), so these runs use 48x48 frames and batch 32;
+  # otherwise the drq preset (DrQ's settings). cartpole-swingup at DrQ's PlaNet setting: action repeat 8,
+  # 100k frames = 12,500 agent steps
+  $SOFTAC sweep --env dmc:cartpole-swingup --seeds 3 --steps 12500 --preset drq \
+    --set action_repeat=8 pixel_size=48 batch_size=32 eval_interval=1250 --out $SWEEPS/dmc-cartpole-swingup-softac-drq-48px
+  $SOFTAC sweep --env InvertedPendulum-v5 --seeds 2 --steps 20000 --threshold 1000 --preset drq \
+    --set pixel_size=48 batch_size=32 --out $SWEEPS/InvertedPendulum-v5-softac-drq-48px
+}
+
 options() {
   # plain SAC, the env presets' settings before CrossQ
   $SOFTAC sweep --env $1 --seeds 3 --steps 100000 --preset sac-100k --out $SWEEPS/$1-softac-sac-100k
@@ -136,6 +149,7 @@ for target in $targets; do
     robotics) for env in $ROBOTICS; do robotics $env; done ;;
     dmc) for task in $DMC; do dmc $task; done ;;
     dmc:*) dmc ${target#dmc:} ;;
+    pixels) pixels ;;
     robotics:*) robotics ${target#robotics:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target
        elif [[ " $FALLBACK " == *" $target "* ]]; then fallback $target
