@@ -352,7 +352,7 @@ def test_state_values_packed_beside_an_image_come_back_bit_for_bit():
     for state in values:
         image = rng.integers(0, 256, (3, 5, 4), dtype=np.uint8)  # [c, h, w]
         obs = {"camera": image, "joints": state[:6].reshape(2, 3), "touch": state[6:]}
-        frame = layout.pack(layout.image(obs["camera"]), layout.state(obs))
+        frame = layout.pack(layout.image(obs["camera"]), layout.state_vector(obs))
         assert frame.shape == (5 + 3, 4, 3)
         stacks.append(np.stack([np.zeros_like(frame), frame]))  # k = 2: the newest frame's state is read
         images.append(np.transpose(image, (1, 2, 0)))

@@ -27,6 +27,7 @@ from softac.rundir import write_atomic
 from softac.snapshot import load_learner
 
 if TYPE_CHECKING:
+    from softac.her import DictLayout
     from softac.learner import Learner
 
 FILE_NAMES = {"onnx": "policy.onnx", "numpy": "policy.npz"}
@@ -136,11 +137,8 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     arrays["activation"] = np.asarray(learner.config.activation)
     arrays["action_low"] = learner.scaler.low.astype(np.float32)
     arrays["action_high"] = learner.scaler.high.astype(np.float32)
-    layout = learner.spaces.layout
-    if layout is not None:  # a dict-observing env: the policy takes the dict, flattened in this order
-        arrays["obs_keys"] = np.asarray(list(layout.keys))
-        arrays["obs_key_sizes"] = np.asarray([layout.slices[k].stop - layout.slices[k].start for k in layout.keys],
-                                             np.int64)
+    if learner.spaces.layout is not None:  # a dict-observing env: the policy takes the dict, flattened in this order
+        arrays.update(dict_layout_arrays(learner.spaces.layout))
     arrays["env_id"] = np.asarray(learner.config.env_id)
     arrays["step"] = np.asarray(step, np.int64)
     arrays["softac_version"] = np.asarray(__version__)
@@ -162,9 +160,15 @@ def encoder_arrays(learner: Learner) -> dict[str, np.ndarray]:
     layout = learner.spaces.image_state
     if layout is not None:
         arrays["image_key"] = np.asarray(layout.image_key)
-        arrays["obs_keys"] = np.asarray(list(layout.state_keys))
-        arrays["obs_key_sizes"] = np.asarray(layout.state_sizes, np.int64)
+        arrays.update(dict_layout_arrays(layout.state))
     return arrays
+
+
+def dict_layout_arrays(layout: DictLayout) -> dict[str, np.ndarray]:
+    """A dict observation's keys in the order the flat vector concatenates them, and each one's size."""
+    return {"obs_keys": np.asarray(list(layout.keys)),
+            "obs_key_sizes": np.asarray([layout.slices[k].stop - layout.slices[k].start for k in layout.keys],
+                                        np.int64)}
 
 
 def numpy_bytes(arrays: dict[str, np.ndarray]) -> bytes:
@@ -215,6 +219,8 @@ def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
     """softac.encoder.encode on uint8 frame stacks [batch, k, h, w, c]: the frames laid along the channels
     (ONNX's Conv takes [batch, channels, h, w]), the convolutions, the features flattened in JAX's [h, w,
     channels] order, the linear layer, LayerNorm as JAX computes it, tanh."""
+    from softac.encoder import LN_EPS  # here, not at the top: `softac export` checks its inputs before JAX loads
+
     onnx = g.onnx
     k, height, width, channels = (int(n) for n in arrays["image_shape"])
     x = g.op("Sub", g.op("Div", g.op("Cast", images, to=onnx.TensorProto.FLOAT), g.const("pixel_scale", 255.0)),
@@ -229,8 +235,6 @@ def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
     h = g.op("Add", g.op("MatMul", x, g.const("enc_w", arrays["enc_w"])), g.const("enc_b", arrays["enc_b"]))
     centred = g.op("Sub", h, g.op("ReduceMean", h, axes=[-1], keepdims=1))
     variance = g.op("ReduceMean", g.op("Mul", centred, centred), axes=[-1], keepdims=1)
-    from softac.encoder import LN_EPS
-
     inv_std = g.op("Reciprocal", g.op("Sqrt", g.op("Add", variance, g.const("ln_eps", LN_EPS))))
     normed = g.op("Add", g.op("Mul", g.op("Mul", centred, inv_std), g.const("enc_ln_scale", arrays["enc_ln_scale"])),
                   g.const("enc_ln_bias", arrays["enc_ln_bias"]))

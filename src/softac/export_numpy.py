@@ -103,12 +103,8 @@ def encoded(params: dict, obs) -> np.ndarray:
 
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
-    if "image_shape" in params:
-        single = np.ndim(obs[str(params["image_key"])] if isinstance(obs, dict) else obs) == 4
-        actions = policy_forward({k: v for k, v in params.items() if k != "image_shape" and k != "obs_keys"},
-                                 encoded(params, obs))
-        return actions[0] if single else actions
-    x = flat_observation(params, obs)
+    images = "image_shape" in params
+    x = encoded(params, obs) if images else flat_observation(params, obs)
     if "obs_mean" in params:
         clip = params["obs_clip"]
         x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)
@@ -126,4 +122,7 @@ def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     if "mean_clip" in params:
         x = np.clip(x, -params["mean_clip"], params["mean_clip"])
     low, high = params["action_low"], params["action_high"]
-    return np.clip((high + low) / 2.0 + (high - low) / 2.0 * np.tanh(x), low, high)
+    action = np.clip((high + low) / 2.0 + (high - low) / 2.0 * np.tanh(x), low, high)
+    # the encoder works on batches: one frame stack [k, h, w, c] in, one action out
+    single = images and np.ndim(obs[str(params["image_key"])] if isinstance(obs, dict) else obs) == 4
+    return action[0] if single else action

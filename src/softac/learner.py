@@ -49,16 +49,15 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
         from softac.encoder import (conv_output_size, encoder_parameters, image_only_shape, smallest_image,
                                     stacked_image_shape)
 
-        _, h, w, _ = image_only_shape(image_shape, image_state_dim)
+        images = image_only_shape(image_shape, image_state_dim)  # [k, h, w, c] without the state's rows
+        _, h, w, _ = images
         if min(h, w) < smallest_image():
             raise SoftacError(f"image observations of {h}x{w} are smaller than the encoder's smallest input, "
                               f"{smallest_image()}x{smallest_image()}; raise pixel_size")
         # two uint8 frame stacks a row (obs_dim bytes each) where ReplayBuffer's row holds two float32 vectors
         batch_row += obs_dim * (2 - 8)
         obs_dim = config.encoder_features + image_state_dim
-        encoder = encoder_parameters(stacked_image_shape(image_only_shape(image_shape, image_state_dim)),
-                                     config.encoder_channels,
-                                     config.encoder_features)
+        encoder = encoder_parameters(stacked_image_shape(images), config.encoder_channels, config.encoder_features)
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
         conv_activations = 4 * 2 * 4 * conv_output_size(h) * conv_output_size(w) * config.encoder_channels
     actor_hidden = config.actor_hidden_sizes or config.hidden_sizes
@@ -154,10 +153,10 @@ class Learner:
             raise SoftacError("this agent's env observes images alone, not a dict of an image and state values")
         k, _, _, channels = self.spaces.image_shape
         images = layout.image(obs[layout.image_key]) if layout.image_key in obs else None
-        state = layout.state(obs)
+        state = layout.state_vector(obs)  # [state_dim] or [batch, state_dim], or a one-line error
         if images is not None and images.ndim == 3 and k == 1:
             images = images[None]  # frame_stack 1: one frame is the stack
-        if images is None or images.ndim not in (4, 5) or state.shape[-1] != layout.state_dim:
+        if images is None or images.ndim not in (4, 5):
             raise SoftacError(f"observation dict's {layout.image_key!r} must hold frame stacks [{k}, h, w, {channels}] "
                               f"(one, or a batch) and its state keys {layout.state_dim} values in all")
         return layout.pack(images, np.broadcast_to(state[..., None, :], (*images.shape[:-3], layout.state_dim)))

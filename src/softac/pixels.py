@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from softac.errors import EnvError
+from softac.her import DictLayout, dict_layout
 
 SIZED_RENDERERS = ("gymnasium.envs.mujoco", "softac.dmc")  # entry points whose envs render at a given width/height
 
@@ -96,11 +97,10 @@ class ChannelsLast(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
 
 @dataclasses.dataclass(frozen=True)
 class ImageStateLayout:
-    """How `ImageWithState` packs a dict observation: the image key, the state keys in the space's order with
-    their flattened sizes, and whether the image comes channels-first."""
+    """How `ImageWithState` packs a dict observation: the image key, where the other keys sit in the state vector
+    (a DictLayout: the space's order, each flattened), and whether the image comes channels-first."""
     image_key: str
-    state_keys: tuple[str, ...]
-    state_sizes: tuple[int, ...]
+    state: DictLayout
     channels_first: bool
 
     @classmethod
@@ -111,29 +111,28 @@ class ImageStateLayout:
         if odd:
             raise EnvError(f"beside its image, the observation dict's {', '.join(odd)} are not Box spaces; softac "
                            "reads the state beside an image from Box keys only")
-        sizes = tuple(int(gym.spaces.flatdim(space[key])) for key in keys)
-        return cls(image_key, keys, sizes, channels_first(space[image_key].shape))
+        state = dict_layout(gym.spaces.Dict([(key, space[key]) for key in keys]))  # a sequence keeps the order
+        return cls(image_key, state, channels_first(space[image_key].shape))
+
+    @property
+    def state_keys(self) -> tuple[str, ...]:
+        return self.state.keys
 
     @property
     def state_dim(self) -> int:
-        return sum(self.state_sizes)
+        return self.state.dim
 
     def image(self, image: Any) -> np.ndarray:
         """An image (or a stack, or a batch: the last three axes) as uint8 channels-last."""
         image = np.asarray(image, np.uint8)
         return np.moveaxis(image, -3, -1) if self.channels_first else image
 
-    def state(self, obs: dict[str, Any]) -> np.ndarray:
+    def state_vector(self, obs: dict[str, Any]) -> np.ndarray:
         """The state keys' values as one float32 vector, or [batch, state_dim] for a dict of batches."""
-        missing = [key for key in (self.image_key, *self.state_keys) if key not in obs]
-        if missing:
-            raise EnvError(f"observation dict lacks {', '.join(missing)}; this agent expects keys "
+        if self.image_key not in obs:
+            raise EnvError(f"observation dict lacks {self.image_key}; this agent expects keys "
                            f"{', '.join((self.image_key, *self.state_keys))}")
-        parts = [np.asarray(obs[key], np.float32) for key in self.state_keys]
-        if all(part.size == size for part, size in zip(parts, self.state_sizes)):
-            return np.concatenate([part.reshape(-1) for part in parts] or [np.zeros(0, np.float32)])
-        batch = len(parts[0])
-        return np.concatenate([part.reshape(batch, size) for part, size in zip(parts, self.state_sizes)], axis=1)
+        return self.state.flatten(obs) if self.state_keys else np.zeros(0, np.float32)
 
     def pack(self, image: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Channels-last images [..., h, w, c] and state vectors [..., state_dim] as frames [..., h + r, w, c]:
@@ -155,12 +154,12 @@ class ImageWithState(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
         self.layout = ImageStateLayout.of(env.observation_space)
         shape = env.observation_space[self.layout.image_key].shape
         height, width, channels = (shape[1], shape[2], shape[0]) if self.layout.channels_first else shape
-        self.image_height = int(height)
         rows = state_rows(self.layout.state_dim, width, channels)
         self.observation_space = gym.spaces.Box(0, 255, (height + rows, width, channels), np.uint8)
 
     def observation(self, observation: dict[str, Any]) -> np.ndarray:
-        return self.layout.pack(self.layout.image(observation[self.layout.image_key]), self.layout.state(observation))
+        return self.layout.pack(self.layout.image(observation[self.layout.image_key]),
+                                self.layout.state_vector(observation))
 
 
 class PixelObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
