@@ -72,7 +72,8 @@ def test_show_outside_jupyter_writes_the_figures_and_says_where(tiny, tmp_path, 
     run path asked for a video it lacks, is a one-line SoftacError."""
     import softac
     from softac import SAC, SoftacError
-    from softac.notebook import evaluation_table
+    from softac.logs import read_csv
+    from softac.report import evaluation_table
 
     agent = SAC(tiny(eval_interval=100, eval_episodes=1))
     with pytest.raises(SoftacError, match="no run directory to show: train it with learn"):
@@ -84,7 +85,7 @@ def test_show_outside_jupyter_writes_the_figures_and_says_where(tiny, tmp_path, 
     assert {p.name for p in shown} == {"learning_curve.png", "metrics.png"}
     assert capsys.readouterr().out.split() == [str(p) for p in shown]
     assert softac.show(tmp_path / "run", video=False) == shown
-    table = evaluation_table(tmp_path / "run")
+    table = evaluation_table(read_csv(tmp_path / "run" / "eval.csv"))
     assert table.count("<tr>") == 3 and "<th>mean return</th>" in table  # a header and the evaluations at 100, 200
     with pytest.raises(SoftacError, match="has no video yet: pass the agent"):
         softac.show(tmp_path / "run", video=True)

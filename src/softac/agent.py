@@ -77,10 +77,9 @@ class SAC:
         return self.collector.bytes_per_transition
 
     def __repr__(self) -> str:
-        run = self.run_state.run_dir
+        run, last = self.run_state.run_dir, self.run_state.last_eval
         return (f"SAC(env={self.config.env_id!r}, steps={self.num_steps}, episodes={self.num_episodes}, "
-                f"last_eval={self.run_state.last_eval if self.run_state.last_eval is None else round(self.run_state.last_eval, 2)}, "
-                f"run_dir={str(run) if run else None!r})")
+                f"last_eval={None if last is None else round(last, 2)}, run_dir={str(run) if run else None!r})")
 
     def show(self, plots: bool = True, evaluations: bool = True, video: bool | None = None) -> list[Path]:
         """In Jupyter, show the run this agent trained into: learning curve, metric grid, evaluations and a

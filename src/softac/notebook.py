@@ -4,12 +4,12 @@ curve, metric grid, evaluation table and video in the notebook, as `softac plot`
 
 from __future__ import annotations
 
-import html
 from pathlib import Path
 from typing import Any
 
 from softac.errors import SoftacError
 from softac.logs import in_notebook, read_csv
+from softac.report import evaluation_table, latest_video
 
 
 def run_of(run_or_agent: Any) -> Path:
@@ -24,26 +24,6 @@ def run_of(run_or_agent: Any) -> Path:
         raise SoftacError("this agent has no run directory to show: train it with learn(steps, run_dir=...) "
                           "(or load it from a run)")
     return Path(run)
-
-
-def evaluation_table(run: Path) -> str:
-    """eval.csv as an HTML table: step, mean return +- std, episodes, and success where the env reports it."""
-    rows = read_csv(run / "eval.csv")
-    success = any(row.get("success_rate") for row in rows)
-    head = ["step", "mean return", "std", "episodes"] + (["success rate"] if success else [])
-    body = []
-    for row in rows:
-        cells = [int(float(row["step"])), f"{float(row['mean_return']):.1f}", f"{float(row['std_return']):.1f}",
-                 row["episodes"]] + ([row.get("success_rate") or ""] if success else [])
-        body.append("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in cells) + "</tr>")
-    header = "<tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"
-    return f"<table><thead>{header}</thead><tbody>{''.join(body)}</tbody></table>" if body else \
-        "<p>no evaluations yet</p>"
-
-
-def latest_video(run: Path) -> Path | None:
-    videos = sorted((run / "videos").glob("*.mp4"), key=lambda p: p.stat().st_mtime)
-    return videos[-1] if videos else None
 
 
 def show(run_or_agent: Any, plots: bool = True, evaluations: bool = True, video: bool | None = None) -> list[Path]:
@@ -79,7 +59,7 @@ def show(run_or_agent: Any, plots: bool = True, evaluations: bool = True, video:
         if path.suffix == ".png":
             display(Image(filename=str(path)))
     if evaluations and (run / "eval.csv").exists():
-        display(HTML(evaluation_table(run)))
+        display(HTML(evaluation_table(read_csv(run / "eval.csv"))))
     if clip is not None:
         display(Video(str(clip), embed=True, html_attributes="controls loop", width=480))
     return shown

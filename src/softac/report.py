@@ -59,6 +59,23 @@ def _fmt(value: Any) -> str:
     return f"{f:.1f}" if abs(f) >= 10 else f"{f:.3g}"
 
 
+def evaluation_table(evals: list[dict[str, str]]) -> str:
+    """eval.csv's rows as an HTML table: step, mean return, std, episodes, and the success rate where the env
+    reports one (the report's, and softac.show's in a notebook)."""
+    if not evals:
+        return "<p>No evaluation yet (eval_interval=0 or the run is young).</p>"
+    success = any(r.get("success_rate") for r in evals)
+    return _table(["step", "mean return", "std", "episodes"] + (["success rate"] if success else []),
+                  [[r["step"], _fmt(r["mean_return"]), _fmt(r["std_return"]), r["episodes"]]
+                   + ([_fmt(r.get("success_rate") or "")] if success else []) for r in evals])
+
+
+def latest_video(run: Path) -> Path | None:
+    """The run's newest video in RUN/videos, or None."""
+    videos = sorted((run / "videos").glob("*.mp4"), key=lambda p: p.stat().st_mtime)
+    return videos[-1] if videos else None
+
+
 def _segments(config: dict[str, Any]) -> list[dict[str, Any]]:
     """config.yaml's training segments; a run written before they were kept has its one record at the top."""
     return config.get("segments") or [{"start_step": 0, **{k: config[k] for k in ("machine", "cpus", "versions",
@@ -74,8 +91,7 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
     progress = read_csv(run / "progress.csv")
     baselines = load_baselines(run) or {}
     if video is None:
-        videos = sorted((run / "videos").glob("*.mp4"), key=lambda p: p.stat().st_mtime)
-        video = videos[-1] if videos else None
+        video = latest_video(run)
 
     best = max((float(r["mean_return"]) for r in evals), default=None)
     last = float(evals[-1]["mean_return"]) if evals else None
@@ -97,16 +113,7 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
     for fig in figures:
         parts.append(f"<h2>{captions.get(fig.name, fig.stem)}</h2>"
                      f"<img alt='{html.escape(captions.get(fig.name, fig.stem))}' src='{_data_uri(fig, 'image/png')}'>")
-    parts.append("<h2>Evaluations</h2>")
-    if evals and successes:
-        parts.append(_table(["step", "mean return", "std", "episodes", "success rate"],
-                            [[r["step"], _fmt(r["mean_return"]), _fmt(r["std_return"]), r["episodes"],
-                              _fmt(r.get("success_rate") or "")] for r in evals]))
-    elif evals:
-        parts.append(_table(["step", "mean return", "std", "episodes"],
-                            [[r["step"], _fmt(r["mean_return"]), _fmt(r["std_return"]), r["episodes"]] for r in evals]))
-    else:
-        parts.append("<p>No evaluation yet (eval_interval=0 or the run is young).</p>")
+    parts.append("<h2>Evaluations</h2>" + evaluation_table(evals))
     parts.append("<h2>Baselines</h2>")
     if baselines:
         rows = [[name, _fmt(s["mean_return"]), _fmt(s["std_return"]), s["episodes"]] for name, s in baselines.items()]
