@@ -69,15 +69,17 @@ test: $(TEST_STAMP) system-deps
 test-fast: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -m "not slow and not faults and not ray and not bench"
 
-# the numerics-sensitive tests (export parity, exact resume, the losses, CrossQ, the bf16 choice) as on a CPU
-# without AVX-512: XLA limited to AVX2 sums in other orders than on this machine's own instruction set
+# the numerics-sensitive tests (export parity, the losses against hand computations, CrossQ, the bf16 choice) as
+# on a CPU without AVX-512: XLA limited to AVX2 sums in other orders than on this machine's own instruction set.
+# The `exact` tests (a resumed run against a straight one, both on this machine) compare a CPU with itself: they
+# run in make test and test-min, not here.
 ISA ?= AVX2
 test-isa: $(TEST_STAMP)
 	XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q $(XDIST) -m "numerics and not ray"
 
 # the lowest supported versions of JAX, Gymnasium, MuJoCo, optax, NumPy and SciPy (.ci/min-versions.txt, the
 # floors in pyproject.toml), in their own .venv-min, with the [export] extra. test-min (in CI) runs the numerics
-# tests there (the losses, exact resume through the envs' saved state, exports); test-min-full runs all but the
+# and exact tests there (the losses, exact resume through the envs' saved state, exports); test-min-full runs all but the
 # Ray, fault, learning and bench tests (the W&B and MLflow tests skip there): run it when a floor changes
 MIN_VENV  := .venv-min
 MIN_STAMP := $(MIN_VENV)/.softac-min-installed
@@ -89,7 +91,7 @@ $(MIN_STAMP): pyproject.toml .ci/min-versions.txt
 	@touch $@
 
 test-min: $(MIN_STAMP)
-	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "numerics and not ray and not robotics"
+	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "(numerics or exact) and not ray and not robotics"
 
 test-min-full: $(MIN_STAMP)
 	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) -m "not slow and not faults and not ray and not bench and not robotics"

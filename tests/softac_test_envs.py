@@ -101,12 +101,14 @@ class SlowEnv(DriftEnv):
     SOFTAC_TEST_STOP_IN_EVAL=1: the first step of an episode seeded >= EVAL_SEED_OFFSET (in a seed-0 run,
     the first evaluation step), once logged, stops the process (SIGSTOP), so a test can act on it at that
     exact point and then let it go on (SIGCONT).
-    SOFTAC_TEST_SLOW_CLOSE_S=S: close() of an env that has stepped takes S seconds, as a simulator's teardown
-    can: a stopped process then winds down for that long after its checkpoint, before it says where it stopped
-    (an env made only to read its spaces closes at once).
+    SOFTAC_TEST_SLOW_CLOSE_S=S: the first close() in a process of an env that has stepped takes S seconds, as a
+    simulator's teardown can: a stopped process then winds down for that long after its checkpoint, before it
+    says where it stopped (an env made only to read its spaces closes at once; so do the others, or a peer's ten
+    evaluation envs would take 10 S).
     """
 
     stopped_in_eval = False  # once per process
+    slow_closed = False  # once per process
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -148,7 +150,8 @@ class SlowEnv(DriftEnv):
         import os
         import time
 
-        if self.stepped:
+        if self.stepped and not SlowEnv.slow_closed:
+            SlowEnv.slow_closed = True
             time.sleep(float(os.environ.get("SOFTAC_TEST_SLOW_CLOSE_S", "0")))
         super().close()
 

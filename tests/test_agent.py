@@ -28,7 +28,7 @@ def test_save_load_gives_identical_predictions(tiny, tmp_path):
     assert not meta["has_buffer"] and not any(k.startswith("buffer/") for k in arrays)
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 @pytest.mark.parametrize("obs_once,n_step,obs_norm,crossq", [
     (False, 1, False, False), (True, 1, False, False), (False, 3, False, False), (True, 3, False, False),
     (False, 1, True, False), (True, 3, True, False), (False, 1, False, True), (True, 3, True, True)])

@@ -48,7 +48,7 @@ def test_train_writes_the_run_directory_and_eval_json(tmp_path):
     assert r.returncode == 0 and "stochastic" in r.stdout
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 def test_cli_resume_equals_one_run_on_mujoco(tmp_path):
     sets = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=300", "buffer_size=5000",
             "log_interval=200", "eval_interval=0"]

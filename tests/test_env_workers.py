@@ -138,7 +138,7 @@ def straight_run(tmp_path_factory):
     return agent
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 @pytest.mark.parametrize("first_workers,then_workers,how", [
     (2, 2, "load"), (2, 0, "load"), (0, 2, "load"), (2, 2, "learn again")])
 def test_resume_with_env_workers_is_exact(tiny, tmp_path, straight_run, first_workers, then_workers, how):

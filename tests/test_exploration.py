@@ -55,7 +55,7 @@ def test_training_acts_with_each_envs_noise_sequence_and_starts_a_fresh_one_each
     assert np.corrcoef(eps[1:], eps[:-1])[0, 1] > 0.5
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 def test_a_run_with_pink_noise_resumes_exactly(tiny, tmp_path):
     cfg = tiny(n_envs=2, exploration_noise="pink", noise_sequence_length=40, noise_beta=1.0)
     straight, resumed = straight_and_resumed(cfg, tmp_path, 430, 270)

@@ -294,7 +294,7 @@ def test_checkpoints_never_execute_code(tmp_path):
     assert_clean_error(run_cli("eval", str(tmp_path / "foreign")), "corrupt checkpoint")
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 def test_same_seed_is_identical_across_processes(tmp_path):
     runs = [tmp_path / "a", tmp_path / "b"]
     for run in runs:

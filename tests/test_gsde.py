@@ -174,7 +174,7 @@ def test_the_exploration_matrix_log_std_learns(tiny):
     assert np.all(np.isfinite(log_std)) and np.any(log_std != np.float32(-2.0))
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 @pytest.mark.parametrize("crossq", [False, True], ids=["sac", "crossq"])
 def test_a_run_with_gsde_resumes_exactly(tiny, tmp_path, crossq):
     cfg = tiny(n_envs=2, exploration_noise="gsde", sde_sample_freq=7, crossq=crossq)

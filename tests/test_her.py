@@ -149,7 +149,7 @@ def test_episodes_partly_overwritten_in_the_ring_never_lend_another_episodes_goa
 
 # ---- training with HER ------------------------------------------------------------------------------
 
-@pytest.mark.numerics
+@pytest.mark.exact
 @pytest.mark.parametrize("strategy,workers,random_prob", [("future", 0, 0.0), ("episode", 2, 0.3)])
 def test_resume_with_her_is_exact(tiny, tmp_path, strategy, workers, random_prob):
     """N+M steps equal N, checkpoint, load, M: the episodes' bookkeeping is in the checkpoint (two envs,
@@ -163,7 +163,7 @@ def test_resume_with_her_is_exact(tiny, tmp_path, strategy, workers, random_prob
         assert (tmp_path / "straight" / name).read_text() == (tmp_path / "split" / name).read_text(), name
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 def test_env_workers_train_a_goal_env_as_in_process_envs_do(tiny):
     cfg = tiny(GOAL_ENV, n_envs=3, gradient_steps=1)
     a, b = SAC(cfg), SAC(cfg.replace(env_workers=3))

@@ -307,7 +307,7 @@ def test_channels_first_images_and_rendered_frames_become_channels_last_stacks(t
     assert rendered.num_steps == 250
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 @pytest.mark.parametrize("env_id", ["DotImage-v0", "DotStateImage-v0"])
 def test_resume_with_images_is_exact(tiny, tmp_path, env_id):
     """N+M steps in one go equals N, save, load, M: the frame buffer, the envs' frame stacks and the encoder

@@ -85,7 +85,7 @@ def test_rows_under_policy_delay_hold_interval_means_and_no_placeholders(tiny, t
         assert all(row[name] not in ("", "0", "0.0") for name in POLICY_COLUMNS + CRITIC_COLUMNS), row
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 def test_a_run_resumed_between_rows_logs_the_rows_of_a_straight_run(tiny, tmp_path):
     """The sums behind the next row travel in the checkpoint: a run stopped at 550 (rows every 100) and resumed
     logs at 600 what a straight run logs there, bit for bit."""

@@ -624,7 +624,7 @@ def test_a_trial_process_runs_on_its_claimed_cpus_and_ends_with_its_parent(tmp_p
 
 
 @pytest.mark.ray
-@pytest.mark.numerics
+@pytest.mark.exact
 def test_a_pinned_sweep_trial_equals_softac_train_cpus_1(tmp_path):
     """docs/reliability.md: a sweep trial pinned to one CPU repeats `softac train --cpus 1` bit for bit (XLA's
     sums depend on its thread count, which pinning fixes): weights, buffer, RNGs, evaluations, episodes, logs."""

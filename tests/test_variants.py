@@ -366,7 +366,7 @@ VARIANTS = {
 }
 
 
-@pytest.mark.numerics
+@pytest.mark.exact
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_each_variant_resumes_exactly(tiny, tmp_path, variant):
     cfg = tiny(n_envs=2, eval_interval=300, **VARIANTS[variant])

@@ -203,9 +203,13 @@ class Learner:
         """All of a vector-env step's gradient steps in one jitted call, on a batch of raw observations
         (normalised here with the current statistics); their metrics are added to the totals on the device.
         `step`: the env steps taken so far, which a learning-rate schedule follows (lr_scale)."""
+        from softac.sac import zero_totals
+
         batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
-        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), self.totals,
-                                                        self.lr_scale(step))
+        # zeros, never None, after each progress row: a None would be a second pytree structure and so a second
+        # compiled update (4-5 s of XLA compilation per process, even for 32-wide networks)
+        totals = self.totals if self.totals is not None else zero_totals()
+        self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), totals, self.lr_scale(step))
 
     def lr_scale(self, step: int | None) -> np.ndarray | None:
         """The learning rates' factor at env step `step` (None: constant rates). linear: 1 - (1 - lr_end_fraction)
