@@ -79,8 +79,8 @@ test-isa: $(TEST_STAMP)
 
 # the lowest supported versions of JAX, Gymnasium, MuJoCo, optax, NumPy and SciPy (.ci/min-versions.txt, the
 # floors in pyproject.toml), in their own .venv-min, with the [export] extra. test-min (in CI) runs the numerics
-# and exact tests there (the losses, exact resume through the envs' saved state, exports); test-min-full runs all but the
-# Ray, fault, learning and bench tests (the W&B and MLflow tests skip there): run it when a floor changes
+# and exact tests there (the losses, exact resume through the envs' saved state, exports); test-min-full runs
+# all but the Ray, fault, learning and bench tests (the W&B and MLflow tests skip there): run it when a floor changes
 MIN_VENV  := .venv-min
 MIN_STAMP := $(MIN_VENV)/.softac-min-installed
 $(MIN_STAMP): pyproject.toml .ci/min-versions.txt

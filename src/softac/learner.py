@@ -203,12 +203,14 @@ class Learner:
         """All of a vector-env step's gradient steps in one jitted call, on a batch of raw observations
         (normalised here with the current statistics); their metrics are added to the totals on the device.
         `step`: the env steps taken so far, which a learning-rate schedule follows (lr_scale)."""
-        from softac.sac import zero_totals
-
         batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
-        # zeros, never None, after each progress row: a None would be a second pytree structure and so a second
-        # compiled update (4-5 s of XLA compilation per process, even for 32-wide networks)
-        totals = self.totals if self.totals is not None else zero_totals()
+        totals = self.totals
+        if totals is None:
+            # zeros, never None, after each progress row: a None would be a second pytree structure and so a
+            # second compiled update (4-5 s of XLA compilation per process, even for 32-wide networks)
+            from softac.sac import zero_totals
+
+            totals = zero_totals()
         self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), totals, self.lr_scale(step))
 
     def lr_scale(self, step: int | None) -> np.ndarray | None:
