@@ -107,10 +107,16 @@ def tiny():
 def own_compile_cache(tmp_path_factory):
     """The JAX compile cache (softac.device.compile_cache_dir) of this test session alone, under pytest's
     basetemp: the suite neither reads the user's ~/.cache/softac/jax (it runs as on a fresh machine,
-    whatever earlier runs left there) nor fills it with the tests' tiny networks. A session-scoped autouse
-    fixture runs before every other fixture and test; the CLI subprocesses inherit os.environ."""
+    whatever earlier runs left there) nor fills it with the tests' tiny networks. pytest-xdist's workers share
+    one (under the session's base directory, the parent of each worker's): a program one compiled, the other
+    loads, as runs beside each other do (softac.device locks each entry's read and write). A session-scoped
+    autouse fixture runs before every other fixture and test; the CLI subprocesses inherit os.environ."""
     previous = os.environ.get("SOFTAC_COMPILE_CACHE")
-    cache = tmp_path_factory.mktemp("jax-compile-cache")
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        cache = tmp_path_factory.getbasetemp().parent / "jax-compile-cache"
+        cache.mkdir(exist_ok=True)
+    else:
+        cache = tmp_path_factory.mktemp("jax-compile-cache")
     os.environ["SOFTAC_COMPILE_CACHE"] = str(cache)
     yield cache
     if previous is None:

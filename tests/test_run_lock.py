@@ -232,3 +232,33 @@ def test_a_second_sweep_driver_of_one_directory_exits_2(tmp_path):
         _stop(holder, signal.SIGINT)
     assert holder.returncode == 130, holder.returncode
     assert (out / LOCK).exists()  # left in place, never in the way
+
+
+def test_runs_started_together_share_one_bounded_locked_compile_cache(tmp_path):
+    """Two runs of one config at once, one compile cache (softac.device) that an unbounded cache wrote into
+    before: both train, neither warns of an entry read while the other wrote it (nor of the old entry), the cache holds their programs once, with JAX's lock file (the size limit
+    turns on its eviction and locking), and a third run finds every program there (writes none)."""
+    env = {**child_env(), "SOFTAC_COMPILE_CACHE": str(tmp_path / "cache")}
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "jit_old-0-cache").write_bytes(b"x")  # as an unbounded cache left it: no -atime file
+    args = ["train", "--env", DRIFT, "--steps", "300", "--no-progress", "--logger", "none", *TINY_SET]
+    procs = [subprocess.Popen([sys.executable, "-m", "softac", *args, "--out", str(tmp_path / f"run{i}")],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) for i in range(2)]
+    for proc in procs:
+        _, stderr = proc.communicate(timeout=300)
+        assert proc.returncode == 0, stderr
+        assert "compilation cache" not in stderr and "Warning" not in stderr, stderr
+    entries = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert ".lockfile" in entries and "jit_old-0-atime" in entries  # dated, so JAX's eviction can read it
+    programs = [name for name in entries if name.endswith("-cache")]
+    assert any(name.startswith("jit_update-") for name in programs) and len(programs) == len(set(programs))
+    third = subprocess.run([sys.executable, "-c", (
+        "import jax; from softac.device import COMPILE_CACHE_MAX_BYTES, select_device; select_device('cpu'); "
+        "assert jax.config.jax_compilation_cache_max_size == COMPILE_CACHE_MAX_BYTES")], env=env,
+        capture_output=True, text=True, timeout=120)
+    assert third.returncode == 0, third.stderr
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache").glob("*-cache")}
+    rerun = subprocess.run([sys.executable, "-m", "softac", *args, "--out", str(tmp_path / "run2")], env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache").glob("*-cache")} == before  # loaded

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import os
 
 from softac.errors import SoftacError
@@ -20,6 +22,9 @@ def compile_cache_dir() -> str | None:
     return os.path.join(base, "softac", "jax")
 
 
+COMPILE_CACHE_MAX_BYTES = 2 << 30  # least recently used programs go beyond this
+
+
 def _enable_compile_cache(jax) -> None:
     # a second run of the same config loads its compiled update instead of compiling it again
     # (seconds saved per process start; JAX's persistent compilation cache)
@@ -31,7 +36,32 @@ def _enable_compile_cache(jax) -> None:
         jax.config.update("jax_compilation_cache_dir", path)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     except Exception:  # a read-only home or an older JAX: run without the cache
-        pass
+        return
+    if importlib.util.find_spec("filelock") is None:  # JAX's eviction needs it (a dependency of softac's)
+        return
+    with contextlib.suppress(Exception):  # an older JAX, or a cache we cannot write: unbounded, unlocked
+        # A size limit turns on JAX's eviction and, with it, a file lock around every read and write of the
+        # cache: without one, a process (a sweep's trial, a run beside another) could read an entry another is
+        # still writing (JAX then warns and compiles again), and the cache grew without bound.
+        _date_undated_entries(path)
+        jax.config.update("jax_compilation_cache_max_size", COMPILE_CACHE_MAX_BYTES)
+
+
+def _date_undated_entries(path: str) -> None:
+    """Give each entry an unbounded cache wrote (softac before the limit, or plain JAX) the access-time file
+    that JAX's eviction reads: without it, every later write warns (FileNotFoundError) and is dropped."""
+    import time
+
+    import filelock
+
+    with filelock.FileLock(os.path.join(path, ".lockfile"), timeout=10):  # JAX's own lock on the cache
+        names = set(os.listdir(path))
+        stamp = time.time_ns().to_bytes(8, "little")
+        for name in names:
+            key = name[:-len("-cache")]
+            if name.endswith("-cache") and f"{key}-atime" not in names:
+                with open(os.path.join(path, f"{key}-atime"), "wb") as f:
+                    f.write(stamp)
 
 
 def select_device(device: str) -> str:
