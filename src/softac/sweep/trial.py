@@ -11,7 +11,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -166,7 +165,8 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
                         tune.report({METRIC: value, "best_eval_mean_return": best, "step": step})
                 if code is not None:
                     break
-                time.sleep(1.0)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    proc.wait(1.0)  # back at once when the trial ends (its slot frees), else once a second
         finally:
             if proc.poll() is None:  # the trial was stopped (ASHA, Ctrl-C): the run checkpoints and exits 130
                 proc.terminate()
