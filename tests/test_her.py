@@ -289,6 +289,8 @@ def test_exported_policies_of_a_goal_env_take_the_dict(tiny, tmp_path):
 def test_sweep_summaries_give_success_rates_and_the_steps_to_reach_one(tmp_path):
     from softac import sweep
 
+    spec = sweep.SweepSpec(env_id=GOAL_ENV, steps=300, seeds=[0, 1])
+    sweep.prepare_out_dir(tmp_path / "sweep", spec)
     for seed, rates in ((0, ("0.1", "0.95", "0.9")), (1, ("0.0", "0.5", "0.92"))):
         run = tmp_path / "sweep" / f"seed={seed}"
         run.mkdir(parents=True)
@@ -296,7 +298,6 @@ def test_sweep_summaries_give_success_rates_and_the_steps_to_reach_one(tmp_path)
         (run / "eval.csv").write_text("step,mean_return,std_return,episodes,success_rate\n" + "".join(
             f"{100 * (i + 1)},-{10 - i},0,10,{rate}\n" for i, rate in enumerate(rates)))
         (run / "progress.csv").write_text("step,time_s\n100,1.0\n300,3.0\n")
-    spec = sweep.SweepSpec(env_id=GOAL_ENV, steps=300, seeds=[0, 1])
     rows = sweep.trial_rows(tmp_path / "sweep", spec, success_threshold=0.9)
     assert [(r["final_success"], r["best_success"], r["steps_to_success"], r["seconds_to_success"]) for r in rows] == [
         (0.9, 0.95, 200, 2.0), (0.92, 0.92, 300, 3.0)]

@@ -166,6 +166,20 @@ def test_summary_counts_steps_seconds_and_holding_of_the_threshold(tmp_path):
     assert sweep.trial_rows(tmp_path / "sweep", spec)[0]["status"] == "done"
 
 
+def test_a_sweep_directory_removed_under_its_sweep_fails_it_in_one_line(tmp_path):
+    """The summary at a sweep's end finds its directory gone (removed or moved while the trials ran): RunFailed,
+    which the CLI reports in one line with exit 3, where a FileNotFoundError was an `internal error` (exit 1)."""
+    from softac.errors import RunFailed
+
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=400, seeds=[0])
+    out = tmp_path / "sweep"
+    sweep.prepare_out_dir(out, spec)
+    assert sweep.write_summaries(out, spec) == []  # no trial has written anything yet
+    __import__("shutil").rmtree(out)
+    with pytest.raises(RunFailed, match=f"the sweep directory {out} was removed or moved while the sweep ran"):
+        sweep.write_summaries(out, spec)
+
+
 def test_a_resumed_sweeps_progress_counts_the_trials_that_ended_before_it(tmp_path):
     """"[k/N]" counts the sweep's trials, those that ended before the driver started included (a resumed grid
     or search), and a trial that Tune runs again after its run finished (the driver was killed in between)

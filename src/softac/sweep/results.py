@@ -14,9 +14,9 @@ import numpy as np
 import yaml
 
 from softac.config import override_key
-from softac.errors import SoftacError
+from softac.errors import RunFailed, SoftacError
 from softac.stats import summarize_seeds
-from softac.sweep.spec import PLOT_DIR, SweepSpec, grid_trials, planned_trials, value_text
+from softac.sweep.spec import PLOT_DIR, SPEC_FILE, SweepSpec, grid_trials, planned_trials, value_text
 from softac.sweep.trial import read_evals, trial_state
 
 
@@ -173,11 +173,15 @@ def check_command(spec: SweepSpec, values: dict[str, Any], seeds: int = 5, out: 
 
 def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None,
                     success_threshold: float = SUCCESS_THRESHOLD) -> list[Path]:
-    """DIR/summary.csv, DIR/summary.md and DIR/plots/ from the trial run directories."""
+    """DIR/summary.csv, DIR/summary.md and DIR/plots/ from the trial run directories. A sweep directory removed
+    or moved while its sweep ran (its SPEC_FILE gone) is a failed sweep (RunFailed, exit 3), not a crash."""
     import csv
 
     from softac.rundir import write_atomic
 
+    if not (out / SPEC_FILE).exists():
+        raise RunFailed(f"the sweep directory {out} was removed or moved while the sweep ran (no {SPEC_FILE} "
+                        f"there): its trials' results are not where the sweep wrote them")
     rows = trial_rows(out, spec, threshold, success_threshold)
     if not rows:
         return []
