@@ -423,11 +423,13 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list
     rows = []
     all_finals: dict[str, dict[str, list[float]]] = {}
     seconds: dict[str, dict[str, float]] = {}
+    runs_of: dict[str, list[Path]] = {}
     for task in DMC_TASKS:
         for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
             trials = finished_trials(d, excluded)
             if not trials:
                 continue
+            runs_of.setdefault(name, []).extend(d / r["trial"] for r in trials)
             finals = [r["final_eval_mean"] for r in trials]
             timed = [r["wall_s"] for r in trials if r["timed"] and r["wall_s"]]
             all_finals.setdefault(name, {})[task] = finals
@@ -449,6 +451,8 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list
             f"| task | configuration | seeds | final return (mean ± sd) | each seed | one-core s | "
             f"{' | '.join(f'published {m}' for m in shown)} |",
             "|" + "---|" * (6 + len(shown)), *rows, "",
+            "Machines (from the trials' config.yaml; one-core seconds compare only on one machine): "
+            + "; ".join(f"{name}: {machines_of(runs)}" for name, runs in runs_of.items()) + ".", "",
             *dmc_aggregate(all_finals, seconds, figures / "dmc-aggregate.png")]
 
 
