@@ -104,11 +104,17 @@ def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings
     grads, (metrics, critic_stats) = jax.grad(soft_q_loss, has_aux=True)(
         state.critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
         batch, key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s), state.target_critic_stats)
+    critic, critic_opt = apply_critic_grads(state, grads, s, lr_scale)
+    return state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats), metrics
+
+
+def apply_critic_grads(state: SACState, grads: Any, s: UpdateSettings, lr_scale: jax.Array | None) -> tuple[Any, Any]:
+    """The critics' optimiser step (and CrossQ+WN's projection back to unit-norm hidden units)."""
     updates, critic_opt = s.critic_tx.update(grads, state.critic_opt, state.critic)
     critic = optax.apply_updates(state.critic, scaled(updates, lr_scale))
     if s.weight_norm:
         critic = unit_norm_hidden_units(critic)
-    return state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats), metrics
+    return critic, critic_opt
 
 
 # ---- image observations (issue 44; DrQ, Kostrikov et al. 2021; DrQ-v2, Yarats et al. 2022) --------------------
@@ -156,10 +162,7 @@ def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSe
 
     (critic_grads, encoder_grads), (metrics, critic_stats, features) = jax.grad(loss, argnums=(0, 1), has_aux=True)(
         state.critic, state.encoder)
-    updates, critic_opt = s.critic_tx.update(critic_grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, scaled(updates, lr_scale))
-    if s.weight_norm:
-        critic = unit_norm_hidden_units(critic)
+    critic, critic_opt = apply_critic_grads(state, critic_grads, s, lr_scale)
     updates, encoder_opt = s.encoder_tx.update(encoder_grads, state.encoder_opt, state.encoder)
     encoder = optax.apply_updates(state.encoder, scaled(updates, lr_scale))
     state = state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats, encoder=encoder,
