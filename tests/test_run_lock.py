@@ -236,8 +236,9 @@ def test_a_second_sweep_driver_of_one_directory_exits_2(tmp_path):
 
 def test_runs_started_together_share_one_bounded_locked_compile_cache(tmp_path):
     """Two runs of one config at once, one compile cache (softac.device) that an unbounded cache wrote into
-    before: both train, neither warns of an entry read while the other wrote it (nor of the old entry), the cache holds their programs once, with JAX's lock file (the size limit
-    turns on its eviction and locking), and a third run finds every program there (writes none)."""
+    before: both train, neither warns of an entry read while the other wrote it (nor of the old entry), the
+    cache holds their programs with JAX's lock file (the size limit turns on its eviction and locking), and a
+    third run loads its update from there (a hit stamps the entry's access time) and writes no new program."""
     env = {**child_env(), "SOFTAC_COMPILE_CACHE": str(tmp_path / "cache")}
     (tmp_path / "cache").mkdir()
     (tmp_path / "cache" / "jit_old-0-cache").write_bytes(b"x")  # as an unbounded cache left it: no -atime file
@@ -250,15 +251,16 @@ def test_runs_started_together_share_one_bounded_locked_compile_cache(tmp_path):
         assert "compilation cache" not in stderr and "Warning" not in stderr, stderr
     entries = sorted(p.name for p in (tmp_path / "cache").iterdir())
     assert ".lockfile" in entries and "jit_old-0-atime" in entries  # dated, so JAX's eviction can read it
-    programs = [name for name in entries if name.endswith("-cache")]
-    assert any(name.startswith("jit_update-") for name in programs) and len(programs) == len(set(programs))
+    [update] = [name[:-len("-cache")] for name in entries if name.startswith("jit_update-") and name.endswith("-cache")]
     third = subprocess.run([sys.executable, "-c", (
         "import jax; from softac.device import COMPILE_CACHE_MAX_BYTES, select_device; select_device('cpu'); "
         "assert jax.config.jax_compilation_cache_max_size == COMPILE_CACHE_MAX_BYTES")], env=env,
         capture_output=True, text=True, timeout=120)
     assert third.returncode == 0, third.stderr
     before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache").glob("*-cache")}
+    accessed = (tmp_path / "cache" / f"{update}-atime").read_bytes()
     rerun = subprocess.run([sys.executable, "-m", "softac", *args, "--out", str(tmp_path / "run2")], env=env,
                            capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
-    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache").glob("*-cache")} == before  # loaded
+    assert {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cache").glob("*-cache")} == before  # none new
+    assert (tmp_path / "cache" / f"{update}-atime").read_bytes() != accessed  # its update loaded from the cache

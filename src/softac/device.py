@@ -56,12 +56,11 @@ def _date_undated_entries(path: str) -> None:
 
     with filelock.FileLock(os.path.join(path, ".lockfile"), timeout=10):  # JAX's own lock on the cache
         names = set(os.listdir(path))
+        keys = {name.removesuffix("-cache") for name in names if name.endswith("-cache")}
         stamp = time.time_ns().to_bytes(8, "little")
-        for name in names:
-            key = name[:-len("-cache")]
-            if name.endswith("-cache") and f"{key}-atime" not in names:
-                with open(os.path.join(path, f"{key}-atime"), "wb") as f:
-                    f.write(stamp)
+        for key in keys - {name.removesuffix("-atime") for name in names}:
+            with open(os.path.join(path, f"{key}-atime"), "wb") as f:
+                f.write(stamp)
 
 
 def select_device(device: str) -> str:
