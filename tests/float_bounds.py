@@ -146,6 +146,14 @@ def _weights(layer: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
 
 
+def _rounded_dense(x: np.ndarray, e: np.ndarray, w: np.ndarray, b: np.ndarray, bf16: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of a dense layer computed in float32: the propagated error, the sum's rounding and
+    the flush of subnormals."""
+    n = w.shape[0]
+    z, e, magnitude = _dense(x, e, w, b, bf16)
+    return z, e + gamma(n + 1) * magnitude + TINY * (n + 1) * (1.0 + np.abs(w).max())
+
+
 def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
                   norm=None, stats: list | None = None,
                   out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -186,6 +194,31 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
     return x, e
 
 
+def simba_bound(actor: dict, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
+                out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of a SimBa network's outputs (networks.simba) for inputs within `e` of the float64 `x`:
+    the embedding; per block the LayerNorm, two dense layers with the activation between, and the residual sum
+    (one rounding of the sum); the final LayerNorm and the output layer (`out_columns`: its first ones only)."""
+    from softac.networks import SIMBA_LN_EPS, multiplies_in_bf16
+
+    def dense(x, e, w, b, columns=None):
+        w, b = np.asarray(w, np.float64), np.asarray(b, np.float64)
+        bf16 = multiplies_in_bf16(w.shape, matmul_dtype)
+        return _rounded_dense(x, e, w[:, :columns], b[:columns], bf16)
+
+    def norm(x, e, scale, bias):
+        return _layer_norm(x, e, np.asarray(scale, np.float64), np.asarray(bias, np.float64), SIMBA_LN_EPS)
+
+    x, e = dense(x, e, actor["embed"]["w"], actor["embed"]["b"])
+    for block in actor["blocks"]:
+        h, e_h = norm(x, e, block["ln_scale"], block["ln_bias"])
+        h, e_h = _activation_error(activation, *dense(h, e_h, block["w1"], block["b1"]))
+        h, e_h = dense(h, e_h, block["w2"], block["b2"])
+        x, e = x + h, e + e_h + U * (np.abs(x + h) + e + e_h)
+    head = actor["head"]
+    return dense(*norm(x, e, head["ln_scale"], head["ln_bias"]), head["w"], head["b"], out_columns)
+
+
 def mlp_bound(layers: list, x: np.ndarray, activation: str) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of a float32 MLP's outputs (networks.mlp with float32 matmuls and no layer norm) for
     float32 inputs x."""
@@ -215,8 +248,10 @@ def _layer_norm(h: np.ndarray, e: np.ndarray, scale: np.ndarray, bias: np.ndarra
     total = var + eps
     e_total = e_var + U * (total + e_var) + U * eps  # the sum, and eps's own float32 rounding
     r = 1.0 / np.sqrt(total)
-    # |d r / d total| = r^3 / 2, largest at the smallest total the error allows (eps keeps it positive)
-    e_r = 0.5 * np.maximum(total - e_total, eps / 2) ** -1.5 * e_total + RSQRT_REL * (r + 0.5 * eps**-1.5 * e_total)
+    # |d r / d total| = r^3 / 2, largest at the smallest total the error allows (eps keeps it positive); the
+    # computed rsqrt's own relative error applies to the r of the computed total, at most r + that change
+    change = 0.5 * np.maximum(total - e_total, eps / 2) ** -1.5 * e_total
+    e_r = change + RSQRT_REL * (r + change)
     y = c * r * scale + bias
     m = (np.abs(c) + e_c) * (r + e_r) * np.abs(scale)
     return y, (e_c * r + (np.abs(c) + e_c) * e_r) * np.abs(scale) + 2 * U * m + U * (m + np.abs(bias))
@@ -246,10 +281,7 @@ def image_input_bound(agent, stacks: np.ndarray) -> tuple[np.ndarray, np.ndarray
             + TINY * (n + 1) * (1.0 + np.abs(w).max())
         x, e = _activation_error("relu", z, e)
     head = encoder["head"]
-    w, b = _weights(head)
-    x, e = x.reshape(len(x), -1), e.reshape(len(e), -1)
-    z, e, magnitude = _dense(x, e, w, b, False)
-    e = e + gamma(w.shape[0] + 1) * magnitude + TINY * (w.shape[0] + 1) * (1.0 + np.abs(w).max())
+    z, e = _rounded_dense(x.reshape(len(x), -1), e.reshape(len(e), -1), *_weights(head), False)
     z, e = _layer_norm(z, e, np.asarray(head["ln_scale"], np.float64), np.asarray(head["ln_bias"], np.float64),
                        LN_EPS)
     features, e = _activation_error("tanh", z, e)
@@ -286,10 +318,14 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
         x = np.clip(q, -clip, clip)  # monotone: a value beyond the clip by more than its error has none left
         e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
 
-    norm = agent.learner.functions.policy.batch_renorm
-    x, e = network_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype or agent.learner.functions.matmul_dtype,
-                         norm, agent.learner.state.actor_stats if norm is not None else None,
-                         out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
+    norm, matmul_dtype = agent.learner.functions.policy.batch_renorm, matmul_dtype or agent.learner.functions.matmul_dtype
+    if agent.config.network == "simba":
+        x, e = simba_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype,
+                           out_columns=agent.spaces.act_dim)
+    else:
+        x, e = network_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype,
+                             norm, agent.learner.state.actor_stats if norm is not None else None,
+                             out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
     if agent.learner.functions.policy.sde:  # gSDE's mean clip: monotone and 1-Lipschitz, as the obs clip above
         from softac.policy import SDE_CLIP_MEAN
 

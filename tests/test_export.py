@@ -1,5 +1,6 @@
 """`softac export`: the ONNX graph and the NumPy forward pass act as agent.predict(obs, deterministic=True)
-does (obs_norm, CrossQ's batch renormalisation, every activation, asymmetric action bounds), without JAX.
+does (obs_norm, CrossQ's batch renormalisation, SimBa's residual blocks, every activation, asymmetric action
+bounds), without JAX.
 
 XLA (on each CPU its own way), NumPy and onnxruntime sum in different orders, so their float32 actions differ
 in the last bits: each program is checked against the float64 reference of the network, within the bound
@@ -38,6 +39,12 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     "crossq-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, matmul_dtype="bfloat16"),
     # the actor outputs the mean alone, clipped to [-2, 2] before tanh (issue 43)
     "gsde": lambda: tiny_config(DRIFT, learning_starts=100, exploration_noise="gsde"),
+    # SimBa actors: an embedding, pre-LayerNorm residual blocks, a final LayerNorm (issue 42)
+    "simba": lambda: tiny_config(DRIFT, learning_starts=100, network="simba", hidden_sizes=[16],
+                                 critic_hidden_sizes=[32, 32], obs_norm=True),
+    # bf16 in Pusher's 23x32 embedding and the blocks' 32x128 and 128x32 layers, not in the 32x14 output layer
+    "simba-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, network="simba", critic_hidden_sizes=[32],
+                                      matmul_dtype="bfloat16"),
 }
 
 
@@ -109,14 +116,17 @@ def assert_bound_is_tight(agent: SAC, bound: np.ndarray, bf16: bool) -> None:
     observations. With bf16 layers an observation whose input to one lies within its error bound of a bf16
     rounding boundary may round to the neighbouring bf16 value, and its bound grows by that bf16 step; how many
     do depends on the trained weights, so on the CPU that trained them (CI's AVX2 run: 89% below 1e-4, the
-    95th percentile 2e-4): below 1e-4 at the median and below 1e-3 on 95%."""
+    95th percentile 2e-4): below 1e-4 at the median and below 1e-3 on 95%. A SimBa actor's bound is ten times
+    looser (its worst case carries each error through both layers of a residual block at full weight, where
+    real errors partly cancel: bounds ~5e-4 of the range for errors of ~2e-7): below 1e-3."""
     width = (agent.learner.scaler.high - agent.learner.scaler.low).astype(np.float64)
     relative = np.max(bound / width, axis=1)
     summary = np.quantile(relative, [0.5, 0.95, 1.0])
     if bf16:
         assert np.median(relative) <= 1e-4 and np.mean(relative <= 1e-3) >= 0.95, summary
     else:
-        assert np.mean(relative <= 1e-4) >= 0.95, summary
+        limit = 1e-3 if agent.config.network == "simba" else 1e-4
+        assert np.mean(relative <= limit) >= 0.95, summary
 
 
 @functools.lru_cache(maxsize=None)
@@ -163,8 +173,24 @@ def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     if agent.learner.obs_norm is not None:
         assert np.abs(agent.learner.normalize_obs(obs)).max() == agent.config.obs_norm_clip  # the clip is exercised
     bound = assert_exports_act_as_predict(agent, tmp_path, obs)
-    # on the episodes' observations (the FAR ones have outsized values, and bounds to match)
-    assert_bound_is_tight(agent, bound[:-FAR], bf16=kind.endswith("bf16"))
+    if kind == "simba-bf16":
+        assert_exports_agree_with_predict_on_most(agent, tmp_path, obs[:-FAR])
+    else:  # on the episodes' observations (the FAR ones have outsized values, and bounds to match)
+        assert_bound_is_tight(agent, bound[:-FAR], bf16=kind.endswith("bf16"))
+
+
+def assert_exports_agree_with_predict_on_most(agent: SAC, directory: Path, obs: np.ndarray) -> None:
+    """For a SimBa actor with bf16 layers the bound is too loose to tell a wrong export (five layers round
+    their inputs to bf16: where a bound reaches a rounding boundary it grows by a bf16 step, and the residual
+    blocks carry that on; median 4e-2 of the range). Yet an input lands within float32's error of a boundary
+    rarely, so on most observations every program rounds alike: the exports agree with predict() to 1e-5 of
+    the range on 90% of them (a wrong layer, normalisation or rounding is off by 1e-3 and more on all)."""
+    width = (agent.learner.scaler.high - agent.learner.scaler.low).astype(np.float64)
+    expected = agent.predict(obs, deterministic=True)
+    for name, actions in (("onnx", onnx_actions(directory / "policy.onnx", obs)),
+                          ("numpy", numpy_actions(directory / "policy.npz", obs))):
+        relative = np.max(np.abs(actions - expected) / width, axis=1)
+        assert np.mean(relative <= 1e-5) >= 0.9, (name, np.quantile(relative, [0.5, 0.9, 1.0]))
 
 
 def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
@@ -176,6 +202,11 @@ def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
     assert "bf16" not in arrays()
     # layers 23x32, 32x32, 32x14: the thin output layer stays in float32, as networks.dense keeps it
     assert arrays(matmul_dtype="bfloat16")["bf16"].tolist() == [1, 1, 0]
+    # SimBa: the embedding 23x32, each block's 32x128 and 128x32, the output layer 32x14
+    simba = arrays(matmul_dtype="bfloat16", network="simba", critic_hidden_sizes=[32])
+    assert simba["bf16"].tolist() == [1, 1, 1, 1, 1, 0] and "w0" not in simba
+    assert simba["head_w"].shape == (32, 7) and not np.any(simba["block1_2_w"].view(np.uint32) & 0xFFFF)
+    assert "bf16" not in arrays(network="simba", critic_hidden_sizes=[32])
     crossq = arrays(matmul_dtype="bfloat16", crossq=True)
     assert {"n0_mean", "n1_inv_std", "n1_scale", "n1_bias"} <= set(crossq) and "n2_mean" not in crossq
     w = crossq["w1"].view(np.uint32)

@@ -21,7 +21,7 @@ import numpy as np
 from softac.version import __version__
 from softac.checkpoint import is_checkpoint
 from softac.errors import SoftacError
-from softac.export_numpy import layer_count, round_bf16
+from softac.export_numpy import is_simba, layer_count, round_bf16, simba_block_count
 from softac.normalization import EPSILON
 from softac.rundir import write_atomic
 from softac.snapshot import load_learner
@@ -112,6 +112,38 @@ def _actor_layers(learner: Learner) -> list[dict[str, np.ndarray]]:
     return layers
 
 
+def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
+    """A SimBa actor (networks.simba) as export_numpy lays it out: the embedding, each residual block's
+    LayerNorm and two layers, the final LayerNorm and the output layer cut to the mean action's columns;
+    `bf16` marks, in that order of the dense layers, the ones that multiply in bfloat16 (weights rounded)."""
+    from softac.networks import SIMBA_LN_EPS, multiplies_in_bf16  # imports JAX, loaded by the learner by now
+
+    actor, matmul_dtype = learner.state.actor, learner.matmul_dtype
+    arrays: dict[str, np.ndarray] = {"network": np.asarray("simba"), "ln_eps": np.asarray(SIMBA_LN_EPS, np.float32)}
+    bf16_flags = []
+
+    def put_dense(name: str, w: Any, b: Any, columns: int | None = None) -> None:
+        w, b = np.asarray(w, np.float32), np.asarray(b, np.float32)
+        bf16 = multiplies_in_bf16(w.shape, matmul_dtype)  # on the whole layer, as JAX decides it
+        w, b = np.ascontiguousarray(w[:, :columns]), np.ascontiguousarray(b[:columns])
+        arrays[f"{name}_w"], arrays[f"{name}_b"] = (round_bf16(w) if bf16 else w), b
+        bf16_flags.append(bf16)
+
+    put_dense("embed", actor["embed"]["w"], actor["embed"]["b"])
+    for i, block in enumerate(actor["blocks"]):
+        arrays[f"block{i}_ln_scale"] = np.asarray(block["ln_scale"], np.float32)
+        arrays[f"block{i}_ln_bias"] = np.asarray(block["ln_bias"], np.float32)
+        put_dense(f"block{i}_1", block["w1"], block["b1"])
+        put_dense(f"block{i}_2", block["w2"], block["b2"])
+    head = actor["head"]
+    arrays["head_ln_scale"] = np.asarray(head["ln_scale"], np.float32)
+    arrays["head_ln_bias"] = np.asarray(head["ln_bias"], np.float32)
+    put_dense("head", head["w"], head["b"], columns=learner.spaces.act_dim)
+    if any(bf16_flags):
+        arrays["bf16"] = np.array(bf16_flags, np.int8)
+    return arrays
+
+
 def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     """Everything the deterministic policy needs, as named float32 arrays (the activation's name aside), and a
     few entries for the record (`step`: the env steps it was trained for)."""
@@ -121,13 +153,16 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
         arrays["obs_mean"] = obs_norm.mean.astype(np.float32)
         arrays["obs_std"] = np.sqrt(obs_norm.var + EPSILON).astype(np.float32)
         arrays["obs_clip"] = np.asarray(obs_norm.clip, np.float32)
-    layers = _actor_layers(learner)
-    for i, layer in enumerate(layers):
-        arrays[f"w{i}"], arrays[f"b{i}"] = layer["w"], layer["b"]
-        for key, value in layer.get("norm", {}).items():
-            arrays[f"n{i}_{key}"] = value
-    if any(layer["bf16"] for layer in layers):
-        arrays["bf16"] = np.array([layer["bf16"] for layer in layers], np.int8)
+    if learner.config.network == "simba":
+        arrays.update(simba_actor_arrays(learner))
+    else:
+        layers = _actor_layers(learner)
+        for i, layer in enumerate(layers):
+            arrays[f"w{i}"], arrays[f"b{i}"] = layer["w"], layer["b"]
+            for key, value in layer.get("norm", {}).items():
+                arrays[f"n{i}_{key}"] = value
+        if any(layer["bf16"] for layer in layers):
+            arrays["bf16"] = np.array([layer["bf16"] for layer in layers], np.int8)
     if learner.functions.policy.sde:
         from softac.policy import SDE_CLIP_MEAN
 
@@ -233,12 +268,50 @@ def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
                               strides=[stride, stride]))
     x = g.op("Reshape", g.op("Transpose", x, perm=[0, 2, 3, 1]), g.const("flat_shape", [0, -1], np.int64))
     h = g.op("Add", g.op("MatMul", x, g.const("enc_w", arrays["enc_w"])), g.const("enc_b", arrays["enc_b"]))
-    centred = g.op("Sub", h, g.op("ReduceMean", h, axes=[-1], keepdims=1))
+    return g.op("Tanh", _onnx_layer_norm(g, arrays, h, "enc_ln", LN_EPS))
+
+
+def _onnx_layer_norm(g: _Graph, arrays: dict[str, np.ndarray], x: str, name: str, eps: float) -> str:
+    """LayerNorm over the last axis as networks.layer_norm computes it, then the arrays NAME_scale, NAME_bias."""
+    centred = g.op("Sub", x, g.op("ReduceMean", x, axes=[-1], keepdims=1))
     variance = g.op("ReduceMean", g.op("Mul", centred, centred), axes=[-1], keepdims=1)
-    inv_std = g.op("Reciprocal", g.op("Sqrt", g.op("Add", variance, g.const("ln_eps", LN_EPS))))
-    normed = g.op("Add", g.op("Mul", g.op("Mul", centred, inv_std), g.const("enc_ln_scale", arrays["enc_ln_scale"])),
-                  g.const("enc_ln_bias", arrays["enc_ln_bias"]))
-    return g.op("Tanh", normed)
+    inv_std = g.op("Reciprocal", g.op("Sqrt", g.op("Add", variance, g.const(f"{name}_eps", eps))))
+    return g.op("Add", g.op("Mul", g.op("Mul", centred, inv_std), g.const(f"{name}_scale", arrays[f"{name}_scale"])),
+                g.const(f"{name}_bias", arrays[f"{name}_bias"]))
+
+
+def _onnx_dense(g: _Graph, arrays: dict[str, np.ndarray], x: str, w: str, b: str, bf16: bool) -> str:
+    if bf16:  # rounded to bf16 and back, as the run's bf16 matmul sees its input
+        x = g.op("Cast", g.op("Cast", x, to=g.onnx.TensorProto.BFLOAT16), to=g.onnx.TensorProto.FLOAT)
+    return g.op("Add", g.op("MatMul", x, g.const(w, arrays[w])), g.const(b, arrays[b]))
+
+
+def _onnx_mlp_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
+    n_layers = layer_count(arrays)
+    bf16 = arrays.get("bf16", np.zeros(n_layers, np.int8))
+    for i in range(n_layers):
+        if f"n{i}_mean" in arrays:
+            x = g.op("Mul", g.op("Sub", x, g.const(f"n{i}_mean", arrays[f"n{i}_mean"])),
+                     g.const(f"n{i}_inv_std", arrays[f"n{i}_inv_std"]))
+            x = g.op("Add", g.op("Mul", x, g.const(f"n{i}_scale", arrays[f"n{i}_scale"])),
+                     g.const(f"n{i}_bias", arrays[f"n{i}_bias"]))
+        x = _onnx_dense(g, arrays, x, f"w{i}", f"b{i}", bool(bf16[i]))
+        if i < n_layers - 1:
+            x = _onnx_activation(g, str(arrays["activation"]), x)
+    return x
+
+
+def _onnx_simba_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
+    """export_numpy.simba_forward: the embedding, the residual blocks, the final LayerNorm, the output layer."""
+    eps, n_blocks = float(arrays["ln_eps"]), simba_block_count(arrays)
+    bf16 = iter(arrays.get("bf16", np.zeros(2 * n_blocks + 2, np.int8)).tolist())
+    x = _onnx_dense(g, arrays, x, "embed_w", "embed_b", next(bf16))
+    for i in range(n_blocks):
+        h = _onnx_layer_norm(g, arrays, x, f"block{i}_ln", eps)
+        h = _onnx_activation(g, str(arrays["activation"]),
+                             _onnx_dense(g, arrays, h, f"block{i}_1_w", f"block{i}_1_b", next(bf16)))
+        x = g.op("Add", x, _onnx_dense(g, arrays, h, f"block{i}_2_w", f"block{i}_2_b", next(bf16)))
+    return _onnx_dense(g, arrays, _onnx_layer_norm(g, arrays, x, "head_ln", eps), "head_w", "head_b", next(bf16))
 
 
 def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
@@ -248,7 +321,7 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     beside state values, the image key's input is those and each state key's [batch, size] float32."""
     onnx = require_onnx()
     g = _Graph(onnx)
-    obs_dim = arrays["w0"].shape[0]
+    obs_dim = arrays["embed_w" if is_simba(arrays) else "w0"].shape[0]
     if "image_shape" in arrays:
         image_input = str(arrays.get("image_key", "obs"))
         stack = ["batch", *(int(n) for n in arrays["image_shape"])]
@@ -271,19 +344,7 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         x = g.op("Div", g.op("Sub", x, g.const("obs_mean", arrays["obs_mean"])), g.const("obs_std", arrays["obs_std"]))
         clip = float(arrays["obs_clip"])
         x = g.op("Clip", x, g.const("obs_clip_low", -clip), g.const("obs_clip_high", clip))
-    n_layers = layer_count(arrays)
-    bf16 = arrays.get("bf16", np.zeros(n_layers, np.int8))
-    for i in range(n_layers):
-        if f"n{i}_mean" in arrays:
-            x = g.op("Mul", g.op("Sub", x, g.const(f"n{i}_mean", arrays[f"n{i}_mean"])),
-                     g.const(f"n{i}_inv_std", arrays[f"n{i}_inv_std"]))
-            x = g.op("Add", g.op("Mul", x, g.const(f"n{i}_scale", arrays[f"n{i}_scale"])),
-                     g.const(f"n{i}_bias", arrays[f"n{i}_bias"]))
-        if bf16[i]:  # rounded to bf16 and back, as the run's bf16 matmul sees its input
-            x = g.op("Cast", g.op("Cast", x, to=onnx.TensorProto.BFLOAT16), to=onnx.TensorProto.FLOAT)
-        x = g.op("Add", g.op("MatMul", x, g.const(f"w{i}", arrays[f"w{i}"])), g.const(f"b{i}", arrays[f"b{i}"]))
-        if i < n_layers - 1:
-            x = _onnx_activation(g, str(arrays["activation"]), x)
+    x = (_onnx_simba_actor if is_simba(arrays) else _onnx_mlp_actor)(g, arrays, x)
     if "mean_clip" in arrays:
         clip = float(arrays["mean_clip"])
         x = g.op("Clip", x, g.const("mean_clip_low", -clip), g.const("mean_clip_high", clip))
@@ -328,9 +389,6 @@ def export_policy(agent_or_path: Any, path: str | Path | None = None, format: st
         learner, step = load_learner(agent_or_path, which, device="cpu", allow_new_bounds=allow_new_bounds)
     else:
         learner, step = agent_or_path.learner, agent_or_path.num_steps
-    if learner.config.network != "mlp":
-        raise SoftacError(f"export covers MLP actors; this agent's are network={learner.config.network} "
-                          "(load it with softac.SAC.load and call predict instead)")
     arrays = policy_arrays(learner, step)
     data = numpy_bytes(arrays) if format == "numpy" else onnx_model(arrays).SerializeToString()
     path.parent.mkdir(parents=True, exist_ok=True)

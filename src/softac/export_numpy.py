@@ -13,6 +13,16 @@ policy.npz holds
                                   (CrossQ's batch renormalisation is folded into the weights)
     bf16                          int8, one per layer, only for runs with bf16 matmuls: 1 where the layer
                                   multiplies in bfloat16 (its input is rounded to bf16; its w already is)
+    network                       only for a SimBa actor (network=simba, Lee et al. 2024), "simba"; in place of
+                                  w0 ... bN it then has, float32:
+      embed_w, embed_b            the linear embedding
+      blockI_ln_scale, _ln_bias,  residual block I: x + (act(LayerNorm(x) @ blockI_1_w + blockI_1_b))
+      blockI_1_w, _1_b, _2_w, _2_b    @ blockI_2_w + blockI_2_b
+      head_ln_scale, head_ln_bias, the final LayerNorm and the output layer (the mean action before tanh)
+      head_w, head_b
+      ln_eps                      the LayerNorms' epsilon
+                                  (bf16, if there, marks the dense layers in this order: embed, the blocks'
+                                  _1 and _2, head)
     nI_mean, nI_inv_std,          float32, only for a CrossQ layer I that multiplies in bf16: its input's batch
     nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values)
     mean_clip                     float32, only for gSDE policies: the mean is clipped to [-mean_clip, mean_clip]
@@ -61,6 +71,21 @@ def round_bf16(x: np.ndarray) -> np.ndarray:
     return ((bits + np.uint32(0x7FFF) + ((bits >> 16) & np.uint32(1))) & np.uint32(0xFFFF0000)).view(np.float32)
 
 
+def is_simba(params: dict) -> bool:
+    return str(params.get("network", "mlp")) == "simba"
+
+
+def simba_block_count(params: dict) -> int:
+    return sum(1 for key in params if key.startswith("block") and key.endswith("_ln_scale"))
+
+
+def layer_norm(x: np.ndarray, scale: np.ndarray, bias: np.ndarray, eps: np.float32) -> np.ndarray:
+    """LayerNorm over the last axis, as softac's JAX code computes it: (x - mean) / sqrt(var + eps) * scale + bias."""
+    centred = x - x.mean(axis=-1, keepdims=True)
+    inv_std = np.float32(1.0) / np.sqrt((centred * centred).mean(axis=-1, keepdims=True) + np.float32(eps))
+    return centred * inv_std * scale + bias
+
+
 def flat_observation(params: dict, obs) -> np.ndarray:
     """A dict observation (or a dict of batches) as the flat vector the actor takes; an array as it is."""
     if not isinstance(obs, dict):
@@ -95,10 +120,40 @@ def encoded(params: dict, obs) -> np.ndarray:
     for i, stride in enumerate(params["conv_strides"]):
         x = np.maximum(conv2d(x, params[f"conv{i}_w"], int(stride)) + params[f"conv{i}_b"], 0)
     h = x.reshape(len(x), -1) @ params["enc_w"] + params["enc_b"]
-    centred = h - h.mean(axis=-1, keepdims=True)
-    inv_std = np.float32(1.0) / np.sqrt((centred * centred).mean(axis=-1, keepdims=True) + np.float32(1e-5))
-    features = np.tanh(centred * inv_std * params["enc_ln_scale"] + params["enc_ln_bias"])
+    features = np.tanh(layer_norm(h, params["enc_ln_scale"], params["enc_ln_bias"], np.float32(1e-5)))
     return features if state is None else np.concatenate([features, state.reshape(len(features), -1)], axis=1)
+
+
+def dense(x: np.ndarray, w: np.ndarray, b: np.ndarray, bf16: bool) -> np.ndarray:
+    return (round_bf16(x) if bf16 else x) @ w + b
+
+
+def mlp_forward(params: dict, x: np.ndarray) -> np.ndarray:
+    """The MLP actor's mean action before tanh."""
+    activation = ACTIVATIONS[str(params["activation"])]
+    n_layers = layer_count(params)
+    bf16 = params.get("bf16", np.zeros(n_layers, np.int8))
+    for i in range(n_layers):
+        if f"n{i}_mean" in params:
+            x = (x - params[f"n{i}_mean"]) * params[f"n{i}_inv_std"] * params[f"n{i}_scale"] + params[f"n{i}_bias"]
+        x = dense(x, params[f"w{i}"], params[f"b{i}"], bool(bf16[i]))
+        if i < n_layers - 1:
+            x = activation(x)
+    return x
+
+
+def simba_forward(params: dict, x: np.ndarray) -> np.ndarray:
+    """The SimBa actor's mean action before tanh."""
+    activation = ACTIVATIONS[str(params["activation"])]
+    eps, n_blocks = params["ln_eps"], simba_block_count(params)
+    bf16 = iter(params.get("bf16", np.zeros(2 * n_blocks + 2, np.int8)).tolist())
+    x = dense(x, params["embed_w"], params["embed_b"], next(bf16))
+    for i in range(n_blocks):
+        h = layer_norm(x, params[f"block{i}_ln_scale"], params[f"block{i}_ln_bias"], eps)
+        h = activation(dense(h, params[f"block{i}_1_w"], params[f"block{i}_1_b"], next(bf16)))
+        x = x + dense(h, params[f"block{i}_2_w"], params[f"block{i}_2_b"], next(bf16))
+    x = layer_norm(x, params["head_ln_scale"], params["head_ln_bias"], eps)
+    return dense(x, params["head_w"], params["head_b"], next(bf16))
 
 
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
@@ -108,17 +163,7 @@ def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     if "obs_mean" in params:
         clip = params["obs_clip"]
         x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)
-    activation = ACTIVATIONS[str(params["activation"])]
-    n_layers = layer_count(params)
-    bf16 = params.get("bf16", np.zeros(n_layers, np.int8))
-    for i in range(n_layers):
-        if f"n{i}_mean" in params:
-            x = (x - params[f"n{i}_mean"]) * params[f"n{i}_inv_std"] * params[f"n{i}_scale"] + params[f"n{i}_bias"]
-        if bf16[i]:
-            x = round_bf16(x)
-        x = x @ params[f"w{i}"] + params[f"b{i}"]
-        if i < n_layers - 1:
-            x = activation(x)
+    x = simba_forward(params, x) if is_simba(params) else mlp_forward(params, x)
     if "mean_clip" in params:
         x = np.clip(x, -params["mean_clip"], params["mean_clip"])
     low, high = params["action_low"], params["action_high"]
