@@ -330,7 +330,10 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
              "seeds (± their standard deviation) against its median wall seconds per run on one CPU, from the "
              "trials whose wall time is comparable (benchmarks/sweeps/timing-excluded.yaml lists the others; their "
              "returns count); a configuration with none comparable shows its disturbed trials' median, an upper "
-             "estimate, in parentheses (hollow in the figure). Published: the mean (± sd, seeds) at 100k steps of the result files of "
+             "estimate, in parentheses (hollow in the figure). One-core seconds compare only between rows of one machine "
+             "(the machine column, from the trials' config.yaml; the figure's legend names it too): the AMD EPYC's "
+             "update runs about 2x as fast as the Xeon's (docs/results-notes.md). "
+             "Published: the mean (± sd, seeds) at 100k steps of the result files of "
              "dojeon-ai/SimbaV2 (benchmarks/published-100k.yaml), run on GPUs; best published per env in bold.", ""]
     for env in SUITE_V4:
         present = env_sweeps(env, sweeps)
@@ -345,15 +348,17 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
             # none timed: the disturbed trials' median, an upper estimate, drawn hollow and said so in the table
             seconds = float(np.median(timed or disturbed)) if timed or disturbed else None
             sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
-            points.setdefault(env, {})[name] = (float(np.mean(finals)), sd, seconds, bool(timed))
+            machine = short_machines(machines_of([d / r["trial"] for r in trials]))
+            points.setdefault(env, {})[f"{name} [{machine}]"] = (float(np.mean(finals)), sd, seconds, bool(timed))
             shown_seconds = "-" if seconds is None else f"{seconds:.0f}" if timed else f"({seconds:.0f}: disturbed)"
             rows.append(f"| {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
-                        f"{', '.join(f'{v:.0f}' for v in finals)} | {shown_seconds} |")
+                        f"{', '.join(f'{v:.0f}' for v in finals)} | {shown_seconds} | {machine} |")
         if not rows:
             continue
         best = max(published, key=lambda m: published[m].get(env, (-np.inf,))[0])
-        lines += [f"### {env}", "", "| configuration | seeds | final return (mean ± sd) | each seed | one-core s |",
-                  "|---|---|---|---|---|", *rows, "", "| published | mean ± sd (seeds) |", "|---|---|"]
+        lines += [f"### {env}", "",
+                  "| configuration | seeds | final return (mean ± sd) | each seed | one-core s | machine |",
+                  "|---|---|---|---|---|---|", *rows, "", "| published | mean ± sd (seeds) |", "|---|---|"]
         for method, envs in published.items():
             if env in envs:
                 mean, sd, n = envs[env]
@@ -454,6 +459,11 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list
             "Machines (from the trials' config.yaml; one-core seconds compare only on one machine): "
             + "; ".join(f"{name}: {machines_of(runs)}" for name, runs in runs_of.items()) + ".", "",
             *dmc_aggregate(all_finals, seconds, figures / "dmc-aggregate.png")]
+
+
+def short_machines(machines: str) -> str:
+    """machines_of's text with each machine's CPU alone: "AMD EPYC (AVX-512 BF16)", "Intel Xeon (AMX)"."""
+    return " and ".join(m.split(",")[0].replace("(R)", "").replace(" Processor", "") for m in machines.split(" and "))
 
 
 def machines_of(runs: list[Path]) -> str:

@@ -134,9 +134,14 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
     shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / "Hopper-v4-softac")
     (sweeps / "timing-excluded.yaml").write_text(yaml.safe_dump({"Hopper-v4-softac/seed=0": "shared its core"}))
     docs.mkdir()
-    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    results_doc = load_benchmark_script("results_doc")
+    assert results_doc.main([str(sweeps), "--docs", str(docs)]) == 0
     text = (docs / "results.md").read_text()
     front = text.split("## MuJoCo v4 at 100k steps")[1].split("\n## ")[0]
+    # each row names its trials' machines (one-core seconds compare only on one), by CPU alone
+    machine = results_doc.short_machines(results_doc.machines_of(sorted((sweeps / "Hopper-v4-softac").glob("seed=*"))))
+    assert results_doc.short_machines("AMD EPYC (AVX-512 BF16), 2 cores, Python 3.11.7 and Intel(R) Xeon(R) "
+                                      "Processor (AMX), 2 cores, Python 3.11.7") == "AMD EPYC (AVX-512 BF16) and Intel Xeon (AMX)"
     finals, walls = [], []
     for seed in range(5):
         run = sweeps / "Hopper-v4-softac" / f"seed={seed}"
@@ -145,7 +150,7 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
             walls.append(round(json.loads((run / "summary.json").read_text())["train_time_s"], 1))
     row = next(line for line in front.splitlines() if line.startswith("| softac, crossq preset |"))
     assert row == (f"| softac, crossq preset | 5 | {np.mean(finals):.0f} ± {np.std(finals, ddof=1):.0f} | "
-                   f"{', '.join(f'{v:.0f}' for v in finals)} | {np.median(walls):.0f} |")
+                   f"{', '.join(f'{v:.0f}' for v in finals)} | {np.median(walls):.0f} | {machine} |")
     assert "| SimBa UTD 8 | **3116 ± 64 (5)** |" in front and "| CrossQ | 2764 ± 823 (10) |" in front
     assert (docs / "results" / "front-v4.png").stat().st_size > 10_000
     # every trial disturbed: the point stays, at the disturbed trials' median time, said so (hollow in the figure)
@@ -155,7 +160,7 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
     front = (docs / "results.md").read_text().split("## MuJoCo v4 at 100k steps")[1].split("\n## ")[0]
     row = next(line for line in front.splitlines() if line.startswith("| softac, crossq preset |"))
     walls.append(round(json.loads((sweeps / "Hopper-v4-softac" / "seed=0" / "summary.json").read_text())["train_time_s"], 1))
-    assert row.endswith(f"| ({np.median(walls):.0f}: disturbed) |")
+    assert row.endswith(f"| ({np.median(walls):.0f}: disturbed) | {machine} |")
 
 
 @pytest.mark.skipif(not (KEPT / "dmc-cheetah-run-softac-crossq-ar2" / "sweep.json").exists(),
