@@ -358,8 +358,10 @@ def plot_front(points: dict[str, dict[str, tuple[float, float, float | None, boo
     cols = min(3, len(envs))
     rows = (len(envs) + cols - 1) // cols
     names = sorted({name for env in envs for name in points[env]})
-    # room below the panels for the legend's rows (two entries a row, one more for the hollow marker)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.2 * ((len(names) + 2) // 2)),
+    # room below the panels for the legend's rows (one more entry for the hollow marker): two entries a row
+    # where the names fit the figure's width side by side, else one
+    legend_cols = 2 if max(map(len, names)) * 2 <= 14 * 5.2 * cols else 1
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.2 * -(-(len(names) + 1) // legend_cols)),
                              squeeze=False, layout="constrained")
     colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
     any_hollow = False
@@ -394,8 +396,8 @@ def plot_front(points: dict[str, dict[str, tuple[float, float, float | None, boo
     if any_hollow:
         handles["hollow: wall time from disturbed trials (timing-excluded)"] = plt.Line2D(
             [], [], marker="o", linestyle="", color="grey", markerfacecolor="white")
-    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=min(2, len(handles)),
-               fontsize=8)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center",
+               ncol=min(legend_cols, len(handles)), fontsize=8)
     fig.suptitle(title)
     fig.savefig(out, dpi=110)
     plt.close(fig)
