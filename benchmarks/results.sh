@@ -19,6 +19,8 @@
 #            5 updates per step), beside SBX at the same settings (front:ENV for one env)
 #   dmc:     issue 43's DeepMind Control Suite tasks (the [dmc] extra) at 100k frames: 50k agent steps with
 #            action repeat 2, the crossq preset (the screening before the DMC presets; dmc:TASK for one task)
+#   dmc500k: issue 43's three tasks continued to 500k frames (cheetah-run, walker-run, quadruped-run; 250k agent
+#            steps, an evaluation every 20k frames), the same settings, 1 seed (dmc500k:TASK for one task)
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
@@ -28,7 +30,7 @@
 #            at their defaults (sb3-her, sbx-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
 #            the `default` preset beside `crossq` and SBX, 100k steps
-# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|dmc|pixels|robotics|ENV|options:ENV ...]   (default: classic mujoco)
+# Usage: bash benchmarks/results.sh [classic|mujoco|options|fallback|crossq-defaults|crossq-wn|front|dmc|dmc500k|pixels|robotics|ENV|options:ENV ...]   (default: classic mujoco)
 # Needs the [ray] and [bench] extras (make bench). Rerunning continues where it stopped (finished trials are
 # not redone). Then: python benchmarks/results_doc.py $SWEEPS
 # SWEEPS defaults to benchmarks/sweeps, where git keeps each finished trial's logs (config.yaml, eval.csv,
@@ -43,6 +45,7 @@ CLASSIC="InvertedPendulum-v5 InvertedPendulum-v4 Pusher-v5 Pendulum-v1 MountainC
 FALLBACK="Swimmer-v5 Reacher-v5 InvertedDoublePendulum-v5"
 ROBOTICS="FetchReach-v4 FetchPush-v4 PointMaze_UMaze-v3"
 DMC="cheetah-run walker-run quadruped-run finger-spin reacher-hard walker-walk cartpole-swingup hopper-hop"
+DMC_500K="cheetah-run walker-run quadruped-run"
 
 classic() {
   case $1 in
@@ -98,6 +101,10 @@ dmc() {
   $SOFTAC sweep --env dmc:$1 --seeds 1 --steps 50000 --preset crossq --set action_repeat=2 --out $SWEEPS/dmc-$1-softac-crossq-ar2
 }
 
+dmc500k() {
+  $SOFTAC sweep --env dmc:$1 --seeds 1 --steps 250000 --preset crossq --set action_repeat=2 eval_interval=10000 --out $SWEEPS/dmc-$1-softac-crossq-ar2-500k
+}
+
 pixels() {
   # issue 44 on a CPU: an update at 84x84 takes 1-6 s on one core here (7-20 hours a run), at 48x48 and batch 32
   # about 0.2-0.3 s (benchmarks/update_time.py --image 3x48x48x3), so these runs use 48x48 frames and batch 32;
@@ -149,6 +156,8 @@ for target in $targets; do
     robotics) for env in $ROBOTICS; do robotics $env; done ;;
     dmc) for task in $DMC; do dmc $task; done ;;
     dmc:*) dmc ${target#dmc:} ;;
+    dmc500k) for task in $DMC_500K; do dmc500k $task; done ;;
+    dmc500k:*) dmc500k ${target#dmc500k:} ;;
     pixels) pixels ;;
     robotics:*) robotics ${target#robotics:} ;;
     *) if [[ " $MUJOCO " == *" $target "* ]]; then mujoco $target

@@ -47,6 +47,8 @@ DMC_TASKS = ["cheetah-run", "walker-walk", "walker-run", "hopper-hop", "finger-s
              "cartpole-swingup"]
 PUBLISHED_DMC = Path(__file__).resolve().parent / "published-dmc-100k.yaml"
 PUBLISHED_DMC_RUNS = PUBLISHED_DMC.with_name("published-dmc-100k-runs.yaml")  # per seed, for the aggregate
+DMC_500K = "Continued to 500k frames"  # a subsection of DMC's
+PUBLISHED_DMC_500K = PUBLISHED_DMC.with_name("published-dmc-500k.yaml")
 # issue 43's columns: SAC, SimBa and BRO from the SimBa paper's files (10 seeds), SimBaV2 and TD-MPC2 from SimbaV2's
 DMC_SHOWN = ["SAC (SimBa paper)", "SimBa", "SimBaV2 UTD 2", "BRO (SimBa paper)", "TD-MPC2"]
 OURS = "softac, crossq preset"  # the suite's env presets (extends: crossq); the aggregate's reference for wall time
@@ -416,23 +418,27 @@ def dmc_aggregate(finals: dict[str, dict[str, list[float]]], seconds: dict[str, 
     return lines + ["", f"![DMC aggregate](results/{figure.name})", ""]
 
 
-def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list[str]:
-    """Per DMC task, each configuration's final return at 100k frames (mean ± sd over seeds, each seed, median
-    one-core wall seconds of the comparable trials) beside the published means (DMC_SHOWN, from
-    benchmarks/published-dmc-100k.yaml)."""
+def sweep_frames(d: Path, trials: list[dict]) -> int:
+    """Env frames a trial of the sweep ran: its agent steps times its action repeat (config.yaml)."""
     import yaml
 
+    config = yaml.safe_load((d / trials[0]["trial"] / "config.yaml").read_text()) or {}
+    return int(config.get("total_steps", 0)) * int(config.get("action_repeat") or 1)
+
+
+def dmc_rows(sweeps: Path, tasks: list[str], frames: int, published: dict, shown: list[str]) -> tuple[list[str], dict, dict, dict]:
+    """The DMC table's rows for the sweeps that ran `frames` frames on `tasks` (each configuration's final return:
+    mean ± sd over seeds, each seed, median one-core wall seconds of the comparable trials, the published means),
+    and {configuration: {task: finals}}, {configuration: {task: seconds}}, {configuration: trial directories}."""
     excluded = timing_excluded(sweeps)
-    published = {name: envs for name, envs in yaml.safe_load(PUBLISHED_DMC.read_text())["methods"].items()}
-    shown = [m for m in DMC_SHOWN if m in published]
-    rows = []
+    rows: list[str] = []
     all_finals: dict[str, dict[str, list[float]]] = {}
     seconds: dict[str, dict[str, float]] = {}
     runs_of: dict[str, list[Path]] = {}
-    for task in DMC_TASKS:
+    for task in tasks:
         for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
             trials = finished_trials(d, excluded)
-            if not trials:
+            if not trials or sweep_frames(d, trials) != frames:
                 continue
             runs_of.setdefault(name, []).extend(d / r["trial"] for r in trials)
             finals = [r["final_eval_mean"] for r in trials]
@@ -445,20 +451,53 @@ def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list
             rows.append(f"| {task} | {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
                         f"{', '.join(f'{v:.0f}' for v in finals)} | "
                         f"{f'{np.median(timed):.0f}' if timed else '-'} | {others} |")
-    if not rows:
+    return rows, all_finals, seconds, runs_of
+
+
+def dmc_table(rows: list[str], shown: list[str], runs_of: dict[str, list[Path]]) -> list[str]:
+    return [f"| task | configuration | seeds | final return (mean ± sd) | each seed | one-core s | "
+            f"{' | '.join(f'published {m}' for m in shown)} |",
+            "|" + "---|" * (6 + len(shown)), *rows, "",
+            "Machines (from the trials' config.yaml; one-core seconds compare only on one machine): "
+            + "; ".join(f"{name}: {machines_of(runs)}" for name, runs in runs_of.items()) + ".", ""]
+
+
+def dmc_section(sweeps: Path, kept: dict[str, list[str]], figures: Path) -> list[str]:
+    """Per DMC task, each configuration's final return at 100k frames beside the published means (DMC_SHOWN, from
+    benchmarks/published-dmc-100k.yaml), and the aggregate; then the tasks continued to 500k frames."""
+    import yaml
+
+    published = {name: envs for name, envs in yaml.safe_load(PUBLISHED_DMC.read_text())["methods"].items()}
+    shown = [m for m in DMC_SHOWN if m in published]
+    rows, all_finals, seconds, runs_of = dmc_rows(sweeps, DMC_TASKS, 100_000, published, shown)
+    longer = dmc_500k_section(sweeps)
+    if not rows and not longer:
         return kept.get(DMC, [])
+    table = ([*dmc_table(rows, shown, runs_of), *dmc_aggregate(all_finals, seconds, figures / "dmc-aggregate.png")]
+             if rows else ["No run of 100k frames here.", ""])
     return [f"## {DMC}", "",
             "The DeepMind Control Suite through the `[dmc]` extra (`--env dmc:TASK`), action repeat 2, 100k frames "
             "(50k agent steps), final deterministic evaluation (10 episodes of 1000 frames), one pinned CPU per "
             "trial. Published: the mean at 100k frames of SonyResearch/simba's result files (SAC, SimBa, BRO; 10 "
             "seeds) and dojeon-ai/SimbaV2's (SimBaV2, TD-MPC2; benchmarks/published-dmc-100k.yaml has their "
             "commits, standard deviations and SimbaV2's own SAC and BRO baselines), run on GPUs.", "",
-            f"| task | configuration | seeds | final return (mean ± sd) | each seed | one-core s | "
-            f"{' | '.join(f'published {m}' for m in shown)} |",
-            "|" + "---|" * (6 + len(shown)), *rows, "",
-            "Machines (from the trials' config.yaml; one-core seconds compare only on one machine): "
-            + "; ".join(f"{name}: {machines_of(runs)}" for name, runs in runs_of.items()) + ".", "",
-            *dmc_aggregate(all_finals, seconds, figures / "dmc-aggregate.png")]
+            *table, *longer]
+
+
+def dmc_500k_section(sweeps: Path) -> list[str]:
+    """The tasks continued to 500k frames beside the published means at 500k (benchmarks/published-dmc-500k.yaml)."""
+    import yaml
+
+    published = yaml.safe_load(PUBLISHED_DMC_500K.read_text())["methods"]
+    shown = [m for m in DMC_SHOWN if m in published]
+    tasks = [t for t in DMC_TASKS if any(t in envs for envs in published.values())]
+    rows, _, _, runs_of = dmc_rows(sweeps, tasks, 500_000, published, shown)
+    if not rows:
+        return []
+    return [f"### {DMC_500K}", "",
+            "The same protocol continued to 500k frames (250k agent steps; evaluations every 20k frames), beside the "
+            "published means at 500k frames of the same result files (benchmarks/published-dmc-500k.yaml).", "",
+            *dmc_table(rows, shown, runs_of)]
 
 
 def short_machines(machines: str) -> str:

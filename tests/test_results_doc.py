@@ -190,6 +190,31 @@ def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_pat
     [sac] = [line for line in aggregate.splitlines() if line.startswith("| published SAC (SimBa paper) (1 tasks)")]
     assert sac.split("|")[3].strip() == "10" and sac.split("|")[4].strip().startswith("0.32 [")
     assert (docs / "results" / "dmc-aggregate.png").stat().st_size > 10_000
+    assert "### Continued to 500k frames" not in section  # no sweep ran 500k frames
+
+
+@pytest.mark.skipif(not (KEPT / "dmc-cheetah-run-softac-crossq-ar2" / "sweep.json").exists(),
+                    reason="kept DMC sweeps not present")
+def test_a_dmc_run_of_500k_frames_is_set_beside_the_published_500k_means_not_the_100k_ones(tmp_path):
+    import yaml
+
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    long = sweeps / "dmc-cheetah-run-softac-crossq-ar2-500k"
+    shutil.copytree(KEPT / "dmc-cheetah-run-softac-crossq-ar2", long)
+    for trial in long.glob("seed=*"):
+        if trial.name != "seed=0":
+            shutil.rmtree(trial)
+    config = yaml.safe_load((long / "seed=0" / "config.yaml").read_text())
+    (long / "seed=0" / "config.yaml").write_text(yaml.safe_dump({**config, "total_steps": 250000}))
+    docs.mkdir()
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    section = (docs / "results.md").read_text().split("## DeepMind Control Suite at 100k frames")[1].split("\n## ")[0]
+    table_100k, table_500k = section.split("### Continued to 500k frames")
+    assert "| cheetah-run |" not in table_100k
+    [row] = [line for line in table_500k.splitlines() if line.startswith("| cheetah-run |")]
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    # issue 43's 500k figures: the SimBa paper's SAC 716, SimBa 815, BRO 740; SimbaV2's SimBaV2 UTD 2 890, TD-MPC2 758
+    assert cells[1] == "softac, crossq preset + action_repeat=2" and cells[6:] == ["716", "815", "890", "740", "758"]
 
 
 def test_the_published_dmc_runs_agree_with_the_published_means():
