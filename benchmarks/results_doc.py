@@ -183,16 +183,19 @@ def timing_excluded(sweeps: Path) -> dict[str, str]:
 
 def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dict]:
     """The sweep's finished trials' rows, each with the day it started (None for runs from before
-    config.yaml recorded it) and `timed`: False for a trial in `excluded` (sweep/trial -> why)."""
+    config.yaml recorded it) and `timed`: False for a trial in `excluded` (sweep/trial -> why) or one that
+    config.yaml says shared its CPUs with another pinned process."""
     import yaml
 
     spec = load_spec(d)
     rows = [r for r in trial_rows(d, spec) if r["status"] == "done" and r["final_eval_mean"] is not None]
     for row in rows:
         config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
-        started = str((config.get("segments") or [{}])[0].get("started") or "")
-        row["day"] = started[:10] or None
-        row["timed"] = f"{d.name}/{row['trial']}" not in (excluded or {})
+        segments = config.get("segments") or [{}]
+        row["day"] = str(segments[0].get("started") or "")[:10] or None
+        # a trial pinned to CPUs another pinned softac process held (softac.cpus.cpus_shared) ran disturbed too
+        row["timed"] = (f"{d.name}/{row['trial']}" not in (excluded or {})
+                        and not any(s.get("cpus_shared") for s in segments))
     return rows
 
 

@@ -1,5 +1,6 @@
 """The `softac` command: outputs, exit codes, one-line errors, resume, signals."""
 
+import contextlib
 import csv
 import fcntl
 import json
@@ -280,6 +281,44 @@ def test_cpus_pins_the_run_to_a_cpu_no_other_run_holds(tmp_path):
     expected = f"pinned to CPUs [{allowed[1]}]" if len(allowed) > 1 else f"pinned to CPUs [{allowed[0]}] (shared"
     assert expected in r.stderr.splitlines()[0], r.stderr
     assert "\ncpus: 1\n" in (run / "config.yaml").read_text()
+
+
+def test_a_run_pinned_beside_runs_holding_every_cpu_records_that_it_shared(tmp_path):
+    """No CPU free (every one held by another pinned softac process): `--cpus 1` still pins (the same thread
+    count, so the same numbers), says so, and config.yaml's segment records `cpus_shared` (its wall time is not an
+    undisturbed run's: docs/results.md leaves such trials' times out)."""
+    import yaml
+
+    locks = tmp_path / "tmp" / f"softac-cpus-{os.getuid()}"
+    locks.mkdir(parents=True)
+    with contextlib.ExitStack() as stack:
+        for cpu in sorted(os.sched_getaffinity(0)):
+            held = stack.enter_context(open(locks / f"cpu{cpu}.lock", "a"))
+            fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        run = tmp_path / "run"
+        r = run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", "300", "--out", str(run), "--cpus", "1",
+                    "--no-progress", *TINY_SETS, env_extra={"TMPDIR": str(tmp_path / "tmp")})
+    assert r.returncode == 0, r.stderr
+    assert "(shared: no free CPUs)" in r.stderr.splitlines()[0], r.stderr
+    [segment] = yaml.safe_load((run / "config.yaml").read_text())["segments"]
+    assert segment["cpus_shared"] is True and segment["cpus"] == 1
+
+
+def test_a_sweep_trials_shared_cpus_reach_its_process(monkeypatch):
+    """A sweep trial that had to share its CPUs tells its process (trial_process_env), which records it."""
+    from softac import cpus
+    from softac.sweep import trial_process_env
+
+    allowed = sorted(os.sched_getaffinity(0))
+    monkeypatch.setattr(cpus, "_shared", False)
+    for shared in (True, False):
+        env = trial_process_env(1, allowed, shared)
+        for var in (cpus.TRIAL_CPUS_VAR, cpus.TRIAL_SHARED_VAR):
+            monkeypatch.delenv(var, raising=False)
+            if var in env:
+                monkeypatch.setenv(var, env[var])
+        cpus.adopt_trial_settings()  # (no parent variable: nothing else happens; the affinity stays as it was)
+        assert cpus.cpus_shared() is shared and cpus.TRIAL_SHARED_VAR not in os.environ
 
 
 def test_checkpoint_problems_are_clean_errors(tmp_path):

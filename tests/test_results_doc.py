@@ -153,6 +153,15 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
                    f"{', '.join(f'{v:.0f}' for v in finals)} | {np.median(walls):.0f} | {machine} |")
     assert "| SimBa UTD 8 | **3116 ± 64 (5)** |" in front and "| CrossQ | 2764 ± 823 (10) |" in front
     assert (docs / "results" / "front-v4.png").stat().st_size > 10_000
+    # a trial whose config.yaml says it shared its CPUs counts as disturbed, as one listed in timing-excluded.yaml
+    config_path = sweeps / "Hopper-v4-softac" / "seed=1" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config.setdefault("segments", [{}])[0]["cpus_shared"] = True
+    config_path.write_text(yaml.safe_dump(config))
+    assert results_doc.main([str(sweeps), "--docs", str(docs)]) == 0
+    front = (docs / "results.md").read_text().split("## MuJoCo v4 at 100k steps")[1].split("\n## ")[0]
+    row = next(line for line in front.splitlines() if line.startswith("| softac, crossq preset |"))
+    assert row.endswith(f"| {np.median(walls[1:]):.0f} | {machine} |")
     # every trial disturbed: the point stays, at the disturbed trials' median time, said so (hollow in the figure)
     everything = {f"Hopper-v4-softac/seed={seed}": "shared its core" for seed in range(5)}
     (sweeps / "timing-excluded.yaml").write_text(yaml.safe_dump(everything))

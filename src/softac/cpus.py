@@ -20,6 +20,14 @@ from typing import Any, NamedTuple
 CPU_LOCKS = Path(tempfile.gettempdir()) / f"softac-cpus-{os.getuid() if hasattr(os, 'getuid') else 0}"
 
 _held: list[Any] = []  # the locks of this process's own CPUs: open until it exits
+_shared = False  # this process was pinned to CPUs another pinned softac process held (none were free)
+
+
+def cpus_shared() -> bool:
+    """Whether this process was pinned (`--cpus`, or as a sweep trial) to CPUs that another pinned softac
+    process held when it started: its wall time then does not compare with undisturbed runs'. Recorded in the
+    run's config.yaml (rundir.write_config)."""
+    return _shared
 
 
 def usable_cpus() -> list[int]:
@@ -106,14 +114,17 @@ def claim_cpus(n: int) -> Claim:
 # set by a sweep trial (softac.sweep.trial) for the process it starts, which applies them itself when it starts
 TRIAL_CPUS_VAR = "SOFTAC_TRIAL_CPUS"  # the CPUs the trial claimed, e.g. "0,3"
 TRIAL_PARENT_VAR = "SOFTAC_TRIAL_PARENT"  # the pid of the trial's Ray worker
+TRIAL_SHARED_VAR = "SOFTAC_TRIAL_CPUS_SHARED"  # "1" where the trial's CPUs are shared (claim_cpus found none free)
 # seconds a stopped trial's process may take to write its checkpoint and exit before it ends itself (SIGALRM)
 TRIAL_STOP_DEADLINE_VAR = "SOFTAC_TRIAL_STOP_DEADLINE_S"
 TRIAL_STOP_DEADLINE_S = 600
 
 
-def trial_settings_env(cpus: list[int], parent_pid: int) -> dict[str, str]:
-    """The variables that tell a trial's process its CPUs and its parent (see adopt_trial_settings)."""
-    return {TRIAL_CPUS_VAR: ",".join(map(str, cpus)), TRIAL_PARENT_VAR: str(parent_pid)}
+def trial_settings_env(cpus: list[int], parent_pid: int, shared: bool = False) -> dict[str, str]:
+    """The variables that tell a trial's process its CPUs (and whether they are shared) and its parent (see
+    adopt_trial_settings)."""
+    return {TRIAL_CPUS_VAR: ",".join(map(str, cpus)), TRIAL_PARENT_VAR: str(parent_pid),
+            **({TRIAL_SHARED_VAR: "1"} if shared else {})}
 
 
 def adopt_trial_settings() -> None:
@@ -123,8 +134,10 @@ def adopt_trial_settings() -> None:
     checkpoints and exits. Done here, after exec, not in a preexec_fn: Python code run between fork and exec
     in a Ray worker, whose other threads may hold locks at the fork, hung a trial's child for minutes (seen
     with two sweeps side by side), and Python's docs warn against preexec_fn with threads."""
+    global _shared
     cpus = os.environ.pop(TRIAL_CPUS_VAR, None)
     parent = os.environ.pop(TRIAL_PARENT_VAR, None)
+    _shared = os.environ.pop(TRIAL_SHARED_VAR, None) == "1" and bool(cpus)
     if cpus:
         try:
             os.sched_setaffinity(0, [int(c) for c in cpus.split(",")])
@@ -157,10 +170,12 @@ def adopt_trial_settings() -> None:
 def pin_this_process(n: int) -> tuple[list[int], bool]:
     """Pin this process to n claimed CPUs, held until it exits: (the CPUs, whether they are shared with
     another pinned process). Call it before JAX starts its backend, which sizes its thread pool then."""
+    global _shared
     claim = claim_cpus(n)
     if claim.cpus:
         os.sched_setaffinity(0, claim.cpus)
     _held.extend(claim.locks)
+    _shared = claim.shared
     return claim.cpus, claim.shared
 
 

@@ -131,7 +131,9 @@ def build_report(run: Path, out: Path | None = None, video: Path | None = None) 
                  "elsewhere), as config.yaml records it.</p>" + _table(
                      ["from step", "started", "host", "machine", "CPUs", "matmuls", "versions"],
                      [[s.get("start_step", ""), s.get("started", ""), s.get("host", ""),
-                       s.get("machine") or "not recorded", s.get("cpus", ""), s.get("resolved_matmul_dtype", ""),
+                       s.get("machine") or "not recorded",
+                       f"{s.get('cpus', '')}{' (shared with another pinned run)' if s.get('cpus_shared') else ''}",
+                       s.get("resolved_matmul_dtype", ""),
                        ", ".join(f"{k} {v}" for k, v in (s.get("versions") or {}).items())]
                       for s in _segments(config)]))
     page = ("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"

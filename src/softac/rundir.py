@@ -73,17 +73,18 @@ def versions() -> dict[str, str]:
     return out
 
 
-SEGMENT_FACTS = ("host", "pid", "machine", "cpus", "versions", "resolved_matmul_dtype")
+SEGMENT_FACTS = ("host", "pid", "machine", "cpus", "cpus_shared", "versions", "resolved_matmul_dtype")
 
 
 def write_config(run_dir: Path, config: dict[str, Any], extra: dict[str, Any], start_step: int = 0,
                  continuing: bool = False) -> None:
     """RUN/config.yaml: the config, then `extra` (versions, resolved values) and the machine it ran on, and
     `segments`: one entry for each stretch of training (its first step, when, where, on what: a resumed run
-    may go on under other versions, on another machine or CPU count). When `continuing` a run, the config
+    may go on under other versions, on another machine or CPU count; `cpus_shared: true` where it was pinned to
+    CPUs another pinned softac process held, softac.cpus.cpus_shared). When `continuing` a run, the config
     keys are updated, the top-level record (versions, cpus, machine) stays the run's first, and a segment is
     added unless the same process goes on training on the same machine."""
-    from softac.cpus import machine_description
+    from softac.cpus import cpus_shared, machine_description
 
     data = dict(config)
     data.update(extra)
@@ -91,6 +92,8 @@ def write_config(run_dir: Path, config: dict[str, Any], extra: dict[str, Any], s
     segment = {"start_step": start_step, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                "host": socket.gethostname(), "pid": os.getpid(),
                **copy.deepcopy({key: data[key] for key in SEGMENT_FACTS if key in data})}  # no YAML aliases
+    if cpus_shared():  # pinned beside another pinned softac process: its wall time is not an undisturbed one's
+        segment["cpus_shared"] = True
     previous = _read_yaml(run_dir / "config.yaml") if continuing else {}
     segments = list(previous.get("segments") or [])
     if previous and not segments:  # a run from before segments were kept: its record is the first one

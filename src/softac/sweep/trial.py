@@ -77,13 +77,13 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
     return cmd
 
 
-def trial_process_env(threads: int, cpus: list[int]) -> dict[str, str]:
+def trial_process_env(threads: int, cpus: list[int], shared: bool = False) -> dict[str, str]:
     """The environment of a trial's process: thread counts for the libraries that read them (PyTorch for the
     peers, OpenMP, MKL; XLA takes its own from the CPU affinity), and its CPUs and parent, which the process
     applies itself when it starts (softac.cpus.adopt_trial_settings)."""
     env = dict(os.environ)
     env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
-    env.update(trial_settings_env(cpus, os.getpid()))
+    env.update(trial_settings_env(cpus, os.getpid(), shared))
     return env
 
 
@@ -143,16 +143,17 @@ def run_trial(params: dict[str, Any], spec: dict[str, Any], out: str, cpus: floa
     cmd = trial_command(sweep, base, trial, run)
     threads = max(1, int(cpus))
     where = node_label()
-    pinned, locks, _ = claim_cpus(threads)
+    pinned, locks, shared = claim_cpus(threads)
     with open(log_path, "a") as log, contextlib.ExitStack() as held:
         for lock in locks:
             held.callback(lock.close)
-        log.write(f"$ {' '.join(cmd)}  ({f'CPUs {pinned}, ' if pinned else ''}{where})\n")
+        shown = f"CPUs {pinned}{' shared: none free' if shared else ''}, " if pinned else ""
+        log.write(f"$ {' '.join(cmd)}  ({shown}{where})\n")
         log.flush()
         # a session of its own: Ray starts each worker in its own process group and SIGKILLs the group when
         # Tune force-stops the trial (5 s after asking it to stop), which killed a trial still writing its
         # checkpoint or winding down; outside that group it ends through its own SIGTERM path (PDEATHSIG)
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=trial_process_env(threads, pinned),
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=trial_process_env(threads, pinned, shared),
                                 start_new_session=True)
         code = None
         try:
