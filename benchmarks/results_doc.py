@@ -183,8 +183,9 @@ def timing_excluded(sweeps: Path) -> dict[str, str]:
 
 def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dict]:
     """The sweep's finished trials' rows, each with the day it started (None for runs from before
-    config.yaml recorded it) and `timed`: False for a trial in `excluded` (sweep/trial -> why) or one that
-    config.yaml says shared its CPUs with another pinned process."""
+    config.yaml recorded it), the env frames it ran (agent steps times action repeat) and `timed`: False for a
+    trial in `excluded` (sweep/trial -> why) or one that config.yaml says shared its CPUs with another pinned
+    process."""
     import yaml
 
     spec = load_spec(d)
@@ -193,6 +194,7 @@ def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dic
         config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
         segments = config.get("segments") or [{}]
         row["day"] = str(segments[0].get("started") or "")[:10] or None
+        row["frames"] = int(config.get("total_steps", 0)) * int(config.get("action_repeat") or 1)  # env frames
         # a trial pinned to CPUs another pinned softac process held (softac.cpus.cpus_shared) ran disturbed too
         row["timed"] = (f"{d.name}/{row['trial']}" not in (excluded or {})
                         and not any(s.get("cpus_shared") for s in segments))
@@ -421,14 +423,6 @@ def dmc_aggregate(finals: dict[str, dict[str, list[float]]], seconds: dict[str, 
     return lines + ["", f"![DMC aggregate](results/{figure.name})", ""]
 
 
-def sweep_frames(d: Path, trials: list[dict]) -> int:
-    """Env frames a trial of the sweep ran: its agent steps times its action repeat (config.yaml)."""
-    import yaml
-
-    config = yaml.safe_load((d / trials[0]["trial"] / "config.yaml").read_text()) or {}
-    return int(config.get("total_steps", 0)) * int(config.get("action_repeat") or 1)
-
-
 def dmc_rows(sweeps: Path, tasks: list[str], frames: int, published: dict, shown: list[str]) -> tuple[list[str], dict, dict, dict]:
     """The DMC table's rows for the sweeps that ran `frames` frames on `tasks` (each configuration's final return:
     mean ± sd over seeds, each seed, median one-core wall seconds of the comparable trials, the published means),
@@ -441,7 +435,7 @@ def dmc_rows(sweeps: Path, tasks: list[str], frames: int, published: dict, shown
     for task in tasks:
         for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
             trials = finished_trials(d, excluded)
-            if not trials or sweep_frames(d, trials) != frames:
+            if not trials or trials[0]["frames"] != frames:
                 continue
             runs_of.setdefault(name, []).extend(d / r["trial"] for r in trials)
             finals = [r["final_eval_mean"] for r in trials]

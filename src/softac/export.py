@@ -21,7 +21,7 @@ import numpy as np
 from softac.version import __version__
 from softac.checkpoint import is_checkpoint
 from softac.errors import SoftacError
-from softac.export_numpy import is_simba, layer_count, round_bf16, simba_block_count
+from softac.export_numpy import dense_bf16_flags, is_simba, round_bf16, simba_block_count
 from softac.normalization import EPSILON
 from softac.rundir import write_atomic
 from softac.snapshot import load_learner
@@ -287,16 +287,15 @@ def _onnx_dense(g: _Graph, arrays: dict[str, np.ndarray], x: str, w: str, b: str
 
 
 def _onnx_mlp_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
-    n_layers = layer_count(arrays)
-    bf16 = arrays.get("bf16", np.zeros(n_layers, np.int8))
-    for i in range(n_layers):
+    bf16 = dense_bf16_flags(arrays)
+    for i in range(len(bf16)):
         if f"n{i}_mean" in arrays:
             x = g.op("Mul", g.op("Sub", x, g.const(f"n{i}_mean", arrays[f"n{i}_mean"])),
                      g.const(f"n{i}_inv_std", arrays[f"n{i}_inv_std"]))
             x = g.op("Add", g.op("Mul", x, g.const(f"n{i}_scale", arrays[f"n{i}_scale"])),
                      g.const(f"n{i}_bias", arrays[f"n{i}_bias"]))
-        x = _onnx_dense(g, arrays, x, f"w{i}", f"b{i}", bool(bf16[i]))
-        if i < n_layers - 1:
+        x = _onnx_dense(g, arrays, x, f"w{i}", f"b{i}", bf16[i])
+        if i < len(bf16) - 1:
             x = _onnx_activation(g, str(arrays["activation"]), x)
     return x
 
@@ -304,7 +303,7 @@ def _onnx_mlp_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
 def _onnx_simba_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
     """export_numpy.simba_forward: the embedding, the residual blocks, the final LayerNorm, the output layer."""
     eps, n_blocks = float(arrays["ln_eps"]), simba_block_count(arrays)
-    bf16 = iter(arrays.get("bf16", np.zeros(2 * n_blocks + 2, np.int8)).tolist())
+    bf16 = iter(dense_bf16_flags(arrays))
     x = _onnx_dense(g, arrays, x, "embed_w", "embed_b", next(bf16))
     for i in range(n_blocks):
         h = _onnx_layer_norm(g, arrays, x, f"block{i}_ln", eps)

@@ -79,6 +79,13 @@ def simba_block_count(params: dict) -> int:
     return sum(1 for key in params if key.startswith("block") and key.endswith("_ln_scale"))
 
 
+def dense_bf16_flags(params: dict) -> list[bool]:
+    """Whether each dense layer of the actor multiplies in bfloat16, in the order the forward pass takes them
+    (an MLP's w0 ... wN; a SimBa actor's embed, each block's _1 and _2, head): all False without `bf16`."""
+    count = 2 * simba_block_count(params) + 2 if is_simba(params) else layer_count(params)
+    return [bool(flag) for flag in params.get("bf16", np.zeros(count, np.int8))]
+
+
 def layer_norm(x: np.ndarray, scale: np.ndarray, bias: np.ndarray, eps: np.float32) -> np.ndarray:
     """LayerNorm over the last axis, as softac's JAX code computes it: (x - mean) / sqrt(var + eps) * scale + bias."""
     centred = x - x.mean(axis=-1, keepdims=True)
@@ -131,13 +138,12 @@ def dense(x: np.ndarray, w: np.ndarray, b: np.ndarray, bf16: bool) -> np.ndarray
 def mlp_forward(params: dict, x: np.ndarray) -> np.ndarray:
     """The MLP actor's mean action before tanh."""
     activation = ACTIVATIONS[str(params["activation"])]
-    n_layers = layer_count(params)
-    bf16 = params.get("bf16", np.zeros(n_layers, np.int8))
-    for i in range(n_layers):
+    bf16 = dense_bf16_flags(params)
+    for i in range(len(bf16)):
         if f"n{i}_mean" in params:
             x = (x - params[f"n{i}_mean"]) * params[f"n{i}_inv_std"] * params[f"n{i}_scale"] + params[f"n{i}_bias"]
-        x = dense(x, params[f"w{i}"], params[f"b{i}"], bool(bf16[i]))
-        if i < n_layers - 1:
+        x = dense(x, params[f"w{i}"], params[f"b{i}"], bf16[i])
+        if i < len(bf16) - 1:
             x = activation(x)
     return x
 
@@ -146,7 +152,7 @@ def simba_forward(params: dict, x: np.ndarray) -> np.ndarray:
     """The SimBa actor's mean action before tanh."""
     activation = ACTIVATIONS[str(params["activation"])]
     eps, n_blocks = params["ln_eps"], simba_block_count(params)
-    bf16 = iter(params.get("bf16", np.zeros(2 * n_blocks + 2, np.int8)).tolist())
+    bf16 = iter(dense_bf16_flags(params))
     x = dense(x, params["embed_w"], params["embed_b"], next(bf16))
     for i in range(n_blocks):
         h = layer_norm(x, params[f"block{i}_ln_scale"], params[f"block{i}_ln_bias"], eps)

@@ -359,7 +359,8 @@ def plot_front(points: dict[str, dict[str, tuple[float, float, float | None, boo
     rows = (len(envs) + cols - 1) // cols
     names = sorted({name for env in envs for name in points[env]})
     # room below the panels for the legend's rows (one more entry for the hollow marker): two entries a row
-    # where the names fit the figure's width side by side, else one
+    # where two of the longest names fit the figure's width side by side (~14 characters an inch at the
+    # legend's font size 8), else one
     legend_cols = 2 if max(map(len, names)) * 2 <= 14 * 5.2 * cols else 1
     fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.2 * -(-(len(names) + 1) // legend_cols)),
                              squeeze=False, layout="constrained")

@@ -73,6 +73,7 @@ def versions() -> dict[str, str]:
     return out
 
 
+# what a segment records; a change of any starts a new segment (cpus_shared is the segment's own, never top-level)
 SEGMENT_FACTS = ("host", "pid", "machine", "cpus", "cpus_shared", "versions", "resolved_matmul_dtype")
 
 
