@@ -12,10 +12,10 @@ so the optimisers never see them.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 from typing import Any, Callable
-
-import math
 
 import jax
 import jax.numpy as jnp
@@ -120,6 +120,22 @@ def multiplies_in_bf16(weight_shape: tuple[int, ...], matmul_dtype: str) -> bool
     # mixed precision only where the FLOPs are: hidden-to-hidden layers. The input and output
     # layers are thin (a few columns), cost little, and keep full precision for obs and Q-values.
     return matmul_dtype != "float32" and min(weight_shape[-2:]) >= 16
+
+
+@functools.cache
+def jit_keeps_bf16_rounding() -> bool:
+    """Whether this JAX's compiled bf16 layer rounds its inputs to bf16, as current JAX does. JAX 0.4.30's CPU
+    backend drops the float32 -> bf16 -> float32 round trip as excess precision (XLA's
+    xla_allow_excess_precision) and multiplies in float32: there a bf16 layer computes the float32 layer, so
+    the export (which must act as predict() does) writes it as float32. Probed once on a layer whose two
+    results differ by ~1e-2."""
+    rng = np.random.default_rng(0)
+    x, w = rng.normal(size=(8, 32)).astype(np.float32), rng.normal(size=(32, 8)).astype(np.float32)
+    compiled = np.asarray(jax.jit(lambda x, w: bf16_matmul(x + 1.0, w))(x, w), np.float64)
+    rounded = np.asarray(jnp.asarray(x + 1.0).astype(jnp.bfloat16), np.float64) @ np.asarray(
+        jnp.asarray(w).astype(jnp.bfloat16), np.float64)
+    unrounded = (x + 1.0).astype(np.float64) @ w.astype(np.float64)
+    return bool(np.abs(compiled - rounded).max() < np.abs(compiled - unrounded).max())
 
 
 def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
