@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from float_bounds import assert_within_bound, mlp_bound
-from softac import cpus, sac
+from softac import cpus, networks, sac
 from softac.config import SACConfig
 
 pytestmark = pytest.mark.numerics
@@ -307,4 +307,6 @@ def test_cpu_has_bf16_honours_xla_max_isa(monkeypatch, cpu, xla_flags, bf16):
     monkeypatch.setenv("XLA_FLAGS", xla_flags)
     assert cpus.cpu_has_bf16() is bf16
     if jax.default_backend() == "cpu":
-        assert sac.resolve_matmul_dtype("auto") == ("bfloat16" if bf16 else "float32")
+        # JAX 0.4.30's CPU compiler drops the bf16 rounding: auto is float32 there, what it computes anyway
+        expected = bf16 and networks.jit_keeps_bf16_rounding()
+        assert sac.resolve_matmul_dtype("auto") == ("bfloat16" if expected else "float32")

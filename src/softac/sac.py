@@ -27,7 +27,7 @@ from softac.encoder import (encode, image_only_shape, init_encoder, random_shift
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
-                             output_layer_mask, stack, unit_norm_hidden_units)
+                             jit_keeps_bf16_rounding, output_layer_mask, stack, unit_norm_hidden_units)
 from softac.policy import (ActionScaler, Policy, bound_log_std, log_one_minus_tanh_sq,  # noqa: F401
                            squashed_gaussian_log_prob)
 
@@ -372,11 +372,13 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
 
 
 def resolve_matmul_dtype(setting: str) -> str:
-    """`auto` is bfloat16 where bf16 matmuls are fast (a GPU; a CPU with AVX-512 BF16 or AMX), else float32
-    (docs/performance.md has the measurements)."""
+    """`auto` is bfloat16 where bf16 matmuls are fast (a GPU; a CPU with AVX-512 BF16 or AMX) and this JAX's
+    compiler keeps their rounding, else float32 (docs/performance.md has the measurements; JAX 0.4.30's CPU
+    backend multiplies bf16 layers in float32 anyway, and the run's config says so)."""
     if setting != "auto":
         return setting
-    return "bfloat16" if jax.default_backend() != "cpu" or cpu_has_bf16() else "float32"
+    fast = jax.default_backend() != "cpu" or cpu_has_bf16()
+    return "bfloat16" if fast and jit_keeps_bf16_rounding() else "float32"
 
 
 def optimizer(config: SACConfig, lr: float) -> optax.GradientTransformation:
