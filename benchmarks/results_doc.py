@@ -132,10 +132,16 @@ def kept_sections(results_md: Path) -> dict[str, list[str]]:
 
 
 def env_sweeps(env: str, sweeps: Path) -> dict[str, Path]:
-    """The env's sweep directories by configuration name: softac's preset, its variants, then the peers."""
+    """The env's sweep directories by configuration name: softac's preset, its variants, then the peers. Two
+    sweeps of one configuration (e.g. the same settings rerun on another machine beside a peer) are both kept,
+    the later named by its directory too."""
     found = {d.name[len(env) + 1:]: d for d in sweeps.glob(f"{env}-*") if (d / "sweep.json").exists()}
     order = ["softac", *sorted(n for n in found if n.startswith("softac-")), *PEERS]
-    return {load_spec(found[suffix]).describe(): found[suffix] for suffix in order if suffix in found}
+    named: dict[str, Path] = {}
+    for suffix in (s for s in order if s in found):
+        name = load_spec(found[suffix]).describe()
+        named[f"{name} ({found[suffix].name})" if name in named else name] = found[suffix]
+    return named
 
 
 def section(env: str, threshold: float | None, sweeps: Path, figures: Path,

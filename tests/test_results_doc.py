@@ -170,6 +170,12 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
     row = next(line for line in front.splitlines() if line.startswith("| softac, crossq preset |"))
     walls.append(round(json.loads((sweeps / "Hopper-v4-softac" / "seed=0" / "summary.json").read_text())["train_time_s"], 1))
     assert row.endswith(f"| ({np.median(walls):.0f}: disturbed) | {machine} |")
+    # the same settings swept again (on another machine, say): both rows, the later named by its directory
+    shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / "Hopper-v4-softac-again")
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    front = (docs / "results.md").read_text().split("## MuJoCo v4 at 100k steps")[1].split("\n## ")[0]
+    assert [line.split(" |")[0] for line in front.splitlines() if line.startswith("| softac, crossq preset")] == [
+        "| softac, crossq preset", "| softac, crossq preset (Hopper-v4-softac-again)"]
 
 
 @pytest.mark.skipif(not (KEPT / "dmc-cheetah-run-softac-crossq-ar2" / "sweep.json").exists(),
