@@ -277,8 +277,12 @@ def test_matmul_dtype_auto_picks_bfloat16_only_where_it_is_fast(monkeypatch):
     monkeypatch.setattr(sac, "cpu_has_bf16", lambda: False)
     assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
     monkeypatch.setattr(sac, "cpu_has_bf16", lambda: True)
+    monkeypatch.setattr(sac, "jit_keeps_bf16_rounding", lambda: True)
     assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "bfloat16"
     assert sac.build(SACConfig().replace(matmul_dtype="float32"), 3, 2).matmul_dtype == "float32"
+    # a JAX whose compiler drops the bf16 rounding (0.4.30 on a CPU) multiplies in float32 anyway: auto says so
+    monkeypatch.setattr(sac, "jit_keeps_bf16_rounding", lambda: False)
+    assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
 
 
 SAPPHIRE_RAPIDS = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "amx_tile"}
@@ -303,10 +307,12 @@ ZEN5 = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16"}
     ({"avx2"}, "--xla_cpu_max_isa=AMX", False),  # a limit adds no units
 ])
 def test_cpu_has_bf16_honours_xla_max_isa(monkeypatch, cpu, xla_flags, bf16):
+    # probed (and cached) before XLA_FLAGS changes: a compile under flags the JAX does not know aborts (0.4.30)
+    keeps_rounding = networks.jit_keeps_bf16_rounding()
     monkeypatch.setattr(cpus, "cpu_flags", lambda: cpu)
     monkeypatch.setenv("XLA_FLAGS", xla_flags)
     assert cpus.cpu_has_bf16() is bf16
     if jax.default_backend() == "cpu":
         # JAX 0.4.30's CPU compiler drops the bf16 rounding: auto is float32 there, what it computes anyway
-        expected = bf16 and networks.jit_keeps_bf16_rounding()
+        expected = bf16 and keeps_rounding
         assert sac.resolve_matmul_dtype("auto") == ("bfloat16" if expected else "float32")
