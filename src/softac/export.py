@@ -93,13 +93,13 @@ def _actor_layers(learner: Learner) -> list[dict[str, np.ndarray]]:
     """The actor's layers as export_numpy lays them out (w, b; norm, the input's batch renormalisation of a
     CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns
     (the log-std is not needed)."""
-    from softac.networks import jit_keeps_bf16_rounding, multiplies_in_bf16  # imports JAX (the learner's by now)
+    from softac.networks import compiled_in_bf16  # imports JAX, which the learner has loaded by now
 
     actor, norm = learner.state.actor, learner.functions.policy.batch_renorm
     stats = learner.state.actor_stats if norm is not None else [None] * len(actor)
     layers = []
     for layer, layer_stats in zip(actor, stats):
-        bf16 = multiplies_in_bf16(np.shape(layer["w"]), learner.matmul_dtype) and jit_keeps_bf16_rounding()
+        bf16 = compiled_in_bf16(np.shape(layer["w"]), learner.matmul_dtype)
         entry = {"w": np.asarray(layer["w"], np.float32), "b": np.asarray(layer["b"], np.float32), "bf16": bf16}
         if norm is not None and bf16:  # folded, the weights would be rounded after scaling: not what JAX does
             entry["norm"] = _batch_renorm_steps(layer, layer_stats, norm.eps)
@@ -118,7 +118,7 @@ def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
     """A SimBa actor (networks.simba) as export_numpy lays it out: the embedding, each residual block's
     LayerNorm and two layers, the final LayerNorm and the output layer cut to the mean action's columns;
     `bf16` marks, in that order of the dense layers, the ones that multiply in bfloat16 (weights rounded)."""
-    from softac.networks import SIMBA_LN_EPS, jit_keeps_bf16_rounding, multiplies_in_bf16  # JAX: loaded by now
+    from softac.networks import SIMBA_LN_EPS, compiled_in_bf16  # imports JAX, loaded by the learner by now
 
     actor, matmul_dtype = learner.state.actor, learner.matmul_dtype
     arrays: dict[str, np.ndarray] = {"network": np.asarray("simba"), "ln_eps": np.asarray(SIMBA_LN_EPS, np.float32)}
@@ -126,8 +126,7 @@ def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
 
     def put_dense(name: str, w: Any, b: Any, columns: int | None = None) -> None:
         w, b = np.asarray(w, np.float32), np.asarray(b, np.float32)
-        # on the whole layer, as JAX decides it
-        bf16 = multiplies_in_bf16(w.shape, matmul_dtype) and jit_keeps_bf16_rounding()
+        bf16 = compiled_in_bf16(w.shape, matmul_dtype)  # on the whole layer, as JAX decides it
         w, b = np.ascontiguousarray(w[:, :columns]), np.ascontiguousarray(b[:columns])
         arrays[f"{name}_w"], arrays[f"{name}_b"] = (round_bf16(w) if bf16 else w), b
         bf16_flags.append(bf16)

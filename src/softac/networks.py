@@ -129,13 +129,22 @@ def jit_keeps_bf16_rounding() -> bool:
     xla_allow_excess_precision) and multiplies in float32: there a bf16 layer computes the float32 layer, so
     the export (which must act as predict() does) writes it as float32. Probed once on a layer whose two
     results differ by ~1e-2."""
+    from softac.export_numpy import round_bf16  # the export's own rounding: the one it would reproduce
+
     rng = np.random.default_rng(0)
     x, w = rng.normal(size=(8, 32)).astype(np.float32), rng.normal(size=(32, 8)).astype(np.float32)
+    # an op before the matmul, as in a network (one correctly rounded float32 add: NumPy's is XLA's to the bit)
     compiled = np.asarray(jax.jit(lambda x, w: bf16_matmul(x + 1.0, w))(x, w), np.float64)
-    rounded = np.asarray(jnp.asarray(x + 1.0).astype(jnp.bfloat16), np.float64) @ np.asarray(
-        jnp.asarray(w).astype(jnp.bfloat16), np.float64)
-    unrounded = (x + 1.0).astype(np.float64) @ w.astype(np.float64)
+    shifted = x + np.float32(1.0)
+    rounded = round_bf16(shifted).astype(np.float64) @ round_bf16(w).astype(np.float64)
+    unrounded = shifted.astype(np.float64) @ w.astype(np.float64)
     return bool(np.abs(compiled - rounded).max() < np.abs(compiled - unrounded).max())
+
+
+def compiled_in_bf16(weight_shape: tuple[int, ...], matmul_dtype: str) -> bool:
+    """Whether a layer's compiled matmul really rounds its inputs to bf16 (`multiplies_in_bf16`, where this JAX
+    keeps the rounding): what the export reproduces, so that it acts as predict() does."""
+    return multiplies_in_bf16(weight_shape, matmul_dtype) and jit_keeps_bf16_rounding()
 
 
 def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
