@@ -21,6 +21,16 @@ def test_env_presets_set_their_env_and_generic_presets_keep_it():
     assert SACConfig.for_env("Hopper-v5") == SACConfig.preset("Hopper-v5")  # an env's own preset
 
 
+def test_a_dmc_task_gets_its_own_preset_in_either_id_form_and_the_others_get_dmc():
+    own = SACConfig.preset("dmc-cheetah-run")
+    assert own.env_id == "dmc:cheetah-run" and own.critic_hidden_sizes == [512, 512] and own.batch_size == 256
+    for env_id in ("dmc:cheetah-run", "dm_control/cheetah-run-v0"):
+        assert SACConfig.for_env(env_id) == own.replace(env_id=env_id)
+    for env_id in ("dmc:walker-run", "dm_control/walker-run-v0"):
+        assert SACConfig.for_env(env_id) == SACConfig.preset("dmc", env_id=env_id)
+    assert SACConfig.for_env("dmc:walker-run").critic_hidden_sizes != [512, 512]
+
+
 def test_every_preset_has_a_description_and_a_row_in_the_readme_and_the_presets_guide():
     from pathlib import Path
 
@@ -128,7 +138,7 @@ def test_mujoco_env_presets_extend_crossq():
 def test_dmc_tasks_get_the_dmc_preset_the_crossq_preset_with_action_repeat_2():
     """Every DeepMind Control task without a preset of its own trains with `dmc`: crossq's settings, action repeat 2,
     50k agent steps (100k frames), so the DMC sweeps of `--preset crossq --set action_repeat=2` measure it."""
-    for env in ("dmc:cheetah-run", "dm_control/walker-walk-v0"):
+    for env in ("dmc:walker-run", "dm_control/walker-walk-v0"):
         assert SACConfig.for_env(env) == SACConfig.preset("crossq", env_id=env).replace(action_repeat=2,
                                                                                          total_steps=50_000)
         assert SACConfig.preset("dmc", env_id=env) == SACConfig.for_env(env)

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from conftest import run_cli
-from softac.config import DMC_PRESET, GENERIC_PRESETS, SACConfig, preset_names
+from softac.config import DMC_PRESET, GENERIC_PRESETS, SACConfig, load_preset, preset_names
 from softac.envs import ROBOTICS_PREFIXES
 
 # the env a preset that names no env of its own trains on here: `dmc` is every DeepMind Control task's
@@ -19,7 +19,7 @@ def _param(name: str):
     # the DeepMind Control Suite the [dmc] extra
     if name.startswith(ROBOTICS_PREFIXES):
         return pytest.param(name, marks=pytest.mark.robotics)
-    if name == DMC_PRESET:
+    if name == DMC_PRESET or str(load_preset(name).get("env_id", "")).startswith("dmc:"):
         import importlib.util
 
         missing = importlib.util.find_spec("dm_control") is None
@@ -32,7 +32,7 @@ ENV_PRESETS = [_param(name) for name in preset_names() if name not in GENERIC_PR
 
 @pytest.mark.parametrize("name", ENV_PRESETS)
 def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
-    env = FAMILY_ENVS.get(name, name)
+    env = FAMILY_ENVS.get(name) or load_preset(name).get("env_id", name)  # dmc-TASK presets name their task
     preset = SACConfig.preset(name, env_id=env if name in FAMILY_ENVS else None)
     steps = 110
     run = tmp_path / "run"
@@ -43,7 +43,7 @@ def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
                 "learning_starts=100", "buffer_size=5000", f"eval_interval={steps}", "eval_episodes=1", timeout=600)
     assert r.returncode == 0, r.stderr
     config = yaml.safe_load((run / "config.yaml").read_text())
-    for key in ("hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm", "crossq",
+    for key in ("hidden_sizes", "critic_hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm", "crossq",
                 "action_repeat"):
         assert config[key] == getattr(preset, key), key
     summary = json.loads((run / "summary.json").read_text())

@@ -138,12 +138,18 @@ class SACConfig:
 
     @classmethod
     def for_env(cls, env_id: str | None) -> "SACConfig":
-        """The env's own preset when there is one, else `dmc` for a DeepMind Control task, else the fallback
-        preset."""
-        from softac.dmc import is_dmc_id
+        """The env's own preset when there is one (`dmc-DOMAIN-TASK` for a DeepMind Control task), else `dmc`
+        for a DeepMind Control task, else the fallback preset."""
+        from softac.dmc import is_dmc_id, task_preset_name
 
         env_id = env_id or DEFAULT_ENV
-        name = env_id if env_id in preset_names() else DMC_PRESET if is_dmc_id(env_id) else FALLBACK_PRESET
+        names = preset_names()
+        if env_id in names:
+            name = env_id
+        elif is_dmc_id(env_id):
+            name = task_preset_name(env_id) if task_preset_name(env_id) in names else DMC_PRESET
+        else:
+            name = FALLBACK_PRESET
         return cls.preset(name, env_id=env_id)
 
     @classmethod

@@ -49,6 +49,13 @@ def is_dmc_id(env_id: str) -> bool:
     return env_id.startswith((DMC_PREFIX, SHORT_PREFIX))
 
 
+def task_preset_name(env_id: str) -> str:
+    """The name a preset of one DeepMind Control task has: `dmc:cheetah-run` and `dm_control/cheetah-run-v0` ->
+    `dmc-cheetah-run` (a file name on every system, where `dmc:` is not)."""
+    task = long_id(env_id)[len(DMC_PREFIX):]
+    return f"dmc-{task.removesuffix('-v0')}"
+
+
 def _import_quietly(module: str):
     """dm_control fixes its OpenGL backend when first imported (MUJOCO_GL, else GLFW, which needs a display,
     and warns without one): on a headless machine softac first picks the backend that works here (EGL, else
