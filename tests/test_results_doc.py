@@ -208,6 +208,41 @@ def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_pat
     assert "### Continued to 500k frames" not in section  # no sweep ran 500k frames
 
 
+@pytest.mark.skipif(not (KEPT / "dmc-walker-run-softac-crossq-ar2" / "sweep.json").exists(),
+                    reason="kept DMC sweeps not present")
+def test_the_dmc_aggregate_scores_each_tasks_own_preset_where_a_task_has_one(tmp_path):
+    """cheetah-run has a preset of its own (dmc-cheetah-run): the presets' row takes its sweep there and the dmc
+    preset's (run as `--preset crossq --set action_repeat=2`) on walker-run; the old cheetah-run sweep is not it."""
+    import yaml
+
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    for source, target, final in (("dmc-cheetah-run-softac-crossq-ar2", "dmc-cheetah-run-softac-crossq-ar2", 100.0),
+                                  ("dmc-cheetah-run-softac-crossq-ar2", "dmc-cheetah-run-softac-dmc-cheetah-run", 900.0),
+                                  ("dmc-walker-run-softac-crossq-ar2", "dmc-walker-run-softac-crossq-ar2", 500.0)):
+        shutil.copytree(KEPT / source, sweeps / target)
+        for trial in (sweeps / target).glob("seed=*"):
+            if trial.name != "seed=0":
+                shutil.rmtree(trial)
+        evals = sweeps / target / "seed=0" / "eval.csv"
+        lines = evals.read_text().splitlines()
+        last = lines[-1].split(",")
+        evals.write_text("\n".join([*lines[:-1], ",".join([last[0], str(final), *last[2:]])]) + "\n")
+    spec = json.loads((sweeps / "dmc-cheetah-run-softac-dmc-cheetah-run" / "sweep.json").read_text())
+    (sweeps / "dmc-cheetah-run-softac-dmc-cheetah-run" / "sweep.json").write_text(
+        json.dumps({**spec, "preset": "dmc-cheetah-run", "overrides": []}))
+    config = yaml.safe_load((sweeps / "dmc-cheetah-run-softac-dmc-cheetah-run" / "seed=0" / "config.yaml").read_text())
+    assert config["total_steps"] * config["action_repeat"] == 100_000
+    docs.mkdir()
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    aggregate = (docs / "results.md").read_text().split("### One aggregate")[1].split("\n## ")[0]
+    [own] = [line for line in aggregate.splitlines() if line.startswith("| softac, each task's preset")]
+    cells = [cell.strip() for cell in own.strip("|").split("|")]
+    # two runs, 900 and 500: their IQM (the plain mean under four runs) is 0.70; without the task's preset 0.30
+    assert cells[1:3] == ["2", "2"] and cells[3].startswith("0.70 [")
+    [plain] = [line for line in aggregate.splitlines() if line.startswith("| softac, crossq preset + action_repeat=2 (2 tasks) |")]
+    assert plain.split("|")[4].strip().startswith("0.30 [")
+
+
 @pytest.mark.skipif(not (KEPT / "dmc-cheetah-run-softac-crossq-ar2" / "sweep.json").exists(),
                     reason="kept DMC sweeps not present")
 def test_a_dmc_run_of_500k_frames_is_set_beside_the_published_500k_means_not_the_100k_ones(tmp_path):
