@@ -18,7 +18,8 @@
 #            else at the largest settings that do (TQC with SBX's size, SimBa with 128-wide critic blocks, DroQ at
 #            5 updates per step), beside SBX at the same settings (front:ENV for one env)
 #   dmc:     issue 43's DeepMind Control Suite tasks (the [dmc] extra) at 100k frames: 50k agent steps with
-#            action repeat 2, the crossq preset (the screening before the DMC presets; dmc:TASK for one task)
+#            action repeat 2, the crossq preset (= the dmc preset), 5 seeds; and a task's own preset (dmc-TASK) where
+#            it has one (dmc:TASK for one task)
 #   dmc500k: issue 43's three tasks continued to 500k frames (cheetah-run, walker-run, quadruped-run; 250k agent
 #            steps, an evaluation every 20k frames), the same settings, 1 seed (dmc500k:TASK for one task)
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
@@ -98,7 +99,11 @@ front() {
 }
 
 dmc() {
-  $SOFTAC sweep --env dmc:$1 --seeds 1 --steps 50000 --preset crossq --set action_repeat=2 --out $SWEEPS/dmc-$1-softac-crossq-ar2
+  $SOFTAC sweep --env dmc:$1 --seeds 5 --steps 50000 --preset crossq --set action_repeat=2 --out $SWEEPS/dmc-$1-softac-crossq-ar2
+  # a task with a preset of its own (dmc-TASK, chosen on seeds 100-102: benchmarks/screens) runs it on seeds 0-4 too
+  if [ -f src/softac/presets/dmc-$1.yaml ]; then
+    $SOFTAC sweep --env dmc:$1 --seeds 5 --steps 50000 --preset dmc-$1 --out $SWEEPS/dmc-$1-softac-dmc-$1
+  fi
 }
 
 dmc500k() {
