@@ -202,7 +202,7 @@ def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_pat
     aggregate = section.split("### One aggregate")[1]
     ours = [line for line in aggregate.splitlines() if line.startswith("| softac, crossq preset + action_repeat=2")]
     assert ours and ours[0].split("|")[4].strip().startswith(f"{summary['last_eval'] / 1000:.2f} [")
-    [sac] = [line for line in aggregate.splitlines() if line.startswith("| published SAC (SimBa paper) (1 tasks)")]
+    [sac] = [line for line in aggregate.splitlines() if line.startswith("| published SAC (SimBa paper) (cheetah-run)")]
     assert sac.split("|")[3].strip() == "10" and sac.split("|")[4].strip().startswith("0.32 [")
     assert (docs / "results" / "dmc-aggregate.png").stat().st_size > 10_000
     assert "### Continued to 500k frames" not in section  # no sweep ran 500k frames
