@@ -406,7 +406,8 @@ def dmc_aggregate(finals: dict[str, dict[str, list[float]]], seconds: dict[str, 
     scores: dict[str, tuple[float, float, float]] = {}
 
     def add_row(name: str, runs: dict[str, list[float]], tasks: list[str], seconds_cell: str) -> None:
-        label = name if len(tasks) == len(DMC_TASKS) else f"{name} ({', '.join(tasks) if len(tasks) == 1 else f'{len(tasks)} tasks'})"
+        scope = tasks[0] if len(tasks) == 1 else f"{len(tasks)} tasks"
+        label = name if len(tasks) == len(DMC_TASKS) else f"{name} ({scope})"
         scores[label] = stratified_bootstrap_iqm([[v / 1000 for v in runs[t]] for t in tasks])
         point, low, high = scores[label]
         lines.append(f"| {label} | {len(tasks)} | {sum(len(runs[t]) for t in tasks)} | "

@@ -8,6 +8,7 @@ import yaml
 
 from conftest import run_cli
 from softac.config import DMC_PRESET, GENERIC_PRESETS, SACConfig, load_preset, preset_names
+from softac.dmc import is_dmc_id
 from softac.envs import ROBOTICS_PREFIXES
 
 # the env a preset that names no env of its own trains on here: `dmc` is every DeepMind Control task's
@@ -19,7 +20,7 @@ def _param(name: str):
     # the DeepMind Control Suite the [dmc] extra
     if name.startswith(ROBOTICS_PREFIXES):
         return pytest.param(name, marks=pytest.mark.robotics)
-    if name == DMC_PRESET or str(load_preset(name).get("env_id", "")).startswith("dmc:"):
+    if name == DMC_PRESET or is_dmc_id(str(load_preset(name).get("env_id", ""))):
         import importlib.util
 
         missing = importlib.util.find_spec("dm_control") is None

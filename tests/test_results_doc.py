@@ -11,6 +11,15 @@ ROOT = TESTS.parent
 KEPT = ROOT / "benchmarks" / "sweeps"
 
 
+def copy_seed_0(source: str, target) -> None:
+    """A kept sweep into `target` with its seed=0 trial only: one run, so the arithmetic a test checks stays
+    checkable by hand."""
+    shutil.copytree(KEPT / source, target)
+    for trial in target.glob("seed=*"):
+        if trial.name != "seed=0":
+            shutil.rmtree(trial)
+
+
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
 def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_other_sections(tmp_path):
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
@@ -182,10 +191,7 @@ def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_besi
                     reason="kept DMC sweeps not present")
 def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_path):
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
-    shutil.copytree(KEPT / "dmc-cheetah-run-softac-crossq-ar2", sweeps / "dmc-cheetah-run-softac-crossq-ar2")
-    for trial in (sweeps / "dmc-cheetah-run-softac-crossq-ar2").glob("seed=*"):
-        if trial.name != "seed=0":  # one run: the aggregate's arithmetic below is checkable by hand
-            shutil.rmtree(trial)
+    copy_seed_0("dmc-cheetah-run-softac-crossq-ar2", sweeps / "dmc-cheetah-run-softac-crossq-ar2")
     docs.mkdir()
     assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
     section = (docs / "results.md").read_text().split("## DeepMind Control Suite at 100k frames")[1].split("\n## ")[0]
@@ -219,10 +225,7 @@ def test_the_dmc_aggregate_scores_each_tasks_own_preset_where_a_task_has_one(tmp
     for source, target, final in (("dmc-cheetah-run-softac-crossq-ar2", "dmc-cheetah-run-softac-crossq-ar2", 100.0),
                                   ("dmc-cheetah-run-softac-crossq-ar2", "dmc-cheetah-run-softac-dmc-cheetah-run", 900.0),
                                   ("dmc-walker-run-softac-crossq-ar2", "dmc-walker-run-softac-crossq-ar2", 500.0)):
-        shutil.copytree(KEPT / source, sweeps / target)
-        for trial in (sweeps / target).glob("seed=*"):
-            if trial.name != "seed=0":
-                shutil.rmtree(trial)
+        copy_seed_0(source, sweeps / target)
         evals = sweeps / target / "seed=0" / "eval.csv"
         lines = evals.read_text().splitlines()
         last = lines[-1].split(",")
@@ -250,10 +253,7 @@ def test_a_dmc_run_of_500k_frames_is_set_beside_the_published_500k_means_not_the
 
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
     long = sweeps / "dmc-cheetah-run-softac-crossq-ar2-500k"
-    shutil.copytree(KEPT / "dmc-cheetah-run-softac-crossq-ar2", long)
-    for trial in long.glob("seed=*"):
-        if trial.name != "seed=0":
-            shutil.rmtree(trial)
+    copy_seed_0("dmc-cheetah-run-softac-crossq-ar2", long)
     config = yaml.safe_load((long / "seed=0" / "config.yaml").read_text())
     (long / "seed=0" / "config.yaml").write_text(yaml.safe_dump({**config, "total_steps": 250000}))
     docs.mkdir()

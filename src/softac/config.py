@@ -143,13 +143,8 @@ class SACConfig:
         from softac.dmc import is_dmc_id, task_preset_name
 
         env_id = env_id or DEFAULT_ENV
-        names = preset_names()
-        if env_id in names:
-            name = env_id
-        elif is_dmc_id(env_id):
-            name = task_preset_name(env_id) if task_preset_name(env_id) in names else DMC_PRESET
-        else:
-            name = FALLBACK_PRESET
+        own = task_preset_name(env_id) if is_dmc_id(env_id) else env_id
+        name = own if own in preset_names() else DMC_PRESET if is_dmc_id(env_id) else FALLBACK_PRESET
         return cls.preset(name, env_id=env_id)
 
     @classmethod
