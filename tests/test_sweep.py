@@ -40,7 +40,10 @@ def test_seeds_count_list_and_first_seed():
     assert sweep.parse_seeds("3") == [0, 1, 2]
     assert sweep.parse_seeds("2", first=10) == [10, 11]
     assert sweep.parse_seeds("4,7,9") == [4, 7, 9]
-    for bad in ("0", "x", "1,1", "-1,2", ","):
+    assert sweep.parse_seeds("0,") == [0]
+    with pytest.raises(SoftacError, match="for seed 0 alone write --seeds 0,"):
+        sweep.parse_seeds("0")
+    for bad in ("-2", "x", "1,1", "-1,2", ","):
         with pytest.raises(SoftacError):
             sweep.parse_seeds(bad)
 

@@ -123,7 +123,11 @@ def parse_seeds(text: str, first: int = 0) -> list[int]:
             seeds = [int(s) for s in text.split(",") if s.strip()]
         else:
             count = int(text)
-            if count < 1:
+            if count == 0:
+                raise SoftacError(
+                    "--seeds 0 asks for no seeds (a bare number is a count): for seed 0 alone write --seeds 0,"
+                )
+            if count < 0:
                 raise ValueError
             seeds = list(range(first, first + count))
     except ValueError:
