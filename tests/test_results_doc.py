@@ -284,3 +284,32 @@ def test_the_published_dmc_runs_agree_with_the_published_means():
             # the means file rounds to 1 (0.5), this file each value to 0.1 (0.05 on a mean or an sd)
             assert abs(np.mean(values) - mean) <= 0.55
             assert seeds == 1 or abs(np.std(values, ddof=1) - sd) <= 0.55
+
+
+def test_keep_trials_copies_finished_trials_results_only(tmp_path):
+    """benchmarks/keep_trials.sh: a worktree's finished trials, without weights, into the checkout it lives in
+    (here a copy of it in tmp_path); an unfinished trial is left out; a directory that is no sweep is refused with
+    exit code 2."""
+    import subprocess
+
+    checkout, worktree, rel = tmp_path / "checkout", tmp_path / "worktree", "benchmarks/sweeps/X"
+    (checkout / "benchmarks").mkdir(parents=True)
+    script = shutil.copy(ROOT / "benchmarks" / "keep_trials.sh", checkout / "benchmarks")
+    sweep = worktree / rel
+    (sweep / "seed=0" / "checkpoints").mkdir(parents=True)
+    (sweep / "seed=1").mkdir()
+    (sweep / "sweep.json").write_text("{}")
+    (sweep / "summary.md").write_text("# summary")
+    for name in ("summary.json", "eval.csv", "config.yaml"):
+        (sweep / "seed=0" / name).write_text(name)
+    (sweep / "seed=0" / "checkpoints" / "latest.npz").write_text("weights")
+    (sweep / "seed=1" / "eval.csv").write_text("still running")  # no summary.json yet
+    done = subprocess.run(["bash", script, str(worktree), rel], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"{rel}: seed=0"
+    kept = checkout / rel
+    assert sorted(p.name for p in (kept / "seed=0").iterdir()) == ["config.yaml", "eval.csv", "summary.json"]
+    assert (kept / "summary.md").read_text() == "# summary"
+    assert not (kept / "seed=1").exists()
+    refused = subprocess.run(["bash", script, str(worktree), "nowhere"], capture_output=True, text=True)
+    assert refused.returncode == 2 and "no sweep.json" in refused.stderr
