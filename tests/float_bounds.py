@@ -272,7 +272,7 @@ def image_input_bound(agent, stacks: np.ndarray) -> tuple[np.ndarray, np.ndarray
     scaled = images / 255.0
     x = scaled - 0.5
     e = 3 * U * scaled + U * np.abs(x)  # the division (or a product by 1/255) and the subtraction
-    encoder = agent.learner.state.encoder
+    encoder = agent.learner.deployed_policy()[2]
     for layer, stride in zip(encoder["convs"], CONV_STRIDES):
         w, b = _weights(layer)
         n = w.shape[0] * w.shape[1] * w.shape[2]
@@ -319,12 +319,12 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
         e = np.maximum(np.clip(q + e, -clip, clip) - x, x - np.clip(q - e, -clip, clip))
 
     norm, matmul_dtype = agent.learner.functions.policy.batch_renorm, matmul_dtype or agent.learner.functions.matmul_dtype
+    actor, actor_stats, _ = agent.learner.deployed_policy()  # the averaged actor with policy_average_tau
     if agent.config.network == "simba":
-        x, e = simba_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype,
-                           out_columns=agent.spaces.act_dim)
+        x, e = simba_bound(actor, x, e, agent.config.activation, matmul_dtype, out_columns=agent.spaces.act_dim)
     else:
-        x, e = network_bound(agent.learner.state.actor, x, e, agent.config.activation, matmul_dtype,
-                             norm, agent.learner.state.actor_stats if norm is not None else None,
+        x, e = network_bound(actor, x, e, agent.config.activation, matmul_dtype, norm,
+                             actor_stats if norm is not None else None,
                              out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
     if agent.learner.functions.policy.sde:  # gSDE's mean clip: monotone and 1-Lipschitz, as the obs clip above
         from softac.policy import SDE_CLIP_MEAN

@@ -36,6 +36,8 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     # then kept apart from the weights): the export rounds as JAX does
     "sac-bf16": lambda: tiny_config(DRIFT, learning_starts=100, obs_norm=True, matmul_dtype="bfloat16"),
     "crossq-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, matmul_dtype="bfloat16"),
+    # the deployed policy is the actor's moving average (and its batch statistics'), not the actor
+    "crossq-averaged": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, policy_average_tau=0.05),
     # the actor outputs the mean alone, clipped to [-2, 2] before tanh (issue 43)
     "gsde": lambda: tiny_config(DRIFT, learning_starts=100, exploration_noise="gsde"),
     # SimBa actors: an embedding, pre-LayerNorm residual blocks, a final LayerNorm (issue 42)
@@ -155,6 +157,9 @@ def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
         for stats in agent.learner.state.actor_stats:
             assert np.abs(np.asarray(stats["mean"])).max() > 1e-2
             assert np.abs(np.asarray(stats["var"]) - 1.0).max() > 1e-2
+    if kind == "crossq-averaged":  # what is exported is the average, which has drifted apart from the actor
+        averaged, online = agent.learner.deployed_policy()[0], agent.learner.state.actor
+        assert np.abs(np.asarray(averaged[0]["w"]) - np.asarray(online[0]["w"])).max() > 1e-3
     obs = env_observations(agent)
     if agent.learner.obs_norm is not None:
         assert np.abs(agent.learner.normalize_obs(obs)).max() == agent.config.obs_norm_clip  # the clip is exercised

@@ -14,7 +14,7 @@ import pytest
 from softac import SAC, losses, sac
 from softac.config import ConfigError, SACConfig
 from softac.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
-                             init_simba, output_layer_mask, simba)
+                             init_simba, output_layer_mask, simba, unit_norm_hidden_units)
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from test_crossq import _batches
@@ -323,6 +323,54 @@ def test_simba_agent_acts_and_its_update_learns(tiny):
     assert np.all(np.isfinite(agent.predict(np.zeros(agent.learner.spaces.obs_dim))))
 
 
+# ---- weight averaging of the deployed policy --------------------------------------------------------------------
+
+def _numpy_tree(tree):
+    return jax.tree_util.tree_map(lambda a: np.array(a, np.float64), tree)
+
+
+@pytest.mark.numerics
+@pytest.mark.parametrize("keys", [dict(), dict(crossq=True), dict(crossq=True, weight_norm=True)])
+def test_policy_average_moves_toward_the_actor_at_its_rate_after_each_actor_step(keys):
+    """After an actor step the deployed policy is (1 - tau) x what it was + tau x the new actor, running statistics
+    too (Nikishin et al. 2018); under weight_norm put back on the unit sphere; a step without an actor step
+    (policy_delay) leaves it. Float bound: a few float32 roundings of terms ~|w| (and a norm's sqrt and division)."""
+    tau = 0.25
+    cfg = SACConfig().replace(hidden_sizes=[16, 16], batch_size=8, policy_average_tau=tau, policy_delay=2, **keys)
+    fns = sac.build(cfg, 3, 2)
+    state = fns.init(0)
+    start = _numpy_tree((state.actor, state.actor_stats))
+    def leaves(tree):
+        return jax.tree_util.tree_leaves(_numpy_tree(tree))
+
+    assert all(np.array_equal(a, b) for a, b in zip(leaves(sac.deployed(state)[:2]), leaves(start)))
+    rng = np.random.default_rng(0)
+    state, _ = fns.update(state, _batches(rng, 1, 8))  # gradient step 1 of a policy_delay of 2: no actor step
+    assert all(np.array_equal(a, b) for a, b in zip(leaves(state.policy_average[:2]), leaves(start)))
+    state, totals = fns.update(state, _batches(rng, 1, 8))  # step 2: an actor step
+    assert float(totals["actor_steps"]) == 1.0
+    actor, stats = _numpy_tree((state.actor, state.actor_stats))
+    want_actor, want_stats = jax.tree_util.tree_map(lambda old, new: (1 - tau) * old + tau * new, start, (actor, stats))
+    if cfg.weight_norm:
+        want_actor = unit_norm_hidden_units(want_actor, np)
+        norms = [np.sqrt(np.sum(np.asarray(l["w"]) ** 2, axis=0) + np.asarray(l["b"]) ** 2)
+                 for l in state.policy_average[0][:-1]]
+        np.testing.assert_allclose(np.concatenate(norms), 1.0, rtol=1e-5)
+    got_actor, got_stats = _numpy_tree(state.policy_average[:2])
+    for got, want in zip(leaves((got_actor, got_stats)), leaves((want_actor, want_stats))):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(leaves(got_actor)[0], leaves(actor)[0])  # the average is not the actor
+
+
+def test_without_policy_average_the_actor_is_deployed_and_checkpoints_are_as_before(tiny):
+    agent = SAC(tiny())
+    state = agent.learner.state
+    assert state.policy_average == () and sac.deployed(state)[0] is state.actor
+    assert not any("policy_average" in name for name in agent.learner.arrays())
+    averaged = SAC(tiny(policy_average_tau=0.1)).learner.arrays()
+    assert any(name.startswith("state.policy_average") for name in averaged)
+
+
 # ---- the config and target entropy ------------------------------------------------------------------------
 
 def test_target_entropy_scale():
@@ -337,6 +385,7 @@ def test_target_entropy_scale():
     ({"crossq": True, "critic_dropout": 0.01}, "critic_dropout"),
     ({"weight_decay_layers": "hidden"}, "weight_decay_layers"),
     ({"target_critics": "maybe"}, "target_critics"),
+    ({"policy_average_tau": 1.5}, "policy_average_tau"),
 ])
 def test_variant_settings_that_do_not_compose_are_refused(values, fragment):
     with pytest.raises(ConfigError, match=fragment):
@@ -357,6 +406,8 @@ VARIANTS = {
                                  weight_decay_layers="output", batch_renorm_warmup=400),
     "droq": dict(critic_dropout=0.01, critic_layer_norm=True, gradient_steps=3, policy_delay=3),
     "simba": dict(network="simba", hidden_sizes=[16], obs_norm=True, weight_decay=0.01, target_entropy_scale=0.5),
+    # evaluations run the averaged actor: eval.csv alike means the average resumed exactly too
+    "policy-average": dict(crossq=True, policy_average_tau=0.05, policy_delay=3),
 }
 
 

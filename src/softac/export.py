@@ -95,8 +95,8 @@ def _actor_layers(learner: Learner) -> list[dict[str, np.ndarray]]:
     (the log-std is not needed)."""
     from softac.networks import compiled_in_bf16  # imports JAX, which the learner has loaded by now
 
-    actor, norm = learner.state.actor, learner.functions.policy.batch_renorm
-    stats = learner.state.actor_stats if norm is not None else [None] * len(actor)
+    (actor, actor_stats, _), norm = learner.deployed_policy(), learner.functions.policy.batch_renorm
+    stats = actor_stats if norm is not None else [None] * len(actor)
     layers = []
     for layer, layer_stats in zip(actor, stats):
         bf16 = compiled_in_bf16(np.shape(layer["w"]), learner.matmul_dtype)
@@ -120,7 +120,7 @@ def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
     `bf16` marks, in that order of the dense layers, the ones that multiply in bfloat16 (weights rounded)."""
     from softac.networks import SIMBA_LN_EPS, compiled_in_bf16  # imports JAX, loaded by the learner by now
 
-    actor, matmul_dtype = learner.state.actor, learner.matmul_dtype
+    actor, matmul_dtype = learner.deployed_policy()[0], learner.matmul_dtype
     arrays: dict[str, np.ndarray] = {"network": np.asarray("simba"), "ln_eps": np.asarray(SIMBA_LN_EPS, np.float32)}
     bf16_flags = []
 
@@ -187,7 +187,7 @@ def encoder_arrays(learner: Learner) -> dict[str, np.ndarray]:
     ([k, h, w, c], the images alone) and, for an image beside state values, the keys the state comes from."""
     from softac.encoder import CONV_STRIDES, image_only_shape
 
-    encoder, state_dim = learner.state.encoder, learner.spaces.image_state_dim
+    encoder, state_dim = learner.deployed_policy()[2], learner.spaces.image_state_dim
     arrays = {"image_shape": np.asarray(image_only_shape(learner.spaces.image_shape, state_dim), np.int64),
               "conv_strides": np.asarray(CONV_STRIDES, np.int64)}
     for i, layer in enumerate(encoder["convs"]):

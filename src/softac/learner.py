@@ -178,10 +178,17 @@ class Learner:
         return np.asarray(actions), np.asarray(env_actions)
 
     def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
-        """The env-scaled mean actions for a batch of raw observations."""
-        actions = self.functions.act_deterministic(self.state.actor, self.state.actor_stats, self.normalize_obs(obs),
-                                                   self.state.encoder)
+        """The deployed policy's env-scaled mean actions for a batch of raw observations."""
+        actor, actor_stats, encoder = self.deployed_policy()
+        actions = self.functions.act_deterministic(actor, actor_stats, self.normalize_obs(obs), encoder)
         return self.scaler.to_env(np.asarray(actions))
+
+    def deployed_policy(self) -> tuple[Any, Any, Any]:
+        """(actor, actor_stats, encoder) that evaluation, predict, sample and export run: with policy_average_tau
+        the actor's moving average, else the actor that explores."""
+        from softac.sac import deployed
+
+        return deployed(self.state)
 
     def predict(self, obs: Any) -> np.ndarray:
         """The env-scaled mean action for one observation, or for each of a batch: the deterministic policy
@@ -194,8 +201,9 @@ class Learner:
         """An env-scaled action drawn from the policy for one observation, or for each of a batch; and the
         key to draw with next."""
         batch, single = self.as_batch(obs)
-        _, actions, key = self.act(batch, key)
-        return (actions[0] if single else actions), key
+        actor, actor_stats, encoder = self.deployed_policy()
+        _, actions, key = self.functions.act(actor, actor_stats, self.normalize_obs(batch), key, encoder)
+        return (np.asarray(actions)[0] if single else np.asarray(actions)), key
 
     # ---- learning ----------------------------------------------------------------------------------
 

@@ -47,6 +47,8 @@ class SACState(NamedTuple):
     target_critic_stats: Any = ()  # the target critics' (CrossQ with target critics, as CrossQ+WN); () without
     encoder: Any = ()  # the image encoder (image observations); () without
     encoder_opt: Any = ()
+    # (actor, actor_stats, encoder) averaged over the actor steps (policy_average_tau); () without
+    policy_average: Any = ()
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,7 @@ class UpdateSettings:
     encoder_tx: optax.GradientTransformation | None = None  # image observations: the encoder's optimiser
     augment_pad: int = 0  # image observations: DrQ's random shift (pixels of padding)
     image_state_dim: int = 0  # image observations: state values packed beside each image (pixels.ImageWithState)
+    policy_average_tau: float = 0.0  # the deployed policy's averaging rate per actor step; 0: the actor itself
 
     @property
     def has_targets(self) -> bool:
@@ -180,6 +183,8 @@ def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: Upd
     if s.weight_norm:
         actor = unit_norm_hidden_units(actor)
     state = state._replace(actor=actor, actor_opt=actor_opt, actor_stats=actor_stats)
+    if s.policy_average_tau > 0:
+        state = state._replace(policy_average=averaged_policy(state, s))
     if s.autotune_alpha:
         a_loss, grad = jax.value_and_grad(alpha_loss)(state.log_alpha, log_prob, s.target_entropy)
         updates, alpha_opt = s.alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
@@ -189,6 +194,21 @@ def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: Upd
     else:
         a_loss = alpha_loss(state.log_alpha, log_prob, s.target_entropy)
     return state, {"actor_loss": loss, "alpha_loss": a_loss, "log_prob_mean": jnp.mean(log_prob)}
+
+
+def averaged_policy(state: SACState, s: UpdateSettings) -> tuple[Any, Any, Any]:
+    """The deployed policy moved toward the actor (weight averaging, Nikishin et al. 2018: an average of the
+    actor's recent weights acts more steadily than the last of them). Under weight_norm the average is put back
+    on the unit sphere, where the actor's own hidden units live."""
+    actor, stats, encoder = polyak(state.policy_average, (state.actor, state.actor_stats, state.encoder),
+                                   s.policy_average_tau)
+    return (unit_norm_hidden_units(actor) if s.weight_norm else actor), stats, encoder
+
+
+def deployed(state: SACState) -> tuple[Any, Any, Any]:
+    """(actor, actor_stats, encoder) that evaluation, predict, sample and export run: the averaged policy with
+    policy_average_tau, else the actor itself."""
+    return state.policy_average or (state.actor, state.actor_stats, state.encoder)
 
 
 # ---- metrics over many updates ------------------------------------------------------------------------
@@ -356,18 +376,20 @@ def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | No
 
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
              critic_stats: Any, encoder: Any = ()) -> SACState:
-    """A state around fresh networks: targets copied from the critics (and their statistics), fresh optimisers."""
+    """A state around fresh networks: targets copied from the critics (and their statistics), the averaged policy
+    (policy_average_tau) from the actor, fresh optimisers."""
     log_alpha = jnp.asarray(np.log(max(initial_alpha, 1e-30)), jnp.float32)
 
-    def copy(tree: Any) -> Any:
-        return jax.tree_util.tree_map(jnp.copy, tree) if s.has_targets else ()
+    def copy(tree: Any, wanted: bool) -> Any:
+        return jax.tree_util.tree_map(jnp.copy, tree) if wanted else ()
 
     return SACState(
-        actor=actor, critic=critic, target_critic=copy(critic),
+        actor=actor, critic=critic, target_critic=copy(critic, s.has_targets),
         log_alpha=log_alpha, actor_opt=s.actor_tx.init(actor), critic_opt=s.critic_tx.init(critic),
         alpha_opt=s.alpha_tx.init(log_alpha), key=key, n_updates=jnp.zeros((), jnp.int32),
-        actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats),
+        actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats, s.has_targets),
         encoder=encoder, encoder_opt=s.encoder_tx.init(encoder) if s.encoder_tx is not None else (),
+        policy_average=copy((actor, actor_stats, encoder), s.policy_average_tau > 0),
     )
 
 
@@ -417,7 +439,7 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm,
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
         encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad,
-        image_state_dim=image_state_dim)
+        image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau)
 
 
 class SACFunctions(NamedTuple):
