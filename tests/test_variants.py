@@ -340,6 +340,7 @@ def test_policy_average_moves_toward_the_actor_at_its_rate_after_each_actor_step
     fns = sac.build(cfg, 3, 2)
     state = fns.init(0)
     start = _numpy_tree((state.actor, state.actor_stats))
+
     def leaves(tree):
         return jax.tree_util.tree_leaves(_numpy_tree(tree))
 

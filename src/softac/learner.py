@@ -163,11 +163,13 @@ class Learner:
 
     # ---- acting -------------------------------------------------------------------------------------
 
-    def act(self, obs: np.ndarray, key: Any) -> tuple[np.ndarray, np.ndarray, Any]:
-        """Sample actions for a batch of raw observations: (in [-1, 1], env-scaled, the next key)."""
+    def act(self, obs: np.ndarray, key: Any, networks: tuple[Any, Any, Any] | None = None
+            ) -> tuple[np.ndarray, np.ndarray, Any]:
+        """Sample actions for a batch of raw observations: (in [-1, 1], env-scaled, the next key). `networks`:
+        (actor, actor_stats, encoder) to act with, the actor that explores when None."""
+        actor, actor_stats, encoder = networks or (self.state.actor, self.state.actor_stats, self.state.encoder)
         # NumPy goes straight into the jitted call: jnp.asarray would cost more than an env step
-        actions, env_actions, key = self.functions.act(self.state.actor, self.state.actor_stats,
-                                                       self.normalize_obs(obs), key, self.state.encoder)
+        actions, env_actions, key = self.functions.act(actor, actor_stats, self.normalize_obs(obs), key, encoder)
         return np.asarray(actions), np.asarray(env_actions), key
 
     def act_with_noise(self, obs: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,9 +203,8 @@ class Learner:
         """An env-scaled action drawn from the policy for one observation, or for each of a batch; and the
         key to draw with next."""
         batch, single = self.as_batch(obs)
-        actor, actor_stats, encoder = self.deployed_policy()
-        _, actions, key = self.functions.act(actor, actor_stats, self.normalize_obs(batch), key, encoder)
-        return (np.asarray(actions)[0] if single else np.asarray(actions)), key
+        _, actions, key = self.act(batch, key, self.deployed_policy())
+        return (actions[0] if single else actions), key
 
     # ---- learning ----------------------------------------------------------------------------------
 
