@@ -39,6 +39,7 @@ SUITE = ["HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5"]
 # the published tables' version of the suite (issue 42): the front of return against one-core wall time
 SUITE_V4 = [env.replace("-v5", "-v4") for env in SUITE]
 FRONT = "MuJoCo v4 at 100k steps: return against one-core wall time"
+AGAINST_BEST = "Against the best published result per env"
 PUBLISHED = Path(__file__).resolve().parent / "published-100k.yaml"
 AGGREGATE = "MuJoCo suite: one aggregate"
 # issue 43: the DeepMind Control Suite at 100k frames (action repeat 2: 50k agent steps), beside the published means
@@ -337,6 +338,7 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     excluded = timing_excluded(sweeps)
     published = published_means()
     points: dict[str, dict[str, tuple[float, float, float | None]]] = {}
+    scores: dict[str, dict[str, tuple[float, float | None]]] = {}  # configuration -> env -> (mean final, seconds)
     lines = [f"## {FRONT}", "",
              "Gym MuJoCo v4 (the published tables' version), 100k env steps, final deterministic evaluation (10 "
              "episodes), one pinned CPU per trial. Each configuration is a point: the mean final return over its "
@@ -363,6 +365,7 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
             sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
             machine = short_machines(machines_of([d / r["trial"] for r in trials]))
             points.setdefault(env, {})[f"{name} [{machine}]"] = (float(np.mean(finals)), sd, seconds, bool(timed))
+            scores.setdefault(name, {})[env] = (float(np.mean(finals)), seconds)
             shown_seconds = "-" if seconds is None else f"{seconds:.0f}" if timed else f"({seconds:.0f}: disturbed)"
             rows.append(f"| {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
                         f"{', '.join(f'{v:.0f}' for v in finals)} | {shown_seconds} | {machine} |")
@@ -380,10 +383,38 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
         lines.append("")
     if not points:
         return kept.get(FRONT, [])
+    lines += against_best_published(scores, published)
     shown = ("CrossQ", "SAC", "SimBa UTD 2", "SimBaV2 UTD 2")
     figure = plot_front(points, {env: {m: published[m][env][0] for m in shown if env in published[m]} for env in points},
                         figures / "front-v4.png", "Gym MuJoCo v4, 100k steps: final return against one-core wall time")
     return lines + [f"![front](results/{figure.name})", ""]
+
+
+def against_best_published(scores: dict[str, dict[str, tuple[float, float | None]]],
+                           published: dict[str, dict[str, tuple[float, float, int]]]) -> list[str]:
+    """Issue 42's goal for each configuration run on all five v4 envs: its mean final return over the best
+    published 100k-step mean per env, the average of those fractions, the envs where it is at or above published
+    CrossQ, and what its five runs cost (the sum of the envs' median one-core seconds)."""
+    best = {env: max(m[env][0] for m in published.values() if env in m) for env in SUITE_V4}
+    full = {name: envs for name, envs in scores.items() if all(env in envs for env in SUITE_V4)}
+    if not full:
+        return []
+    lines = [f"### {AGAINST_BEST}", "",
+             "Each configuration run on all five envs: its mean final return over the best published mean per env ("
+             + ", ".join(f"{env.split('-')[0]} {best[env]:.0f}" for env in SUITE_V4) + "), the mean of those "
+             "fractions (issue 42's goal: >= 0.85, and at or above published CrossQ on all five), and the sum over "
+             "the five envs of the median one-core seconds of a run (machines as in the tables above).", "",
+             "| configuration | " + " | ".join(env.split("-")[0] for env in SUITE_V4)
+             + " | mean fraction | envs >= published CrossQ | one-core s, five envs |",
+             "|---|" + "---|" * (len(SUITE_V4) + 3)]
+    for name, envs in full.items():
+        fractions = [envs[env][0] / best[env] for env in SUITE_V4]
+        at_crossq = sum(envs[env][0] >= published["CrossQ"][env][0] for env in SUITE_V4)
+        seconds = [envs[env][1] for env in SUITE_V4]
+        cost = f"{sum(seconds):.0f}" if all(s is not None for s in seconds) else "-"
+        lines.append(f"| {name} | " + " | ".join(f"{f:.2f}" for f in fractions)
+                     + f" | {np.mean(fractions):.2f} | {at_crossq} of {len(SUITE_V4)} | {cost} |")
+    return [*lines, ""]
 
 
 def dmc_aggregate(finals: dict[str, dict[str, list[float]]], seconds: dict[str, dict[str, float]],

@@ -135,6 +135,13 @@ def test_mujoco_env_presets_extend_crossq():
         assert SACConfig.for_env(env).crossq and SACConfig.for_env(env).env_id == env
 
 
+def test_crossq_avg_is_crossq_deploying_a_weight_average():
+    """`crossq-avg` trains as `crossq` does (every other key equal) and deploys a moving average of the actor."""
+    averaged, plain = SACConfig.preset("crossq-avg"), SACConfig.preset("crossq")
+    assert averaged.policy_average_tau == 0.001 and plain.policy_average_tau == 0.0
+    assert averaged.replace(policy_average_tau=0.0) == plain
+
+
 def test_dmc_tasks_get_the_dmc_preset_the_crossq_preset_with_action_repeat_2():
     """Every DeepMind Control task without a preset of its own trains with `dmc`: crossq's settings, action repeat 2,
     50k agent steps (100k frames), so the DMC sweeps of `--preset crossq --set action_repeat=2` measure it."""

@@ -133,6 +133,35 @@ def test_plotting_several_sweeps_names_each_by_framework_and_preset(tmp_path):
 
 
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
+def test_the_front_scores_a_configuration_on_all_five_envs_against_the_best_published(tmp_path):
+    """Issue 42's goal, per configuration run on all five v4 envs: each env's mean final over the best published
+    mean there, their average, and the envs at or above published CrossQ. The Hopper-v5 trials stand in for every
+    env's; a configuration on four envs gets no row."""
+    import numpy as np
+
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    results_doc = load_benchmark_script("results_doc")
+    for env in results_doc.SUITE_V4:
+        shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / f"{env}-softac")
+        if env != "Humanoid-v4":
+            shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / f"{env}-softac-again")
+    docs.mkdir()
+    assert results_doc.main([str(sweeps), "--docs", str(docs)]) == 0
+    table = (docs / "results.md").read_text().split(f"### {results_doc.AGAINST_BEST}")[1].split("\n## ")[0]
+    mean = np.mean([float((run / "eval.csv").read_text().splitlines()[-1].split(",")[1])
+                    for run in sorted((KEPT / "Hopper-v5-softac").glob("seed=*"))])
+    published = results_doc.published_means()
+    best = [max(m[env][0] for m in published.values() if env in m) for env in results_doc.SUITE_V4]
+    fractions = [mean / b for b in best]
+    at_crossq = sum(mean >= published["CrossQ"][env][0] for env in results_doc.SUITE_V4)
+    row = next(line for line in table.splitlines() if line.startswith("| softac, crossq preset |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1:6] == [f"{f:.2f}" for f in fractions]
+    assert cells[6:8] == [f"{np.mean(fractions):.2f}", f"{at_crossq} of 5"]
+    assert "again" not in table  # on four envs only: no row
+
+
+@pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
 def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_beside_the_published(tmp_path):
     """The Hopper-v5 trials stand in for v4 ones: the front's row is their mean ± sd over seeds and the median
     wall time of the trials whose time is comparable; the published table marks the best method in bold."""

@@ -372,6 +372,24 @@ def test_without_policy_average_the_actor_is_deployed_and_checkpoints_are_as_bef
     assert any(name.startswith("state.policy_average") for name in averaged)
 
 
+def test_policy_average_changes_what_is_deployed_and_nothing_the_agent_trains(tiny):
+    """Averaging only picks the deployed policy: with crossq and policy delay 3, two runs of one seed, one
+    averaging, hold the same actor, critics, optimiser states and replay buffer bit for bit (exploration acts
+    with the actor), while the average they would evaluate is another network."""
+    plain, averaged = (SAC(tiny(crossq=True, policy_delay=3, seed=3, policy_average_tau=t)) for t in (0.0, 0.05))
+    for agent in (plain, averaged):
+        agent.learn(400, progress=False)
+    trained = {k: v for k, v in averaged.learner.arrays().items() if "policy_average" not in k}
+    assert trained.keys() == plain.learner.arrays().keys()
+    for name, array in plain.learner.arrays().items():
+        np.testing.assert_array_equal(trained[name], array, err_msg=name)
+    buffers = plain.collector.buffer, averaged.collector.buffer
+    assert len(buffers[0]) == len(buffers[1]) == 400
+    np.testing.assert_array_equal(buffers[0].actions[:400], buffers[1].actions[:400])
+    deployed = jax.tree_util.tree_leaves(sac.deployed(averaged.learner.state)[0])
+    assert not np.allclose(np.asarray(deployed[0]), np.asarray(jax.tree_util.tree_leaves(averaged.learner.state.actor)[0]))
+
+
 # ---- the config and target entropy ------------------------------------------------------------------------
 
 def test_target_entropy_scale():

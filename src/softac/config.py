@@ -297,7 +297,8 @@ class SACConfig:
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
-GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-wn", "sac-100k", "tqc", "simba", "droq", "drq")
+GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-avg", "crossq-wn", "sac-100k", "tqc", "simba", "droq",
+                   "drq")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
                     "buffer_bytes_per_transition", "cpus", "machine", "segments")
