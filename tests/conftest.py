@@ -151,15 +151,16 @@ def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) 
         assert fragment in last, (fragment, last)
 
 
-def assert_same_learner(a, b) -> None:
+def assert_same_learner(a, b, skip: tuple[str, ...] = ()) -> None:
     """Every leaf of the two agents' learner states (networks, targets, optimisers, alpha, key, counters) is
-    bit-identical, and the two trees have the same structure. Leaves are copied first: a view of a donated
-    buffer would change under us."""
+    bit-identical, and the two trees have the same structure; the SACState fields in `skip` are left out.
+    Leaves are copied first: a view of a donated buffer would change under us."""
     import jax
     import numpy as np
 
-    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.learner.state)
-    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.learner.state)
+    left_out = dict.fromkeys(skip, ())
+    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.learner.state._replace(**left_out))
+    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.learner.state._replace(**left_out))
     assert tree_a == tree_b
     for (path, x), (_, y) in zip(paths_a, paths_b, strict=True):
         np.testing.assert_array_equal(np.array(x, copy=True), np.array(y, copy=True),
@@ -202,18 +203,18 @@ def straight_and_resumed(cfg, tmp_path: Path, first: int, then: int):
     return straight, resumed
 
 
-def assert_same_training(a, b) -> None:
+def assert_same_training(a, b, skip: tuple[str, ...] = ()) -> None:
     """Two agents that trained the same steps share their whole training state, bit for bit: the learner's
-    leaves, the run state (counters, keys, NumPy RNG, best and last evaluation and their steps, recent
-    returns), every array of the replay buffer, the observation statistics (obs_norm) and the training envs'
-    saved state. Any difference would make their next steps differ."""
+    leaves (but the SACState fields in `skip`), the run state (counters, keys, NumPy RNG, best and last
+    evaluation and their steps, recent returns), every array of the replay buffer, the observation statistics
+    (obs_norm) and the training envs' saved state. Any difference would make their next steps differ."""
     import dataclasses
 
     import numpy as np
 
     from softac.runstate import RunState
 
-    assert_same_learner(a, b)
+    assert_same_learner(a, b, skip)
 
     for f in dataclasses.fields(RunState):
         if f.name in RUN_STATE_NOT_COMPARED:
