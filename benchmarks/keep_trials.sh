@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Copy the finished trials of sweeps that ran in a benchmark worktree (benchmarks/worktree.sh) into this
-# checkout, results only (what git keeps: config.yaml, eval.csv, progress.csv, episodes.csv, summary.json, and
+# checkout, results only (what git keeps: config.yaml, eval.csv, progress.csv, episodes.csv, summary.json, with
+# averaging the actor's evaluation of the last checkpoint (actor-eval.json: `softac eval --policy actor --json`), and
 # the sweep's summary and spec; no weights, TensorBoard files or Ray state), ready to commit while the worktree
 # runs on. A trial counts as finished once its summary.json is written; unfinished ones are left out.
 # Usage: bash benchmarks/keep_trials.sh WORKTREE SWEEP_DIR...   (SWEEP_DIR relative to the repository root)
@@ -21,7 +22,7 @@ for rel in "$@"; do
     [ -f "$trial/summary.json" ] || continue
     name=$(basename "$trial")
     mkdir -p "$dst/$name"
-    for f in summary.json episodes.csv eval.csv progress.csv config.yaml; do
+    for f in summary.json episodes.csv eval.csv progress.csv config.yaml actor-eval.json; do
       [ -f "$trial/$f" ] && cp "$trial/$f" "$dst/$name/"
     done
     kept+=("$name")

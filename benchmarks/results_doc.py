@@ -566,6 +566,44 @@ def dmc_500k_section(sweeps: Path) -> list[str]:
             *dmc_table(rows, shown, runs_of)]
 
 
+AVERAGING = "Weight averaging: the two policies of one training"
+ACTOR_EVAL = "actor-eval.json"  # `softac eval TRIAL --checkpoint last --policy actor --json` (benchmarks/keep_trials.sh)
+
+
+def averaging_pairs(sweeps: Path) -> list[str]:
+    """Each sweep whose trials trained with policy_average_tau and carry their actor's evaluation of the last
+    checkpoint (ACTOR_EVAL): per seed, the actor's final return beside the average's (the deployed policy, whose
+    final evaluation is the trial's), so each pair is one training's two policies, evaluated on the same episodes."""
+    rows = []
+    for d in sorted(p for p in sweeps.iterdir() if (p / "sweep.json").exists()):
+        pairs = []
+        for trial in finished_trials(d):
+            path = d / trial["trial"] / ACTOR_EVAL
+            if path.exists():
+                pairs.append((trial["trial"], json.loads(path.read_text())["mean_return"], trial["final_eval_mean"]))
+        if not pairs:
+            continue
+        actor, average = np.array([p[1] for p in pairs]), np.array([p[2] for p in pairs])
+        scale = np.maximum(np.abs(actor), 1e-9)
+        higher, lower = int(np.sum(average > actor + 0.02 * scale)), int(np.sum(average < actor - 0.02 * scale))
+        spec = load_spec(d)
+        rows.append(f"| {spec.env_id} | {d.name} | {len(pairs)} | "
+                    f"{', '.join(f'{a:.0f}' for a in actor)} ({actor.mean():.0f}) | "
+                    f"{', '.join(f'{a:.0f}' for a in average)} ({average.mean():.0f}) | "
+                    f"{higher} / {len(pairs) - higher - lower} / {lower} |")
+    if not rows:
+        return []
+    return [f"## {AVERAGING}", "",
+            "With `policy_average_tau` a run trains as it would without it (exploration acts with the actor) and "
+            "deploys a weight average of the actor. Each trial's last checkpoint holds both: the average's final "
+            "evaluation is the trial's; the actor's is `softac eval TRIAL --checkpoint last --policy actor` on the "
+            "same 10 episodes (the same seeds). So each pair is what averaging changed on one training, free of "
+            "seed luck.", "",
+            "| env | sweep | seeds | actor's final return, each seed (mean) | average's (mean) | "
+            "average higher by > 2% / within 2% / lower |",
+            "|---|---|---|---|---|---|", *rows, ""]
+
+
 def short_machines(machines: str) -> str:
     """machines_of's text with each machine's CPU alone: "AMD EPYC (AVX-512 BF16)", "Intel Xeon (AMX)"."""
     return " and ".join(m.split(",")[0].replace("(R)", "").replace(" Processor", "") for m in machines.split(" and "))
@@ -602,6 +640,7 @@ def main(argv: list[str] | None = None) -> int:
             text.extend(front(a.sweeps, figures, kept))
         text.extend(section(env, threshold, a.sweeps, figures, kept))
     text.extend(dmc_section(a.sweeps, kept, figures))
+    text.extend(averaging_pairs(a.sweeps))
     notes = a.docs / "results-notes.md"
     if notes.exists():
         text.append(notes.read_text())

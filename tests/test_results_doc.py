@@ -315,6 +315,30 @@ def test_the_published_dmc_runs_agree_with_the_published_means():
             assert seeds == 1 or abs(np.std(values, ddof=1) - sd) <= 0.55
 
 
+@pytest.mark.skipif(not (KEPT / "Walker2d-v4-softac-crossq-avg" / "sweep.json").exists(),
+                    reason="kept averaging sweeps not present")
+def test_the_averaging_section_pairs_each_trials_actor_with_its_average(tmp_path):
+    """A trial with actor-eval.json (its last checkpoint's actor, evaluated) is a pair with its final evaluation
+    (the average's); pairs count as higher by more than 2%, within 2% or lower. A sweep without it has no row."""
+    sweeps, docs, name = tmp_path / "sweeps", tmp_path / "docs", "Walker2d-v4-softac-crossq-avg"
+    shutil.copytree(KEPT / name, sweeps / name)
+    copy_seed_0("Hopper-v4-softac", sweeps / "Hopper-v4-softac")  # no actor evaluations: not in the section
+    finals = {s: json.loads((sweeps / name / f"seed={s}" / "summary.json").read_text())["last_eval"] for s in range(5)}
+    actors = {0: finals[0] * 0.5, 1: finals[1] * 0.99, 2: finals[2] * 1.5}  # average higher, within 2%, lower
+    for seed, value in actors.items():
+        (sweeps / name / f"seed={seed}" / "actor-eval.json").write_text(json.dumps({"mean_return": value}))
+    docs.mkdir()
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    section = (docs / "results.md").read_text().split("## Weight averaging: the two policies of one training")[1]
+    rows = [line for line in section.split("\n## ")[0].splitlines() if line.startswith("| Walker2d-v4")]
+    assert len(rows) == 1 and "Hopper-v4-softac" not in section.split("\n## ")[0]
+    cells = [cell.strip() for cell in rows[0].strip("|").split("|")]
+    assert cells[1:3] == [name, "3"]
+    assert cells[3] == ", ".join(f"{actors[s]:.0f}" for s in range(3)) + f" ({sum(actors.values()) / 3:.0f})"
+    assert cells[4] == ", ".join(f"{finals[s]:.0f}" for s in range(3)) + f" ({sum(finals[s] for s in range(3)) / 3:.0f})"
+    assert cells[5] == "1 / 1 / 1"
+
+
 def test_keep_trials_copies_finished_trials_results_only(tmp_path):
     """benchmarks/keep_trials.sh: a worktree's finished trials, without weights, into the checkout it lives in
     (here a copy of it in tmp_path); an unfinished trial is left out; a directory that is no sweep is refused with
@@ -329,7 +353,7 @@ def test_keep_trials_copies_finished_trials_results_only(tmp_path):
     (sweep / "seed=1").mkdir()
     (sweep / "sweep.json").write_text("{}")
     (sweep / "summary.md").write_text("# summary")
-    for name in ("summary.json", "eval.csv", "config.yaml"):
+    for name in ("summary.json", "eval.csv", "config.yaml", "actor-eval.json"):
         (sweep / "seed=0" / name).write_text(name)
     (sweep / "seed=0" / "checkpoints" / "latest.npz").write_text("weights")
     (sweep / "seed=1" / "eval.csv").write_text("still running")  # no summary.json yet
@@ -337,7 +361,8 @@ def test_keep_trials_copies_finished_trials_results_only(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == f"{rel}: seed=0"
     kept = checkout / rel
-    assert sorted(p.name for p in (kept / "seed=0").iterdir()) == ["config.yaml", "eval.csv", "summary.json"]
+    assert sorted(p.name for p in (kept / "seed=0").iterdir()) == ["actor-eval.json", "config.yaml", "eval.csv",
+                                                                   "summary.json"]
     assert (kept / "summary.md").read_text() == "# summary"
     assert not (kept / "seed=1").exists()
     refused = subprocess.run(["bash", script, str(worktree), "nowhere"], capture_output=True, text=True)

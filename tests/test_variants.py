@@ -6,6 +6,8 @@ Palenicek et al. 2025), AdamW's decay on all or only the output layers, DroQ's c
 Float bounds as in test_sac_losses: the losses run in float32, the hand computations in float64; rel=1e-5 is
 ~170 float32 roundings of the result for a few dozen operations on terms no larger than it."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -383,6 +385,32 @@ def test_policy_average_changes_what_is_deployed_and_nothing_the_agent_trains(ti
     assert_same_training(plain, averaged, skip=("policy_average",))
     deployed = jax.tree_util.tree_leaves(sac.deployed(averaged.learner.state)[0])
     assert not np.allclose(np.asarray(deployed[0]), np.asarray(jax.tree_util.tree_leaves(averaged.learner.state.actor)[0]))
+
+
+def test_an_averaging_runs_last_checkpoint_gives_its_final_evaluation_again_and_either_policy(tiny, tmp_path):
+    """evaluate() seeds as training's evaluations do, so the `last` checkpoint of a finished run repeats the final
+    row of eval.csv; with averaging one training holds two policies and `policy` (SAC.predict, evaluate,
+    `softac eval --policy`) picks one. Without averaging "average" is a one-line error, "actor" the deployed."""
+    from softac.errors import SoftacError
+    from softac.evaluation import evaluate
+
+    run = tmp_path / "run"
+    SAC(tiny(policy_average_tau=0.05, eval_interval=400)).learn(400, run_dir=run, progress=False)
+    final = float((run / "eval.csv").read_text().splitlines()[-1].split(",")[1])
+    agent = SAC.load(run, which="last")
+    deployed, average, actor = (evaluate(agent, episodes=2, policy=p) for p in ("deployed", "average", "actor"))
+    assert deployed["mean_return"] == pytest.approx(final, rel=1e-5, abs=1e-5)  # eval.csv keeps 6 digits
+    assert average["returns"] == deployed["returns"] and average["policy"] == "average"
+    assert actor["returns"] != deployed["returns"] and actor["policy"] == "actor"
+    r = run_cli("eval", str(run), "--checkpoint", "last", "--episodes", "2", "--policy", "actor", "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["returns"] == actor["returns"], r.stderr
+
+    plain = SAC(tiny(seed=1))
+    assert evaluate(plain, episodes=2, policy="actor")["returns"] == evaluate(plain, episodes=2)["returns"]
+    with pytest.raises(SoftacError, match="no weight average of its actor"):
+        evaluate(plain, episodes=2, policy="average")
+    with pytest.raises(SoftacError, match="policy must be one of deployed, actor, average"):
+        plain.predict(np.zeros(2, np.float32), policy="best")
 
 
 # ---- the config and target entropy ------------------------------------------------------------------------

@@ -92,11 +92,12 @@ class SAC:
         """A fresh copy of the agent's env (what evaluate() and videos run on)."""
         return copy_env(self.env_source, render_mode, **kwargs)
 
-    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray:
-        """Env-scaled action(s) for one observation or a batch of them."""
+    def predict(self, obs: Any, deterministic: bool = True, policy: str = "deployed") -> np.ndarray:
+        """Env-scaled action(s) for one observation or a batch of them. `policy`: "deployed" (the weight
+        average with policy_average_tau, else the actor), "actor" (the actor that explores) or "average"."""
         if deterministic:
-            return self.learner.predict(obs)
-        actions, self.run_state.predict_key = self.learner.sample(obs, self.run_state.predict_key)
+            return self.learner.predict(obs, policy)
+        actions, self.run_state.predict_key = self.learner.sample(obs, self.run_state.predict_key, policy)
         return actions
 
     def learn(self, steps: int, run_dir: str | Path | None = None, target_return: float | None = None,

@@ -150,6 +150,9 @@ def build_parser() -> _Parser:
     e.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean action")
     e.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
     e.add_argument("--seed", type=int, help="seed of the first eval episode (default: the run's eval seed)")
+    e.add_argument("--policy", choices=["deployed", "actor", "average"], default="deployed",
+                   help="which policy: deployed (default: the weight average with policy_average_tau, else the "
+                        "actor), actor (the actor that explores), average (the weight average)")
     e.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     _add_allow_new_bounds(e)

@@ -166,13 +166,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise SoftacError("--episodes must be >= 1")
     agent = SAC.load(args.path, which=args.checkpoint, device=args.device, allow_new_bounds=args.allow_new_bounds)
-    stats = evaluate(agent, episodes=args.episodes, deterministic=not args.stochastic, seed=args.seed)
+    stats = evaluate(agent, episodes=args.episodes, deterministic=not args.stochastic, seed=args.seed,
+                     policy=args.policy)
     stats["checkpoint_step"] = agent.num_steps
     stats["path"] = str(args.path)
     if args.json:
         print(json.dumps(stats))
     else:
         mode = "stochastic" if args.stochastic else "deterministic"
+        if args.policy != "deployed":
+            mode += f" ({args.policy})"
         success = f", success rate {stats['success_rate']:.2f}" if stats["success_rate"] is not None else ""
         print(f"{stats['env_id']}: mean return {stats['mean_return']:.2f} +- {stats['std_return']:.2f}{success} over "
               f"{stats['episodes']} {mode} episodes (mean length {stats['mean_length']:.0f}; "

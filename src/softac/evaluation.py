@@ -24,7 +24,7 @@ class Evaluable(Protocol):
     config: Any
     env_source: EnvSource
 
-    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray: ...
+    def predict(self, obs: Any, deterministic: bool = True, policy: str = "deployed") -> np.ndarray: ...
 
 MAX_PARALLEL = 32
 EVAL_SEED_OFFSET = 1_000_000
@@ -128,17 +128,20 @@ def summarize(returns: np.ndarray, lengths: np.ndarray, terms: dict[str, np.ndar
 
 
 def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
-             env: Any = None) -> dict[str, Any]:
-    """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env."""
+             env: Any = None, policy: str = "deployed") -> dict[str, Any]:
+    """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env. The default seed is the
+    one training's evaluations use, so the `last` checkpoint of a finished run gives its final evaluation again.
+    `policy`: "deployed", "actor" or "average" (SAC.predict)."""
     if episodes < 1:
         raise EnvError("episodes must be >= 1")
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
     source = env if env is not None else agent.env_source
 
-    def policy(obs: np.ndarray) -> np.ndarray:
-        return agent.predict(obs, deterministic=deterministic)
+    def act(obs: np.ndarray) -> np.ndarray:
+        return agent.predict(obs, deterministic=deterministic, policy=policy)
 
-    stats = run_on_copies(policy, source, episodes, seed)
+    stats = run_on_copies(act, source, episodes, seed)
     stats["deterministic"] = deterministic
+    stats["policy"] = policy
     stats["env_id"] = env_name(source)
     return stats

@@ -25,6 +25,8 @@ if TYPE_CHECKING:  # sac imports JAX, which loads only when a learner is made
 
 STATE_PREFIX = "state"  # checkpoint array names: state<path of the leaf in SACState>, obs_norm/<name>
 OBS_NORM_PREFIX = "obs_norm/"
+# which of an agent's policies to act with (Learner.policy_networks); "deployed" is the average where there is one
+POLICIES = ("deployed", "actor", "average")
 METRICS_PREFIX = "metric_totals/"  # the sums behind the next progress row (a resumed run's first row is whole)
 
 
@@ -179,9 +181,9 @@ class Learner:
                                                              self.normalize_obs(obs), noise, self.state.encoder)
         return np.asarray(actions), np.asarray(env_actions)
 
-    def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
-        """The deployed policy's env-scaled mean actions for a batch of raw observations."""
-        actor, actor_stats, encoder = self.deployed_policy()
+    def act_deterministic(self, obs: np.ndarray, policy: str = "deployed") -> np.ndarray:
+        """The env-scaled mean actions of `policy` (see policy_networks) for a batch of raw observations."""
+        actor, actor_stats, encoder = self.policy_networks(policy)
         actions = self.functions.act_deterministic(actor, actor_stats, self.normalize_obs(obs), encoder)
         return self.scaler.to_env(np.asarray(actions))
 
@@ -192,18 +194,33 @@ class Learner:
 
         return deployed(self.state)
 
-    def predict(self, obs: Any) -> np.ndarray:
+    def policy_networks(self, policy: str = "deployed") -> tuple[Any, Any, Any]:
+        """(actor, actor_stats, encoder) of one of POLICIES: "deployed" (what evaluation runs), "actor" (the actor
+        that explores) or "average" (its weight average, only with policy_average_tau > 0). With averaging one
+        training holds two policies; comparing them on the same checkpoint says what the average bought."""
+        if policy == "deployed":
+            return self.deployed_policy()
+        if policy == "actor":
+            return self.state.actor, self.state.actor_stats, self.state.encoder
+        if policy == "average":
+            if not self.state.policy_average:
+                raise SoftacError("this agent keeps no weight average of its actor (policy_average_tau is 0): "
+                                  "its policies are 'actor' and 'deployed', the same one")
+            return self.state.policy_average
+        raise SoftacError(f"policy must be one of {', '.join(POLICIES)}, got {policy!r}")
+
+    def predict(self, obs: Any, policy: str = "deployed") -> np.ndarray:
         """The env-scaled mean action for one observation, or for each of a batch: the deterministic policy
         as a function (what evaluation runs)."""
         batch, single = self.as_batch(obs)
-        actions = self.act_deterministic(batch)
+        actions = self.act_deterministic(batch, policy)
         return actions[0] if single else actions
 
-    def sample(self, obs: Any, key: Any) -> tuple[np.ndarray, Any]:
-        """An env-scaled action drawn from the policy for one observation, or for each of a batch; and the
+    def sample(self, obs: Any, key: Any, policy: str = "deployed") -> tuple[np.ndarray, Any]:
+        """An env-scaled action drawn from `policy` for one observation, or for each of a batch; and the
         key to draw with next."""
         batch, single = self.as_batch(obs)
-        _, actions, key = self.act(batch, key, self.deployed_policy())
+        _, actions, key = self.act(batch, key, self.policy_networks(policy))
         return (actions[0] if single else actions), key
 
     # ---- learning ----------------------------------------------------------------------------------
