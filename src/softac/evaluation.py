@@ -24,7 +24,7 @@ class Evaluable(Protocol):
     config: Any
     env_source: EnvSource
 
-    def predict(self, obs: Any, deterministic: bool = True, policy: str = "deployed") -> np.ndarray: ...
+    def predict(self, obs: Any, deterministic: bool = True) -> np.ndarray: ...  # and policy=, when evaluate gets one
 
 MAX_PARALLEL = 32
 EVAL_SEED_OFFSET = 1_000_000
@@ -137,7 +137,9 @@ def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, s
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
     source = env if env is not None else agent.env_source
 
-    def act(obs: np.ndarray) -> np.ndarray:
+    def act(obs: np.ndarray) -> np.ndarray:  # `policy` only when asked for: a wrapped predict(obs, deterministic) works
+        if policy == "deployed":
+            return agent.predict(obs, deterministic=deterministic)
         return agent.predict(obs, deterministic=deterministic, policy=policy)
 
     stats = run_on_copies(act, source, episodes, seed)
