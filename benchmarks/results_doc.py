@@ -576,14 +576,11 @@ def averaging_pairs(sweeps: Path) -> list[str]:
     final evaluation is the trial's), so each pair is one training's two policies, evaluated on the same episodes."""
     rows = []
     for d in sorted(p for p in sweeps.iterdir() if (p / "sweep.json").exists()):
-        pairs = []
-        for trial in finished_trials(d):
-            path = d / trial["trial"] / ACTOR_EVAL
-            if path.exists():
-                pairs.append((trial["trial"], json.loads(path.read_text())["mean_return"], trial["final_eval_mean"]))
+        pairs = [(json.loads((d / t["trial"] / ACTOR_EVAL).read_text())["mean_return"], t["final_eval_mean"])
+                 for t in finished_trials(d) if (d / t["trial"] / ACTOR_EVAL).exists()]
         if not pairs:
             continue
-        actor, average = np.array([p[1] for p in pairs]), np.array([p[2] for p in pairs])
+        actor, average = np.array(pairs).T
         scale = np.maximum(np.abs(actor), 1e-9)
         higher, lower = int(np.sum(average > actor + 0.02 * scale)), int(np.sum(average < actor - 0.02 * scale))
         spec = load_spec(d)

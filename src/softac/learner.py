@@ -169,7 +169,7 @@ class Learner:
             ) -> tuple[np.ndarray, np.ndarray, Any]:
         """Sample actions for a batch of raw observations: (in [-1, 1], env-scaled, the next key). `networks`:
         (actor, actor_stats, encoder) to act with, the actor that explores when None."""
-        actor, actor_stats, encoder = networks or (self.state.actor, self.state.actor_stats, self.state.encoder)
+        actor, actor_stats, encoder = networks or self.policy_networks("actor")
         # NumPy goes straight into the jitted call: jnp.asarray would cost more than an env step
         actions, env_actions, key = self.functions.act(actor, actor_stats, self.normalize_obs(obs), key, encoder)
         return np.asarray(actions), np.asarray(env_actions), key
