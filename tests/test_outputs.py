@@ -145,6 +145,32 @@ def test_video_is_an_mp4_with_the_return_in_its_name(pendulum_run):
     assert_clean_error(run_cli("video", str(pendulum_run), "--out", str(pendulum_run / "x.gif")), ".mp4")
 
 
+def test_video_of_the_actor_of_an_averaging_run_and_a_clean_error_without_one(pendulum_run):
+    """`softac video --policy` films the policy it names (SAC.predict gets it), in a file that says which; a run
+    without weight averaging has no average to film."""
+    from softac.agent import SAC
+    from softac.video import record
+
+    class Recording:  # the agent, with the policies its predict is asked for written down
+        def __init__(self, agent):
+            self.agent, self.policies = agent, set()
+
+        def __getattr__(self, name):
+            return getattr(self.agent, name)
+
+        def predict(self, obs, deterministic=True, policy="deployed"):
+            self.policies.add(policy)
+            return self.agent.predict(obs, deterministic=deterministic, policy=policy)
+
+    agent = Recording(SAC.load(pendulum_run))
+    result = record(agent, pendulum_run / "actor.mp4", max_steps=5, policy="actor", width=64, height=48)
+    assert agent.policies == {"actor"} and result["lengths"] == [5]
+    r = run_cli("video", str(pendulum_run), "--policy", "actor", "--max-steps", "10")
+    assert r.returncode == 0, r.stderr
+    assert len(list((pendulum_run / "videos").glob("step*-actor-return*.mp4"))) == 1
+    assert_clean_error(run_cli("video", str(pendulum_run), "--policy", "average"), "no weight average")
+
+
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome"):
         if shutil.which(name):

@@ -62,6 +62,13 @@ def _add_allow_new_bounds(p: argparse.ArgumentParser) -> None:
                         "(its actions are scaled to the new bounds); refused otherwise")
 
 
+def _add_policy(p: argparse.ArgumentParser) -> None:
+    # learner.POLICIES spelled here: cli imports nothing heavy, so that `softac --help` starts fast
+    p.add_argument("--policy", choices=["deployed", "actor", "average"], default="deployed",
+                   help="which policy: deployed (default: the weight average with policy_average_tau, else the "
+                        "actor), actor (the actor that explores), average (the weight average)")
+
+
 def _train_arguments(t: argparse.ArgumentParser) -> None:
     t.add_argument("--env", help="Gymnasium env id, module:EnvId, or dmc:DOMAIN-TASK (the DeepMind Control Suite, [dmc] extra)")
     src = t.add_mutually_exclusive_group()
@@ -150,9 +157,7 @@ def build_parser() -> _Parser:
     e.add_argument("--stochastic", action="store_true", help="sample actions instead of the mean action")
     e.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
     e.add_argument("--seed", type=int, help="seed of the first eval episode (default: the run's eval seed)")
-    e.add_argument("--policy", choices=["deployed", "actor", "average"], default="deployed",
-                   help="which policy: deployed (default: the weight average with policy_average_tau, else the "
-                        "actor), actor (the actor that explores), average (the weight average)")
+    _add_policy(e)
     e.add_argument("--device", choices=["cpu", "gpu", "cuda", "auto"])
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     _add_allow_new_bounds(e)
@@ -170,6 +175,7 @@ def build_parser() -> _Parser:
     v.add_argument("--stochastic", action="store_true")
     v.add_argument("--checkpoint", choices=["best", "last"])
     v.add_argument("--max-steps", type=_positive_int, help="stop each episode after this many steps")
+    _add_policy(v)
     _add_allow_new_bounds(v)
 
     rp = sub.add_parser("report", help="one self-contained HTML page for a run")

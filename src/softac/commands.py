@@ -187,7 +187,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _record_video(path: Path, which: str | None, out: str | None, episodes: int, deterministic: bool,
-                  max_steps: int | None = None, allow_new_bounds: bool = False) -> dict[str, Any]:
+                  max_steps: int | None = None, allow_new_bounds: bool = False,
+                  policy: str = "deployed") -> dict[str, Any]:
     _choose_gl_backend_if(True)  # first: it probes backends in subprocesses, before JAX starts its threads
 
     from softac import checkpoint as ckpt
@@ -196,12 +197,13 @@ def _record_video(path: Path, which: str | None, out: str | None, episodes: int,
 
     directory = ckpt.resolve(path, which)
     agent = SAC.load(directory, allow_new_bounds=allow_new_bounds)
-    target = Path(out) if out else default_video_path(Path(path), agent.num_steps)
+    target = Path(out) if out else default_video_path(Path(path), agent.num_steps, policy=policy)
     if target.suffix.lower() != ".mp4":
         raise SoftacError(f"--out must name an .mp4 file, got {target}")
-    result = record(agent, target, episodes=episodes, deterministic=deterministic, max_steps=max_steps)
+    result = record(agent, target, episodes=episodes, deterministic=deterministic, max_steps=max_steps,
+                    policy=policy)
     if out is None:  # put the return in the file name
-        named = default_video_path(Path(path), agent.num_steps, result["mean_return"])
+        named = default_video_path(Path(path), agent.num_steps, result["mean_return"], policy)
         Path(result["path"]).replace(named)
         result["path"] = str(named)
     print(f"video: {result['path']} ({len(result['returns'])} episode(s), return "
@@ -213,7 +215,7 @@ def cmd_video(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise SoftacError("--episodes must be >= 1")
     _record_video(Path(args.path), args.checkpoint, args.out, args.episodes, not args.stochastic, args.max_steps,
-                  args.allow_new_bounds)
+                  args.allow_new_bounds, args.policy)
     return EXIT_OK
 
 

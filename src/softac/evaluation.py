@@ -127,6 +127,14 @@ def summarize(returns: np.ndarray, lengths: np.ndarray, terms: dict[str, np.ndar
     }
 
 
+def acting(agent: Evaluable, deterministic: bool = True,
+           policy: str = "deployed") -> Callable[[np.ndarray], np.ndarray]:
+    """obs -> action with `agent.predict` and one of its policies ("deployed", "actor", "average")."""
+    if policy == "deployed":  # `policy` only when asked for: a wrapped predict(obs, deterministic) keeps working
+        return lambda obs: agent.predict(obs, deterministic=deterministic)
+    return lambda obs: agent.predict(obs, deterministic=deterministic, policy=policy)
+
+
 def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
              env: Any = None, policy: str = "deployed") -> dict[str, Any]:
     """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env. The default seed is the
@@ -136,13 +144,7 @@ def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, s
         raise EnvError("episodes must be >= 1")
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
     source = env if env is not None else agent.env_source
-
-    def act(obs: np.ndarray) -> np.ndarray:  # `policy` only when asked for: a wrapped predict(obs, deterministic) works
-        if policy == "deployed":
-            return agent.predict(obs, deterministic=deterministic)
-        return agent.predict(obs, deterministic=deterministic, policy=policy)
-
-    stats = run_on_copies(act, source, episodes, seed)
+    stats = run_on_copies(acting(agent, deterministic, policy), source, episodes, seed)
     stats["deterministic"] = deterministic
     stats["policy"] = policy
     stats["env_id"] = env_name(source)

@@ -28,18 +28,22 @@ def _label(frame: np.ndarray, text: str) -> np.ndarray:
 
 
 def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True, seed: int | None = None,
-           width: int = 640, height: int = 480, max_steps: int | None = None) -> dict[str, Any]:
-    """Render `episodes` episodes of `agent` into one MP4 at `out`; returns returns and lengths."""
+           width: int = 640, height: int = 480, max_steps: int | None = None,
+           policy: str = "deployed") -> dict[str, Any]:
+    """Render `episodes` episodes of `agent` into one MP4 at `out`; returns returns and lengths. The default seed
+    is the one evaluations use, so a whole episode here has the return `evaluate` gives its first episode.
+    `policy`: "deployed", "actor" or "average" (SAC.predict)."""
     import imageio.v2 as imageio
 
     from softac.envs import observation_array
     from softac.errors import EnvError
-    from softac.evaluation import EVAL_SEED_OFFSET
+    from softac.evaluation import EVAL_SEED_OFFSET, acting
 
     from softac.gl import choose_gl_backend
 
     choose_gl_backend()  # before the env's first render: EGL or OSMesa where MUJOCO_GL leaves it open
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
+    act = acting(agent, deterministic, policy)
     images = agent.spaces.image_shape is not None
     try:
         # an image agent's env renders what the agent sees (pixels: at pixel_size), enlarged for the video
@@ -69,7 +73,7 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
                     while not done:
                         frame = _enlarged(_render(env), height) if images else _render(env)
                         writer.append_data(_label(frame, caption(episode, steps, total)))
-                        action = agent.predict(observation_array(obs), deterministic=deterministic)
+                        action = act(observation_array(obs))
                         obs, reward, terminated, truncated, _ = env.step(action)
                         total += float(reward)
                         steps += 1
@@ -108,11 +112,13 @@ def _enlarged(frame: np.ndarray, height: int) -> np.ndarray:
     return np.repeat(np.repeat(frame, k, axis=0), k, axis=1) if k > 1 else frame
 
 
-def default_video_path(run_or_ckpt: Path, step: int, mean_return: float | None = None) -> Path:
+def default_video_path(run_or_ckpt: Path, step: int, mean_return: float | None = None,
+                       policy: str = "deployed") -> Path:
     from softac.checkpoint import is_checkpoint
 
     base = run_or_ckpt
     if is_checkpoint(run_or_ckpt) and run_or_ckpt.parent.name == "checkpoints":
         base = run_or_ckpt.parent.parent
-    name = f"step{step}" + (f"-return{mean_return:.0f}" if mean_return is not None else "") + ".mp4"
+    name = (f"step{step}" + (f"-{policy}" if policy != "deployed" else "")
+            + (f"-return{mean_return:.0f}" if mean_return is not None else "") + ".mp4")
     return base / "videos" / name
