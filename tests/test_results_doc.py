@@ -243,17 +243,19 @@ def test_the_dmc_section_sets_each_tasks_runs_beside_the_published_means(tmp_pat
     assert "### Continued to 500k frames" not in section  # no sweep ran 500k frames
 
 
-@pytest.mark.skipif(not (KEPT / "dmc-walker-run-softac-crossq-ar2" / "sweep.json").exists(),
+@pytest.mark.skipif(not (KEPT / "dmc-walker-run-softac-dmc-avg" / "sweep.json").exists(),
                     reason="kept DMC sweeps not present")
 def test_the_dmc_aggregate_scores_each_tasks_own_preset_where_a_task_has_one(tmp_path):
     """cheetah-run has a preset of its own (dmc-cheetah-run): the presets' row takes its sweep there and the dmc
-    preset's (run as `--preset crossq --set action_repeat=2`) on walker-run; the old cheetah-run sweep is not it."""
+    preset's (run as `--preset dmc --set policy_average_tau=0.001`, what dmc is today) on walker-run; the sweeps
+    of `--preset crossq --set action_repeat=2`, the dmc preset before it averaged, are not it."""
     import yaml
 
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
     for source, target, final in (("dmc-cheetah-run-softac-crossq-ar2", "dmc-cheetah-run-softac-crossq-ar2", 100.0),
                                   ("dmc-cheetah-run-softac-crossq-ar2", "dmc-cheetah-run-softac-dmc-cheetah-run", 900.0),
-                                  ("dmc-walker-run-softac-crossq-ar2", "dmc-walker-run-softac-crossq-ar2", 500.0)):
+                                  ("dmc-walker-run-softac-crossq-ar2", "dmc-walker-run-softac-crossq-ar2", 300.0),
+                                  ("dmc-walker-run-softac-dmc-avg", "dmc-walker-run-softac-dmc-avg", 500.0)):
         copy_seed_0(source, sweeps / target)
         evals = sweeps / target / "seed=0" / "eval.csv"
         lines = evals.read_text().splitlines()
@@ -269,10 +271,10 @@ def test_the_dmc_aggregate_scores_each_tasks_own_preset_where_a_task_has_one(tmp
     aggregate = (docs / "results.md").read_text().split("### One aggregate")[1].split("\n## ")[0]
     [own] = [line for line in aggregate.splitlines() if line.startswith("| softac, each task's preset")]
     cells = [cell.strip() for cell in own.strip("|").split("|")]
-    # two runs, 900 and 500: their IQM (the plain mean under four runs) is 0.70; without the task's preset 0.30
+    # two runs, 900 and 500: their IQM (the plain mean under four runs) is 0.70; the old settings' 100 and 300: 0.20
     assert cells[1:3] == ["2", "2"] and cells[3].startswith("0.70 [")
     [plain] = [line for line in aggregate.splitlines() if line.startswith("| softac, crossq preset + action_repeat=2 (2 tasks) |")]
-    assert plain.split("|")[4].strip().startswith("0.30 [")
+    assert plain.split("|")[4].strip().startswith("0.20 [")
 
 
 @pytest.mark.skipif(not (KEPT / "dmc-cheetah-run-softac-crossq-ar2" / "sweep.json").exists(),
