@@ -529,10 +529,8 @@ def own_preset_runs(sweeps: Path, finals: dict[str, dict[str, list[float]]],
                     seconds: dict[str, dict[str, float]]) -> tuple[dict[str, list[float]], dict[str, float], set[str]]:
     """Per task, the finals (and median seconds) of the first configuration in `finals` whose sweep trained what
     `softac train --env dmc:TASK` trains with today's presets (the task's own dmc-TASK preset where there is one,
-    else dmc; a sweep of `--preset crossq --set action_repeat=2` is the dmc preset): the DMC presets' own score; and
-    the configurations it drew on."""
-    from softac.config import SACConfig
-
+    else dmc), read from its trials' config.yaml (trained_as_today): the DMC presets' own score; and the
+    configurations it drew on."""
     own_finals: dict[str, list[float]] = {}
     own_seconds: dict[str, float] = {}
     used: set[str] = set()
@@ -540,14 +538,34 @@ def own_preset_runs(sweeps: Path, finals: dict[str, dict[str, list[float]]],
         for name, d in env_sweeps(f"dmc-{task}", sweeps).items():
             spec = load_spec(d)
             if (task in finals.get(name, {}) and spec.framework == "softac" and not spec.grid and not spec.search
-                    and spec.preset_config().replace(total_steps=1)  # the budget: the frames filter above
-                    == SACConfig.for_env(spec.env_id).replace(total_steps=1)):
+                    and trained_as_today(d, spec.env_id)):
                 own_finals[task] = finals[name][task]
                 used.add(name)
                 if task in seconds.get(name, {}):
                     own_seconds[task] = seconds[name][task]
                 break
     return own_finals, own_seconds, used
+
+
+def trained_as_today(sweep: Path, env_id: str) -> bool:
+    """Whether every finished trial of `sweep` trained with what SACConfig.for_env(env_id) holds today, seed and
+    budget aside (the frames filter is the caller's), as its config.yaml records it. The record, not the sweep's
+    preset name: a preset's file can change after its runs. A key a trial's record lacks (it predates the key)
+    is that key's default, which is what the code did then."""
+    import dataclasses
+
+    import yaml
+
+    from softac.config import SACConfig
+
+    names = {f.name for f in dataclasses.fields(SACConfig)}
+    trials = [t for t in sorted(sweep.glob("*/config.yaml")) if (t.parent / "summary.json").exists()]
+    for path in trials:
+        record = yaml.safe_load(path.read_text()) or {}
+        ran = SACConfig().replace(**{k: v for k, v in record.items() if k in names})
+        if ran != SACConfig.for_env(env_id).replace(seed=ran.seed, total_steps=ran.total_steps):
+            return False
+    return bool(trials)
 
 
 def dmc_500k_section(sweeps: Path) -> list[str]:
