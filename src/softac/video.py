@@ -31,8 +31,7 @@ def record(agent: Any, out: Path, episodes: int = 1, deterministic: bool = True,
            width: int = 640, height: int = 480, max_steps: int | None = None,
            policy: str = "deployed") -> dict[str, Any]:
     """Render `episodes` episodes of `agent` into one MP4 at `out`; returns returns and lengths. The default seed
-    is the one evaluations use, so a whole episode here has the return `evaluate` gives its first episode.
-    `policy`: "deployed", "actor" or "average" (SAC.predict)."""
+    is the one evaluations use (episode i: seed + i). `policy`: "deployed", "actor" or "average" (SAC.predict)."""
     import imageio.v2 as imageio
 
     from softac.envs import observation_array
