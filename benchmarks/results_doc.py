@@ -558,12 +558,12 @@ def trained_as_today(sweep: Path, env_id: str) -> bool:
 
     from softac.config import SACConfig
 
-    names = {f.name for f in dataclasses.fields(SACConfig)}
+    names, today = {f.name for f in dataclasses.fields(SACConfig)}, SACConfig.for_env(env_id)
     trials = [t for t in sorted(sweep.glob("*/config.yaml")) if (t.parent / "summary.json").exists()]
     for path in trials:
         record = yaml.safe_load(path.read_text()) or {}
         ran = SACConfig().replace(**{k: v for k, v in record.items() if k in names})
-        if ran != SACConfig.for_env(env_id).replace(seed=ran.seed, total_steps=ran.total_steps):
+        if ran != today.replace(seed=ran.seed, total_steps=ran.total_steps):
             return False
     return bool(trials)
 
