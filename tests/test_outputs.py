@@ -226,13 +226,19 @@ def test_gl_backend_choice(monkeypatch):
         monkeypatch.setenv(name, "unset by this test")
         monkeypatch.delenv(name)
     monkeypatch.setattr(gl, "gl_backend_works", lambda backend: False)
-    monkeypatch.setattr(gl.sys, "modules", {k: v for k, v in gl.sys.modules.items() if k != "mujoco"})
+    # an earlier test in this worker may have rendered, importing PyOpenGL: that path has its own check below
+    modules_before_rendering = {k: v for k, v in gl.sys.modules.items()
+                                if k != "mujoco" and k.split(".")[0] != "OpenGL"}
+    monkeypatch.setattr(gl.sys, "modules", modules_before_rendering)
     with pytest.raises(gl.SoftacError, match="libosmesa6"):
         gl.choose_gl_backend()
     monkeypatch.setattr(gl, "gl_backend_works", lambda backend: backend == "osmesa")
     assert gl.choose_gl_backend() == "osmesa" and os.environ["MUJOCO_GL"] == "osmesa"
     monkeypatch.setenv("MUJOCO_GL", "egl")
     assert gl.choose_gl_backend() == "egl"  # the user's choice wins
+    monkeypatch.delenv("MUJOCO_GL")
+    monkeypatch.setitem(gl.sys.modules, "OpenGL", object())
+    assert gl.choose_gl_backend() == "preset"  # PyOpenGL already fixed its platform: nothing left to choose
 
 
 def test_make_demo_installs_the_base_package_only(tmp_path):
