@@ -155,6 +155,14 @@ def test_dmc_tasks_get_the_dmc_preset_the_crossq_avg_preset_with_action_repeat_2
         SACConfig.preset("dmc", env_id="Hopper-v5")
 
 
+def test_dmc_quadruped_run_deploys_its_actor_where_the_dmc_preset_deploys_an_average():
+    """quadruped-run's preset is `dmc` with wider critics, a larger batch and no weight averaging (its average
+    did worse than the same trainings' actor on fresh seeds: the preset file)."""
+    own, dmc = SACConfig.for_env("dmc:quadruped-run"), SACConfig.preset("dmc", env_id="dmc:quadruped-run")
+    assert own.policy_average_tau == 0.0 and dmc.policy_average_tau == 0.001
+    assert own == dmc.replace(critic_hidden_sizes=(512, 512), batch_size=256, policy_average_tau=0.0)
+
+
 def test_a_preset_that_extends_itself_is_refused(monkeypatch, tmp_path):
     import softac.config as config
 
