@@ -386,6 +386,16 @@ def test_help_for_the_root_and_every_command():
         assert "internal error" not in r.stderr + r.stdout, command
 
 
+def test_the_policy_choices_of_eval_and_video_are_the_learners():
+    """cli spells learner.POLICIES out (importing the learner would slow `softac --help`): they must not drift."""
+    from softac.cli import build_parser
+    from softac.learner import POLICIES
+
+    for command in ("eval", "video"):
+        [policy] = [a for a in build_parser().commands[command]._actions if a.dest == "policy"]
+        assert tuple(policy.choices) == POLICIES and policy.default in POLICIES, command
+
+
 BOUNDED_ENV = '''
 import os
 

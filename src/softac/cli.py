@@ -63,7 +63,7 @@ def _add_allow_new_bounds(p: argparse.ArgumentParser) -> None:
 
 
 def _add_policy(p: argparse.ArgumentParser) -> None:
-    # learner.POLICIES spelled here: cli imports nothing heavy, so that `softac --help` starts fast
+    # learner.POLICIES spelled here (a test keeps them equal): cli imports nothing heavy, so `softac --help` starts fast
     p.add_argument("--policy", choices=["deployed", "actor", "average"], default="deployed",
                    help="which policy: deployed (default: the weight average with policy_average_tau, else the "
                         "actor), actor (the actor that explores), average (the weight average)")
