@@ -116,7 +116,7 @@ pixels() {
   # otherwise the drq preset (DrQ's settings). cartpole-swingup at DrQ's PlaNet setting: action repeat 8,
   # 100k frames = 12,500 agent steps
   $SOFTAC sweep --env dmc:cartpole-swingup --seeds 3 --steps 12500 --preset drq \
-    --set action_repeat=8 pixel_size=48 batch_size=32 eval_interval=1250 --out $SWEEPS/dmc-cartpole-swingup-softac-drq-48px
+    --set action_repeat=8 pixel_size=48 batch_size=32 eval_interval=1250 --out $SWEEPS/pixels/dmc-cartpole-swingup-softac-drq-48px
   $SOFTAC sweep --env InvertedPendulum-v5 --seeds 2 --steps 20000 --threshold 1000 --preset drq \
     --set pixel_size=48 batch_size=32 --out $SWEEPS/InvertedPendulum-v5-softac-drq-48px
 }

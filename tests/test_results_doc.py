@@ -366,3 +366,40 @@ def test_keep_trials_copies_finished_trials_results_only(tmp_path):
     assert not (kept / "seed=1").exists()
     refused = subprocess.run(["bash", script, str(worktree), "nowhere"], capture_output=True, text=True)
     assert refused.returncode == 2 and "no sweep.json" in refused.stderr
+
+
+@pytest.mark.skipif(not (KEPT / "Pendulum-v1-softac" / "sweep.json").exists(), reason="kept Pendulum sweep not present")
+def test_the_pixels_section_sets_softacs_pixel_runs_beside_sb3s_cnn_policy_runs(tmp_path):
+    """SWEEPS/pixels/ holds softac's pixel sweeps and SB3's CnnPolicy runs (benchmarks/sb3_pixels.py): each gets a
+    row with every seed's final return, its first evaluation at the env's mark (step and seconds then), its steps
+    and wall seconds; they stay out of the env sections (those are of state observations)."""
+    import yaml
+
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    softac = sweeps / "pixels" / "Pendulum-v1-softac-48px"
+    copy_seed_0("Pendulum-v1-softac", softac)
+    config = yaml.safe_load((softac / "seed=0" / "config.yaml").read_text())
+    config.update(pixels=True, pixel_size=48, frame_stack=3, batch_size=32)
+    (softac / "seed=0" / "config.yaml").write_text(yaml.safe_dump(config))
+    sb3 = sweeps / "pixels" / "Pendulum-v1-sb3-cnn-48px" / "seed=1"
+    sb3.mkdir(parents=True)
+    (sb3 / "eval.csv").write_text("step,return_mean,return_std,wall_s\n1000,-900,1,50\n2000,-190,1,120\n3000,-170,1,200\n")
+    (sb3 / "summary.json").write_text(json.dumps({
+        "framework": "sb3-cnn", "env": "Pendulum-v1", "seed": 1, "steps": 3000, "pixel_size": 48, "frames": 3,
+        "action_repeat": 1, "batch_size": 256, "wall_s": 210.4, "final_return": -170.0, "machine": "CPU X, 2 cores"}))
+    (sweeps / "pixels" / "notes").mkdir()  # neither: no row
+    docs.mkdir()
+    assert load_benchmark_script("results_doc").main([str(sweeps), "--docs", str(docs)]) == 0
+    text = (docs / "results.md").read_text()
+    section = text.split("## From pixels")[1].split("\n## ")[0]
+    rows = {line.split("|")[2].strip(): [c.strip() for c in line.strip("|").split("|")]
+            for line in section.splitlines() if line.startswith("| Pendulum-v1")}
+    summary = json.loads((softac / "seed=0" / "summary.json").read_text())
+    [ours] = [cells for name, cells in rows.items() if name.startswith("softac")]
+    assert ours[2] == "48x48, 3 stacked, action repeat 1, batch 32" and ours[3] == "1"
+    assert ours[4] == f"{summary['last_eval']:.0f} ({summary['last_eval']:.0f})"
+    assert ours[5].startswith("2k (") and ours[6] == "20k" and ours[7] == f"{summary['train_time_s']:.0f}"
+    theirs = rows["SB3 SAC CnnPolicy (SB3's defaults, benchmarks/sb3_pixels.py)"]
+    assert theirs[2:] == ["48x48, 3 stacked, action repeat 1, batch 256", "1", "-170 (-170)", "2k (120 s)", "3k", "210",
+                          "CPU X"]
+    assert "Pendulum-v1-softac-48px" not in text.split("## From pixels")[0]
