@@ -25,8 +25,8 @@
 #   options: goal 4 of issue #18, the option from the literature against plain SAC on the same seeds and
 #            budget: the env presets are CrossQ (Bhatt et al. 2024), so this runs plain SAC's settings
 #            (`--preset sac-100k`, the presets before CrossQ) beside them (options:ENV for one env)
-#   pixels:  issue 44 from pixels on a CPU (48x48 frames, batch 32, else the drq preset): DMC cartpole-swingup at
-#            action repeat 8 and 100k frames (3 seeds), InvertedPendulum-v5 (2 seeds)
+#   pixels:  issue 44 from pixels on a CPU (48x48 frames, batch 32): DMC cartpole-swingup with the drq preset at
+#            action repeat 8 and 100k frames (3 seeds), InvertedPendulum-v5 with its preset beside SB3's CnnPolicy (2 seeds)
 #   robotics: issue 31's goal envs (the [robotics] extra): softac's presets (SAC + HER) beside SB3's and SBX's SAC + HER
 #            at their defaults (sb3-her, sbx-her), 20 deterministic episodes an evaluation (robotics:ENV for one env)
 #   fallback: goal 1 of issue #18, envs with no preset of their own (Swimmer, Reacher, InvertedDoublePendulum):
@@ -111,14 +111,20 @@ dmc500k() {
 }
 
 pixels() {
-  # issue 44 on a CPU: an update at 84x84 takes 1-6 s on one core here (7-20 hours a run), at 48x48 and batch 32
-  # about 0.2-0.3 s (benchmarks/update_time.py --image 3x48x48x3), so these runs use 48x48 frames and batch 32;
-  # otherwise the drq preset (DrQ's settings). cartpole-swingup at DrQ's PlaNet setting: action repeat 8,
-  # 100k frames = 12,500 agent steps
+  # issue 44 on a CPU: an update at 84x84 takes 0.3-6 s on one core (hours a run), at 48x48 and batch 32 40-70 ms
+  # on an AMD EPYC core (docs/performance.md), so these runs use 48x48 frames and batch 32. cartpole-swingup: the
+  # drq preset (DrQ's settings) at DrQ's PlaNet setting, action repeat 8, 100k frames = 12,500 agent steps.
+  # InvertedPendulum-v5: its own preset from pixels (chosen over drq on tuning seed 100, benchmarks/screens), up to
+  # 50k steps or the first evaluation of 1000, beside SB3's CnnPolicy on the same frames (benchmarks/sb3_pixels.py)
   $SOFTAC sweep --env dmc:cartpole-swingup --seeds 3 --steps 12500 --preset drq \
     --set action_repeat=8 pixel_size=48 batch_size=32 eval_interval=1250 --out $SWEEPS/pixels/dmc-cartpole-swingup-softac-drq-48px
-  $SOFTAC sweep --env InvertedPendulum-v5 --seeds 2 --steps 20000 --threshold 1000 --preset drq \
-    --set pixel_size=48 batch_size=32 --out $SWEEPS/InvertedPendulum-v5-softac-drq-48px
+  $SOFTAC sweep --env InvertedPendulum-v5 --seeds 2 --steps 50000 --threshold 1000 --target-return=1000 \
+    --set pixels=true pixel_size=48 batch_size=32 --out $SWEEPS/pixels/InvertedPendulum-v5-softac-48px
+  for seed in 0 1; do
+    "$(dirname "$SOFTAC")/python" benchmarks/sb3_pixels.py --env InvertedPendulum-v5 --steps 50000 --seed $seed \
+      --pixel-size 48 --eval-interval 1000 --eval-episodes 10 --threads 1 \
+      --out $SWEEPS/pixels/InvertedPendulum-v5-sb3-cnn-48px/seed=$seed
+  done
 }
 
 options() {
