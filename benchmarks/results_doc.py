@@ -646,7 +646,7 @@ def pixel_runs(d: Path) -> tuple[str, str, list[dict]] | None:
                                      f"stacked, action repeat {config.get('action_repeat', 1)}, batch "
                                      f"{config['batch_size']}"),
                           "machine": machines_of([d / row["trial"]])})
-        return spec.env_id, f"softac, {spec.describe()}", seeds
+        return spec.env_id, spec.describe(), seeds
     summaries = sorted(d.glob("seed=*/summary.json"))
     if not summaries:
         return None
@@ -690,9 +690,10 @@ def pixels_section(sweeps: Path) -> list[str]:
     published = [f"- {env}: {PUBLISHED_PIXELS[env]}." for env in envs if env in PUBLISHED_PIXELS]
     return [f"## {PIXELS}", "",
             "Image observations through the convolutional encoder (docs/guides/pixels.md), one pinned CPU core a run, "
-            "beside Stable-Baselines3's SAC with its CnnPolicy on the same frames. A run's seconds include its "
-            f"evaluations. First evaluation at the solved mark ({thresholds or 'none here'}): the step and the "
-            "run's seconds then; softac's runs stop there, SB3's run their budget.", "",
+            "and, where run, Stable-Baselines3's SAC with its CnnPolicy on the same frames. A run's seconds include "
+            "its evaluations." + (f" First evaluation at the solved mark ({thresholds}): the step and the run's "
+                                   "seconds then; softac's runs stop there, SB3's run their budget." if thresholds
+                                   else ""), "",
             "| env | configuration | frames | seeds | final return, each seed (mean) | first evaluation at the mark | "
             "steps run | wall s | machine |",
             "|---|---|---|---|---|---|---|---|---|", *rows, "", *published, *([""] if published else [])]
