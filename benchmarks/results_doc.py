@@ -628,29 +628,30 @@ PUBLISHED_PIXELS = {"dmc:cartpole-swingup": "published DrQ (Kostrikov et al. 202
                                             "812"}
 
 
-def pixel_runs(d: Path) -> tuple[str, str, list[dict]] | None:
+def pixel_runs(d: Path) -> tuple[str, str, list[dict], str] | None:
     """(env id, configuration, one dict per seed: final return, steps, wall seconds, and the step and seconds
-    of its first evaluation at ENVS's threshold) of a softac pixel sweep or a directory of SB3 CnnPolicy runs
-    (seed=S/summary.json and eval.csv from benchmarks/sb3_pixels.py); None for anything else."""
+    of its first evaluation at ENVS's threshold; the machines they ran on) of a softac pixel sweep or a directory
+    of SB3 CnnPolicy runs (seed=S/summary.json and eval.csv from benchmarks/sb3_pixels.py); None for anything
+    else."""
     import yaml
 
     if (d / "sweep.json").exists():
         spec = load_spec(d)
         threshold = ENVS.get(spec.env_id)
+        rows = [r for r in trial_rows(d, spec, threshold) if r["status"] == "done"]
         seeds = []
-        for row in (r for r in trial_rows(d, spec, threshold) if r["status"] == "done"):
+        for row in rows:
             config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
             seeds.append({"final": row["final_eval_mean"], "steps": row["steps"], "wall_s": row["wall_s"],
                           "at_threshold": (row.get("steps_to_threshold"), row.get("seconds_to_threshold")),
                           "frames": (f"{config['pixel_size']}x{config['pixel_size']}, {config['frame_stack']} "
                                      f"stacked, action repeat {config.get('action_repeat', 1)}, batch "
-                                     f"{config['batch_size']}"),
-                          "machine": machines_of([d / row["trial"]])})
-        return spec.env_id, spec.describe(), seeds
+                                     f"{config['batch_size']}")})
+        return spec.env_id, spec.describe(), seeds, machines_of([d / r["trial"] for r in rows])
     summaries = sorted(d.glob("seed=*/summary.json"))
     if not summaries:
         return None
-    seeds, env_id = [], ""
+    seeds, env_id, machines = [], "", set()
     for path in summaries:
         summary = json.loads(path.read_text())
         env_id, threshold = summary["env"], ENVS.get(summary["env"])
@@ -661,9 +662,9 @@ def pixel_runs(d: Path) -> tuple[str, str, list[dict]] | None:
         seeds.append({"final": summary["final_return"], "steps": summary["steps"], "wall_s": summary["wall_s"],
                       "at_threshold": crossing,
                       "frames": (f"{summary['pixel_size']}x{summary['pixel_size']}, {summary['frames']} stacked, "
-                                 f"action repeat {summary['action_repeat']}, batch {summary.get('batch_size', 256)}"),
-                      "machine": summary.get("machine") or "a machine its summary.json does not name"})
-    return env_id, "SB3 SAC CnnPolicy (SB3's defaults, benchmarks/sb3_pixels.py)", seeds
+                                 f"action repeat {summary['action_repeat']}, batch {summary.get('batch_size', 256)}")})
+        machines.add(summary.get("machine") or "a machine its summary.json does not name")
+    return env_id, "SB3 SAC CnnPolicy (SB3's defaults, benchmarks/sb3_pixels.py)", seeds, " and ".join(sorted(machines))
 
 
 def pixels_section(sweeps: Path) -> list[str]:
@@ -672,7 +673,7 @@ def pixels_section(sweeps: Path) -> list[str]:
     root = sweeps / PIXEL_SWEEPS
     found = [runs for d in sorted(root.iterdir()) if d.is_dir() and (runs := pixel_runs(d))] if root.exists() else []
     rows, envs = [], []
-    for env_id, name, seeds in (r for r in found if r[2]):
+    for env_id, name, seeds, machines in (r for r in found if r[2]):
         if env_id not in envs:
             envs.append(env_id)
         finals = [s["final"] for s in seeds]
@@ -680,10 +681,9 @@ def pixels_section(sweeps: Path) -> list[str]:
                      for step, seconds in (s["at_threshold"] for s in seeds)]
         steps = ", ".join(f"{s['steps'] / 1000:g}k" for s in seeds)
         walls = ", ".join(f"{s['wall_s']:.0f}" for s in seeds)
-        machines = short_machines(" and ".join(sorted({s["machine"] for s in seeds})))
         rows.append(f"| {env_id} | {name} | {seeds[0]['frames']} | {len(seeds)} | "
                     f"{', '.join(f'{v:.0f}' for v in finals)} ({np.mean(finals):.0f}) | {', '.join(crossings)} | "
-                    f"{steps} | {walls} | {machines} |")
+                    f"{steps} | {walls} | {short_machines(machines)} |")
     if not rows:
         return []
     thresholds = ", ".join(f"{env} {ENVS[env]:g}" for env in envs if ENVS.get(env) is not None)
