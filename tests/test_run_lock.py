@@ -88,9 +88,9 @@ def test_two_trains_started_together_into_one_new_directory_leave_one_run(tmp_pa
     refused = [err for code, err in results if code == 2][0]
     lines = [line for line in refused.splitlines() if line.strip()]
     assert len(lines) == 1 and "Traceback" not in refused
-    # refused while the other wrote, or after it finished: either way, one line naming why ("by pid N", or "by
-    # another process" when refused between the winner's lock and its writing its pid into the lock file)
-    assert "is being written by" in lines[0] or "already holds a run" in lines[0], lines[0]
+    # refused while the other wrote (naming its pid, also when refused before the winner had written it), or
+    # after it finished: either way, one line naming why
+    assert "is being written by pid" in lines[0] or "already holds a run" in lines[0], lines[0]
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["seed"] == winner
     summary = json.loads((run / "summary.json").read_text())

@@ -153,6 +153,7 @@ class RunLocked(SoftacError):
     """The run (or sweep) directory is being written by another process."""
 
 
+HOLDER_WAIT_POLLS = 200  # x 10 ms: how long a refused process waits for a fresh holder to write its pid
 _held: dict[str, list] = {}  # this process's run locks: resolved directory -> [fd, depth]
 
 
@@ -193,6 +194,12 @@ def _lock_file(directory: Path, what: str) -> int:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = _holder(fd)
+            # the holder writes its pid just after it locks: refused in between, give it a moment to name itself
+            for _ in range(HOLDER_WAIT_POLLS):
+                if holder != "another process":
+                    break
+                time.sleep(0.01)
+                holder = _holder(fd)
             os.close(fd)
             raise RunLocked(f"{directory} is being written by {holder} (another softac {what}); wait for it "
                             f"to end, or pick another directory") from None
