@@ -308,15 +308,17 @@ def test_channels_first_images_and_rendered_frames_become_channels_last_stacks(t
 
 
 @pytest.mark.exact
-@pytest.mark.parametrize("env_id", ["DotImage-v0", "DotStateImage-v0"])
-def test_resume_with_images_is_exact(tiny, tmp_path, env_id):
+@pytest.mark.parametrize("env_id, target_encoder", [("DotImage-v0", False), ("DotStateImage-v0", False),
+                                                    ("DotImage-v0", True)])
+def test_resume_with_images_is_exact(tiny, tmp_path, env_id, target_encoder):
     """N+M steps in one go equals N, save, load, M: the frame buffer, the envs' frame stacks and the encoder
-    with its optimiser carry over bit for bit (images alone, and an image beside state values)."""
+    with its optimiser (and its target copy) carry over bit for bit (images alone, and an image beside state
+    values)."""
     from conftest import assert_same_training
     from softac import SAC
 
     cfg = tiny(f"softac_test_envs:{env_id}", **IMAGE, n_envs=2, gradient_steps=2, eval_interval=300,
-               learning_starts=100)
+               learning_starts=100, target_encoder=target_encoder)
     straight = SAC(cfg)
     straight.learn(500, run_dir=tmp_path / "straight", progress=False)
     first = SAC(cfg)
@@ -395,6 +397,10 @@ def test_image_settings_that_cannot_work_are_refused(tiny):
 
     with pytest.raises(ConfigError, match="obs_norm"):
         SACConfig().replace(pixels=True, obs_norm=True)
+    with pytest.raises(ConfigError, match="target_encoder=True: copies the encoder for the target critics, and these "
+                                          "critics have none"):
+        SACConfig().replace(crossq=True, target_encoder=True)
+    SACConfig().replace(crossq=True, target_critics="on", target_encoder=True)  # CrossQ+WN's targets take one
     with pytest.raises(SoftacError, match="obs_norm normalises vector observations"):
         SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, obs_norm=True))
     from softac.learner import check_model_memory
@@ -494,6 +500,63 @@ def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_be
     assert before_gap < 1e-5
     after = encode(new.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
     assert np.abs(np.asarray(after) - np.asarray(features)).max() > 1e-4
+
+
+def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0):
+    from softac import sac
+
+    rng = np.random.default_rng(seed)
+    return sac.Batch(obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
+                     actions=rng.uniform(-1, 1, (n, 1)).astype(np.float32),
+                     rewards=rng.normal(size=n).astype(np.float32),
+                     next_obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
+                     terminated=np.zeros(n, np.float32), steps=np.ones(n, np.float32))
+
+
+def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at_tau(tiny):
+    """DrQ's target critic carries its own encoder: a copy at the start, Polyak-averaged with the online encoder
+    at tau on the targets' schedule, and what the next-state value is read through."""
+    from softac import sac
+
+    config = tiny("softac_test_envs:DotImage-v0", **IMAGE, target_encoder=True, tau=0.25, target_update_interval=2)
+    image = (2, 16, 16, 3)
+    fns = sac.build(config, 0, 1, image_shape=image)
+    state = fns.init(0)
+    leaves = jax.tree_util.tree_leaves
+    for online, target in zip(leaves(state.encoder), leaves(state.target_encoder)):
+        np.testing.assert_array_equal(np.asarray(online), np.asarray(target))
+    without = sac.build(config.replace(target_encoder=False), 0, 1, image_shape=image).init(0)
+    assert without.target_encoder == ()  # and the same networks otherwise
+    for a, b in zip(leaves(without.encoder), leaves(state.encoder)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    s = sac.update_settings(config, 1, fns.matmul_dtype, images=True)
+    batch, key = _image_batch(image), jax.random.PRNGKey(3)
+    step = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s)[1]["critic_loss"])
+    # with the target encoder equal to the online one, the loss is the online-features one (two graphs of the
+    # same float32 arithmetic: a relative 1e-5 leaves room for their rounding)
+    s_online = sac.update_settings(config.replace(target_encoder=False), 1, fns.matmul_dtype, images=True)
+    online_loss = float(jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s_online)[1]["critic_loss"])(
+        without, batch, key))
+    assert abs(float(step(state, batch, key)) - online_loss) <= 1e-5 * abs(online_loss)
+    # a different target encoder changes the next-state values, so the loss
+    moved = state._replace(target_encoder=jax.tree_util.tree_map(lambda x: x * 0.5, state.target_encoder))
+    assert abs(float(step(moved, batch, key)) - online_loss) > 1e-3 * abs(online_loss)
+
+    # one gradient step (the 1st: not due) and a second (due: n_updates 2 % 2 == 0)
+    batches = jax.tree_util.tree_map(lambda x: np.stack([x, x]), batch)
+    new, _ = fns.update(jax.tree_util.tree_map(jnp.copy, state), batches)
+    first = jax.tree_util.tree_map(jnp.copy, state)
+    (after_one, _), _ = sac.gradient_step(s, None, (first, sac.zero_totals()), batch)
+    for target, start in zip(leaves(after_one.target_encoder), leaves(state.target_encoder)):
+        np.testing.assert_array_equal(np.asarray(target), np.asarray(start))  # not due yet
+    for target, start, online in zip(leaves(new.target_encoder), leaves(state.target_encoder), leaves(new.encoder)):
+        expected = 0.75 * np.asarray(start) + 0.25 * np.asarray(online)
+        # one multiply-add in float32 each: a few ulps of the operands' size
+        bound = 4 * np.finfo(np.float32).eps * (np.abs(np.asarray(start)) + np.abs(np.asarray(online))) + 1e-30
+        assert np.all(np.abs(np.asarray(target) - expected) <= bound)
+    assert max(float(np.abs(np.asarray(t) - np.asarray(o)).max())
+               for t, o in zip(leaves(new.target_encoder), leaves(new.encoder))) > 0  # it lags the encoder
 
 
 # ---- export ------------------------------------------------------------------------------------------------------

@@ -75,6 +75,7 @@ class SACConfig:
     n_step: int = _f(1, "rewards summed before bootstrapping (n-step returns, as RLlib's n_step; the walk stops at episode ends); 1 = plain SAC")
     encoder_channels: int = _f(32, "image observations: filters of each of the encoder's 4 convolutions (DrQ's encoder: 3x3, strides 2,1,1,1, then Linear, LayerNorm, tanh)")
     encoder_features: int = _f(50, "image observations: the encoder's output width, what actor and critics read (DrQ: 50)")
+    target_encoder: bool = _f(False, "image observations: the target critics read observations through a target copy of the encoder, Polyak-averaged with them at tau (DrQ, SAC-AE); false: through the online encoder, stopped (DrQ-v2); needs target critics")
     augment_pad: int = _f(4, "image observations: DrQ's random shift, each image padded by this many edge pixels and cropped back at a random offset in every update (0 = no augmentation)")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (TQC: pools their quantiles)")
     target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")
@@ -196,6 +197,11 @@ class SACConfig:
 
     # ---- validation ---------------------------------------------------
 
+    @property
+    def has_target_critics(self) -> bool:
+        """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
+        return self.target_critics == "on" or (self.target_critics == "auto" and not self.crossq)
+
     def validate(self) -> None:
         def need(ok: bool, key: str, what: str) -> None:
             if not ok:
@@ -243,6 +249,8 @@ class SACConfig:
         need(not (self.crossq and self.critic_layer_norm), "critic_layer_norm",
              "cannot be combined with crossq, which normalises with batch renormalisation")
         need(self.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
+        need(not (self.target_encoder and not self.has_target_critics), "target_encoder",
+             "copies the encoder for the target critics, and these critics have none (target_critics=on gives them)")
         need(0 <= self.n_quantiles <= 1000, "n_quantiles", "must be between 0 (SAC's critics) and 1000")
         need(self.top_quantiles_to_drop_per_net >= 0 and (
             self.n_quantiles == 0 or self.top_quantiles_to_drop_per_net < self.n_quantiles),

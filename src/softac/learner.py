@@ -67,7 +67,8 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     actor = network_parameters(obs_dim, actor_hidden, 2 * act_dim, config.network)
     critics = config.n_critics * network_parameters(obs_dim + act_dim, critic_hidden, config.n_quantiles or 1,
                                                     config.network)
-    parameters = 4 * (3 * actor + 4 * critics + 3 * encoder)  # weights + Adam moments; critics also have targets
+    # weights + Adam moments; critics also have targets (and the encoder with target_encoder)
+    parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder)
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
     # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
     widths = sum(actor_hidden) + sum(critic_hidden) * config.n_critics

@@ -91,7 +91,7 @@ def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, ja
 
 def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batch, next_actions: jax.Array,
                  critics: Critics, renorm: jax.Array | bool, target_stats: Any = (),
-                 key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, Any]:
+                 key: jax.Array | None = None, target_batch: Batch | None = None) -> tuple[jax.Array, jax.Array, Any]:
     """Q(s, a) of every critic, Q(s', a') of every critic the next-state value comes from, and the critics'
     new running statistics.
 
@@ -100,18 +100,22 @@ def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batc
     so that batch renormalisation normalises both with the same statistics (with separate passes the next
     pair is out of distribution for the normalisation); with target critics (CrossQ+WN, Palenicek et al.
     2025) the target critics make the same joint pass in training mode, with their own running statistics
-    for the renormalisation, and Q(s', a') is taken from their half."""
+    for the renormalisation, and Q(s', a') is taken from their half. `target_batch`: the observations as the
+    target critics read them (image features through a target encoder), else `batch`'s."""
+    target_batch = batch if target_batch is None else target_batch
     online_key, next_key = dropout_keys(key, critics) if key is not None else (None, None)
     if critics.batch_renorm is None:
         q = critics.q_values(critic, critic_stats, batch.obs, batch.actions, online_key)
-        source = target_critic if critics.has_targets else critic
-        return q, critics.q_values(source, critic_stats, batch.next_obs, next_actions, next_key), critic_stats
+        source, next_obs = (target_critic, target_batch.next_obs) if critics.has_targets else (critic, batch.next_obs)
+        return q, critics.q_values(source, critic_stats, next_obs, next_actions, next_key), critic_stats
     obs = jnp.concatenate([batch.obs, batch.next_obs])
     actions = jnp.concatenate([batch.actions, next_actions])
     both, critic_stats = critics.q_values_training(critic, critic_stats, obs, actions, renorm)
     q, next_q = jnp.split(both, 2, axis=1)
     if critics.has_targets:
-        next_q = jnp.split(critics.q_values_training(target_critic, target_stats, obs, actions, renorm)[0], 2, axis=1)[1]
+        target_obs = jnp.concatenate([target_batch.obs, target_batch.next_obs])
+        next_q = jnp.split(critics.q_values_training(target_critic, target_stats, target_obs, actions, renorm)[0], 2,
+                           axis=1)[1]
     return q, next_q, critic_stats
 
 
@@ -164,7 +168,8 @@ def quantile_huber_error(q: jax.Array, next_atoms: jax.Array, keep: jax.Array, n
 
 def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, actor_stats: Any, alpha: jax.Array,
                 batch: Batch, key: jax.Array, policy: Policy, critics: Critics, gamma: float, n_step: int = 1,
-                renorm: jax.Array | bool = False, target_stats: Any = ()) -> tuple[jax.Array, tuple[dict, Any]]:
+                renorm: jax.Array | bool = False, target_stats: Any = (),
+                target_batch: Batch | None = None) -> tuple[jax.Array, tuple[dict, Any]]:
     """Soft Bellman error with the minimum over the next-state critics (clipped double Q, Fujimoto et al.
     2018), or with TQC quantile critics the quantile Huber loss to the truncated atoms; returns the loss and
     (metrics, the critics' new running statistics).
@@ -172,11 +177,12 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps. With n-step returns
     the buffer has summed `steps` discounted rewards (no entropy terms in between, as RLlib and SB3 do),
     so the bootstrap is discounted by gamma^steps (Sutton & Barto 2018, sec. 7.1). The next action is
-    drawn with the actor's running statistics.
+    drawn with the actor's running statistics. `target_batch`: the observations as the target critics read
+    them, where they differ from `batch`'s (a target encoder's features).
     """
     next_actions, next_log_prob = policy.sample(actor, actor_stats, batch.next_obs, key)
     q, next_q, critic_stats = q_and_next_q(critic, critic_stats, target_critic, batch, next_actions, critics, renorm,
-                                           target_stats, key)
+                                           target_stats, key, target_batch)
     if critics.n_quantiles:
         atoms, keep = truncated_target_atoms(next_q, critics.drop_per_critic)
         loss, metrics = quantile_huber_error(q, atoms, keep, next_log_prob, alpha, batch, gamma, n_step)

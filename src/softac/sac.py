@@ -47,6 +47,7 @@ class SACState(NamedTuple):
     target_critic_stats: Any = ()  # the target critics' (CrossQ with target critics, as CrossQ+WN); () without
     encoder: Any = ()  # the image encoder (image observations); () without
     encoder_opt: Any = ()
+    target_encoder: Any = ()  # the target critics' copy of the encoder (target_encoder); () without
     # (actor, actor_stats, encoder) averaged over the actor steps (policy_average_tau); () without
     policy_average: Any = ()
 
@@ -74,6 +75,7 @@ class UpdateSettings:
     augment_pad: int = 0  # image observations: DrQ's random shift (pixels of padding)
     image_state_dim: int = 0  # image observations: state values packed beside each image (pixels.ImageWithState)
     policy_average_tau: float = 0.0  # the deployed policy's averaging rate per actor step; 0: the actor itself
+    target_encoder: bool = False  # image observations: the target critics read through a target copy of the encoder
 
     @property
     def has_targets(self) -> bool:
@@ -142,6 +144,8 @@ def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0) -> jax.Array:
 
 
 def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings) -> Batch:
+    """The batch's observations through `encoder`, each augmented (the same shifts for the same `key`); the next
+    observations' features are targets, stopped."""
     obs_key, next_key = jax.random.split(key)
     return batch._replace(
         obs=image_features(encoder, batch.obs, s.image_state_dim, obs_key, s.augment_pad),
@@ -149,18 +153,29 @@ def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings)
                                                       s.augment_pad)))
 
 
+def target_encoded_batch(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings) -> Batch | None:
+    """The batch as the target critics read it: through the target encoder, with the same shifts as the online
+    pass (DrQ's target critic carries its own encoder copy, Polyak-averaged with it), stopped; None without a
+    target encoder (the targets read the online features). XLA drops the observations' pass where only the
+    next observations' is used (critics without batch renormalisation)."""
+    if not jax.tree_util.tree_leaves(state.target_encoder):
+        return None
+    return jax.lax.stop_gradient(encoded_batch(state.target_encoder, batch, key, s))
+
+
 def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings,
                       lr_scale: jax.Array | None = None) -> tuple[SACState, dict, jax.Array]:
     """`critic_step` through the encoder, which the critic loss trains too; also returns the (stopped)
     features of the batch's observations, for the actor."""
     augment_key, loss_key = jax.random.split(key)
+    target_batch = target_encoded_batch(state, batch, augment_key, s)
 
     def loss(critic: Any, encoder: Any):
         encoded = encoded_batch(encoder, batch, augment_key, s)
         value, (metrics, critic_stats) = soft_q_loss(
             critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
             encoded, loss_key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s),
-            state.target_critic_stats)
+            state.target_critic_stats, target_batch)
         return value, (metrics, critic_stats, encoded.obs)
 
     (critic_grads, encoder_grads), (metrics, critic_stats, features) = jax.grad(loss, argnums=(0, 1), has_aux=True)(
@@ -251,14 +266,18 @@ def policy_round(state: SACState, totals: dict, obs: jax.Array, key: jax.Array, 
 
 def update_targets(state: SACState, n_updates: jax.Array, s: UpdateSettings) -> SACState:
     """Polyak averaging every `target_update_interval` gradient steps (of the running statistics too, where
-    the critics have them, as SBX averages its target batch statistics)."""
+    the critics have them, as SBX averages its target batch statistics, and of a target encoder, as DrQ
+    averages its target critic's encoder with it)."""
     due = (n_updates % s.target_update_interval) == 0
 
     def averaged(target: Any, online: Any) -> Any:
         return jax.tree_util.tree_map(lambda new, old: jnp.where(due, new, old), polyak(target, online, s.tau), target)
 
+    target_encoder = averaged(state.target_encoder, state.encoder) if jax.tree_util.tree_leaves(
+        state.target_encoder) else state.target_encoder
     return state._replace(target_critic=averaged(state.target_critic, state.critic),
-                          target_critic_stats=averaged(state.target_critic_stats, state.critic_stats))
+                          target_critic_stats=averaged(state.target_critic_stats, state.critic_stats),
+                          target_encoder=target_encoder)
 
 
 def gradient_step(s: UpdateSettings, lr_scale: jax.Array | None, carry: tuple[SACState, dict],
@@ -343,11 +362,6 @@ def critic_hidden(config: SACConfig) -> list[int]:
     return list(config.critic_hidden_sizes or config.hidden_sizes)
 
 
-def uses_target_critics(config: SACConfig) -> bool:
-    """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
-    return config.target_critics == "on" or (config.target_critics == "auto" and not config.crossq)
-
-
 def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random.Generator) -> tuple[Any, ...]:
     """New actor and critics, and (with batch renormalisation) their running statistics."""
     c, norm = config, config.crossq
@@ -376,8 +390,8 @@ def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | No
 
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
              critic_stats: Any, encoder: Any = ()) -> SACState:
-    """A state around fresh networks: targets copied from the critics (and their statistics), the averaged policy
-    (policy_average_tau) from the actor, fresh optimisers."""
+    """A state around fresh networks: targets copied from the critics (and their statistics, and the encoder with
+    target_encoder), the averaged policy (policy_average_tau) from the actor, fresh optimisers."""
     log_alpha = jnp.asarray(np.log(max(initial_alpha, 1e-30)), jnp.float32)
 
     def copy(tree: Any, wanted: bool) -> Any:
@@ -389,6 +403,7 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
         alpha_opt=s.alpha_tx.init(log_alpha), key=key, n_updates=jnp.zeros((), jnp.int32),
         actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats, s.has_targets),
         encoder=encoder, encoder_opt=s.encoder_tx.init(encoder) if s.encoder_tx is not None else (),
+        target_encoder=copy(encoder, s.target_encoder and s.has_targets),
         policy_average=copy((actor, actor_stats, encoder), s.policy_average_tau > 0),
     )
 
@@ -430,7 +445,7 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
                       sde=c.exploration_noise == "gsde"),
         critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
-                        drop_per_critic=c.top_quantiles_to_drop_per_net, targets=uses_target_critics(c)),
+                        drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics),
         actor_tx=optimizer(c, c.actor_lr), critic_tx=optimizer(c, c.critic_lr),
         alpha_tx=optax.adam(c.alpha_lr, b1=c.adam_b1),
         target_entropy=resolve_target_entropy(c, act_dim),
@@ -439,7 +454,8 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm,
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
         encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad,
-        image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau)
+        image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau,
+        target_encoder=images and c.target_encoder)
 
 
 class SACFunctions(NamedTuple):
