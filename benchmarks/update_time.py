@@ -3,7 +3,7 @@
     taskset -c 0 python benchmarks/update_time.py --preset HalfCheetah-v5 --obs 17 --act 6
     taskset -c 0 python benchmarks/update_time.py --preset sac-100k --set matmul_dtype=bfloat16
     taskset -c 0 python benchmarks/update_time.py --peer sbx-crossq-softac --env Hopper-v5   # needs [bench]
-    taskset -c 0 python benchmarks/update_time.py --preset InvertedPendulum-v5 --image 84x84x9 --act 1  # pixels
+    taskset -c 0 python benchmarks/update_time.py --preset InvertedPendulum-v5 --image 3x84x84x3 --act 1  # pixels (frames x H x W x C)
 
 Isolates the jitted update from the env and the loop (docs/performance.md, "The MuJoCo presets' update"):
 warm-up updates first (compilation), then rounds of updates each timed to completion; prints the median

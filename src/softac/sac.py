@@ -76,6 +76,7 @@ class UpdateSettings:
     image_state_dim: int = 0  # image observations: state values packed beside each image (pixels.ImageWithState)
     policy_average_tau: float = 0.0  # the deployed policy's averaging rate per actor step; 0: the actor itself
     target_encoder: bool = False  # image observations: the target critics read through a target copy of the encoder
+    encoder_chunk: int = 0  # image observations: the update's batches go through the encoder in pieces of this many
 
     @property
     def has_targets(self) -> bool:
@@ -128,12 +129,13 @@ def apply_critic_grads(state: SACState, grads: Any, s: UpdateSettings, lr_scale:
 # shared encoder destabilises it (SAC-AE, Yarats et al. 2021). Each pass augments with its own random shift.
 
 def image_features(encoder: Any, stacks: jax.Array, state_dim: int = 0, key: jax.Array | None = None,
-                   pad: int = 0) -> jax.Array:
+                   pad: int = 0, chunk: int = 0) -> jax.Array:
     """The encoder's features of frame stacks [batch, k, h, w, c], followed by the state values the frames carry
-    (`state_dim` of them); with `key`, each observation shifted at random first (one shift for all its frames)."""
+    (`state_dim` of them); with `key`, each observation shifted at random first (one shift for all its frames).
+    `chunk`: `encode`'s pieces."""
     images, state = split_image_and_state(stacks, state_dim)
     images = stack_channels(images)
-    features = encode(encoder, images if key is None else random_shift(images, key, pad))
+    features = encode(encoder, images if key is None else random_shift(images, key, pad), chunk)
     return features if state is None else jnp.concatenate([features, state], axis=-1)
 
 
@@ -148,9 +150,9 @@ def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings)
     observations' features are targets, stopped."""
     obs_key, next_key = jax.random.split(key)
     return batch._replace(
-        obs=image_features(encoder, batch.obs, s.image_state_dim, obs_key, s.augment_pad),
+        obs=image_features(encoder, batch.obs, s.image_state_dim, obs_key, s.augment_pad, s.encoder_chunk),
         next_obs=jax.lax.stop_gradient(image_features(encoder, batch.next_obs, s.image_state_dim, next_key,
-                                                      s.augment_pad)))
+                                                      s.augment_pad, s.encoder_chunk)))
 
 
 def target_encoded_batch(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings) -> Batch | None:
@@ -455,7 +457,9 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
         encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad,
         image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau,
-        target_encoder=images and c.target_encoder)
+        target_encoder=images and c.target_encoder,
+        # on a CPU the convolutions run faster in pieces of 8 images (encoder.chunked_encode); a GPU wants the batch
+        encoder_chunk=8 if images and jax.default_backend() == "cpu" else 0)
 
 
 class SACFunctions(NamedTuple):
