@@ -324,17 +324,17 @@ def test_channels_first_images_and_rendered_frames_become_channels_last_stacks(t
 
 
 @pytest.mark.exact
-@pytest.mark.parametrize("env_id, target_encoder", [("DotImage-v0", False), ("DotStateImage-v0", False),
-                                                    ("DotImage-v0", True)])
-def test_resume_with_images_is_exact(tiny, tmp_path, env_id, target_encoder):
+@pytest.mark.parametrize("env_id, drq", [("DotImage-v0", False), ("DotStateImage-v0", False),
+                                         ("DotStateImage-v0", True)])
+def test_resume_with_images_is_exact(tiny, tmp_path, env_id, drq):
     """N+M steps in one go equals N, save, load, M: the frame buffer, the envs' frame stacks and the encoder
-    with its optimiser (and its target copy) carry over bit for bit (images alone, and an image beside state
-    values)."""
+    with its optimiser carry over bit for bit (images alone, and an image beside state values; DrQ's form, with
+    the encoder's target copy and the actor's own head, too)."""
     from conftest import assert_same_training
     from softac import SAC
 
     cfg = tiny(f"softac_test_envs:{env_id}", **IMAGE, n_envs=2, gradient_steps=2, eval_interval=300,
-               learning_starts=100, target_encoder=target_encoder)
+               learning_starts=100, target_encoder=drq, actor_encoder_head=drq)
     straight = SAC(cfg)
     straight.learn(500, run_dir=tmp_path / "straight", progress=False)
     first = SAC(cfg)
@@ -518,12 +518,12 @@ def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_be
     assert np.abs(np.asarray(after) - np.asarray(features)).max() > 1e-4
 
 
-def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0):
+def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0, act_dim: int = 1):
     from softac import sac
 
     rng = np.random.default_rng(seed)
     return sac.Batch(obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
-                     actions=rng.uniform(-1, 1, (n, 1)).astype(np.float32),
+                     actions=rng.uniform(-1, 1, (n, act_dim)).astype(np.float32),
                      rewards=rng.normal(size=n).astype(np.float32),
                      next_obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
                      terminated=np.zeros(n, np.float32), steps=np.ones(n, np.float32))
@@ -575,13 +575,52 @@ def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at
                for t, o in zip(leaves(new.target_encoder), leaves(new.encoder))) > 0  # it lags the encoder
 
 
+def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_and_is_what_the_policy_acts_through(
+        tiny):
+    """DrQ's actor: its own Linear-LayerNorm-tanh head on the encoder's convolutions (stopped). The critic step
+    leaves the head alone; the actor step moves the head and the actor and leaves the encoder alone; acting and
+    the deployed policy read the shared convolutions through the actor's head."""
+    from softac import SAC, sac
+
+    config = tiny("softac_test_envs:DotStateImage-v0", **IMAGE, actor_encoder_head=True)
+    agent = SAC(config)
+    state = agent.learner.state
+    leaves = jax.tree_util.tree_leaves
+    assert state.actor_head["w"].shape[1] == IMAGE["encoder_features"]
+    without = SAC(config.replace(actor_encoder_head=False)).learner.state
+    for a, b in zip(leaves((without.actor, without.encoder)), leaves((state.actor, state.encoder))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # drawn after the encoder: the rest unchanged
+    actor, stats, encoder = agent.learner.deployed_policy()
+    assert encoder["convs"] is state.encoder["convs"] and encoder["head"] is state.actor_head
+
+    s = sac.update_settings(config, 1, agent.learner.functions.matmul_dtype, images=True,
+                            image_state_dim=agent.spaces.image_state_dim)
+    batch = _image_batch(agent.spaces.image_shape, act_dim=agent.spaces.act_dim)
+    after_critic, _, (critic_obs, conv) = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s))(
+        state, batch, jax.random.PRNGKey(1))
+    for a, b in zip(leaves(after_critic.actor_head), leaves(state.actor_head)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    flat = state.actor_head["w"].shape[0]
+    assert conv.shape == (8, flat + agent.spaces.image_state_dim)
+    assert critic_obs.shape == (8, IMAGE["encoder_features"] + agent.spaces.image_state_dim)
+    after_actor, _ = jax.jit(lambda st, o, k: sac.actor_and_alpha_step(st, o, k, s))(
+        after_critic, (critic_obs, conv), jax.random.PRNGKey(2))
+    for tree in ("actor", "actor_head"):
+        assert max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
+                   for a, b in zip(leaves(getattr(after_actor, tree)), leaves(getattr(after_critic, tree)))) > 0, tree
+    for a, b in zip(leaves(after_actor.encoder), leaves(after_critic.encoder)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    agent.learn(300, progress=False)  # trains, acts and evaluates through the head
+    assert agent.num_steps == 300 and agent.predict(agent.make_env().reset(seed=0)[0]).shape == (agent.spaces.act_dim,)
+
+
 # ---- export ------------------------------------------------------------------------------------------------------
 
 @pytest.mark.numerics
-@pytest.mark.parametrize("with_state", [False, True])
-def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state):
-    """The ONNX graph and the NumPy pass of an image agent (the encoder, and the state values beside an image)
-    each give predict()'s actions within the float32 bound of the exact ones (tests/float_bounds.py: the
+@pytest.mark.parametrize("with_state, actor_head", [(False, False), (True, False), (True, True)])
+def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state, actor_head):
+    """The ONNX graph and the NumPy pass of an image agent (the encoder, the state values beside an image, and
+    the actor's own head on the convolutions) each give predict()'s actions within the float32 bound of the exact ones (tests/float_bounds.py: the
     convolutions as dense layers' sums, LayerNorm step by step), for a batch and for one observation; and an
     export with its features flattened in the wrong order, or a kernel transposed, falls outside it."""
     onnxruntime = pytest.importorskip("onnxruntime")
@@ -593,7 +632,7 @@ def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state):
 
     # 20x20 frames: the convolutions end at 3x3 (at 16x16, 1x1, where any flattening order is the same)
     env = (DotStateImageEnv if with_state else DotImageEnv)(size=20)
-    agent = SAC(tiny("DotImage20", **IMAGE, learning_starts=100), env=env)
+    agent = SAC(tiny("DotImage20", **IMAGE, learning_starts=100, actor_encoder_head=actor_head), env=env)
     agent.learn(300, progress=False)  # the encoder moved from its init, which is mostly zeros
     env = agent.make_env()
     env.action_space.seed(0)

@@ -76,6 +76,7 @@ class SACConfig:
     encoder_channels: int = _f(32, "image observations: filters of each of the encoder's 4 convolutions (DrQ's encoder: 3x3, strides 2,1,1,1, then Linear, LayerNorm, tanh)")
     encoder_features: int = _f(50, "image observations: the encoder's output width, what actor and critics read (DrQ: 50)")
     target_encoder: bool = _f(False, "image observations: the target critics read observations through a target copy of the encoder, Polyak-averaged with them at tau (DrQ, SAC-AE); false: through the online encoder, stopped (DrQ-v2); needs target critics")
+    actor_encoder_head: bool = _f(False, "image observations: the actor reads the shared convolutions' output, stopped, through a head of its own (Linear, LayerNorm, tanh, as the encoder's), trained by the actor loss (DrQ's actor); false: the critic-trained encoder's features, stopped")
     augment_pad: int = _f(4, "image observations: DrQ's random shift, each image padded by this many edge pixels and cropped back at a random offset in every update (0 = no augmentation)")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (TQC: pools their quantiles)")
     target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")

@@ -61,10 +61,15 @@ def init_encoder(rng: np.random.Generator, image_shape: tuple[int, int, int], ch
         w = np.zeros((KERNEL, KERNEL, fan_in, channels), np.float32)
         w[KERNEL // 2, KERNEL // 2] = _orthogonal(rng, fan_in, channels, math.sqrt(2.0))
         convs.append({"w": w, "b": np.zeros(channels, np.float32)})
-    flat = conv_output_size(height) * conv_output_size(width) * channels
-    head = {"w": _orthogonal(rng, flat, features, 1.0), "b": np.zeros(features, np.float32),
+    return {"convs": convs, "head": init_head(rng, conv_output_size(height) * conv_output_size(width) * channels,
+                                              features)}
+
+
+def init_head(rng: np.random.Generator, flat: int, features: int) -> Params:
+    """The encoder's head (Linear from the `flat` conv outputs to `features`, LayerNorm, tanh): orthogonal
+    weights, zero biases, LayerNorm scale 1 and bias 0 (DrQ's)."""
+    return {"w": _orthogonal(rng, flat, features, 1.0), "b": np.zeros(features, np.float32),
             "ln_scale": np.ones(features, np.float32), "ln_bias": np.zeros(features, np.float32)}
-    return {"convs": convs, "head": head}
 
 
 def encoder_parameters(image_shape: tuple[int, int, int], channels: int = 32, features: int = 50) -> int:
@@ -122,27 +127,42 @@ def conv_features(params: Params, images: jax.Array) -> jax.Array:
     return x.reshape(x.shape[0], -1)
 
 
-def encode(params: Params, images: jax.Array, chunk: int = 0) -> jax.Array:
-    """uint8 images [batch, h, w, c] to features [batch, features] in (-1, 1). `chunk` > 0: the batch goes
-    through in pieces of that many images, each recomputed in the backward pass (`chunked_encode`)."""
-    if 0 < chunk < images.shape[0]:
-        return chunked_encode(params, images, chunk)
-    head = params["head"]
-    h = conv_features(params, images) @ head["w"] + head["b"]
+def apply_head(head: Params, conv: jax.Array) -> jax.Array:
+    """The flattened conv outputs [batch, flat] through the head: features [batch, features] in (-1, 1)."""
+    h = conv @ head["w"] + head["b"]
     mean = jnp.mean(h, axis=-1, keepdims=True)
     var = jnp.mean(jnp.square(h - mean), axis=-1, keepdims=True)
     h = (h - mean) * jax.lax.rsqrt(var + LN_EPS) * head["ln_scale"] + head["ln_bias"]
     return jnp.tanh(h)
 
 
-def chunked_encode(params: Params, images: jax.Array, chunk: int) -> jax.Array:
-    """`encode` of the batch in pieces of `chunk` images, each piece's activations recomputed for its backward
+def encode(params: Params, images: jax.Array, chunk: int = 0) -> jax.Array:
+    """uint8 images [batch, h, w, c] to features [batch, features] in (-1, 1). `chunk` > 0: the batch goes
+    through in pieces of that many images, each recomputed in the backward pass (`chunked_encode`)."""
+    return encode_with_conv(params, images, chunk)[0]
+
+
+def encode_with_conv(params: Params, images: jax.Array, chunk: int = 0) -> tuple[jax.Array, jax.Array]:
+    """`encode`'s features and the flattened conv outputs they came from (what a second head reads)."""
+    if 0 < chunk < images.shape[0]:
+        return chunked_encode(params, images, chunk)
+    return _features_and_conv(params, images)
+
+
+def _features_and_conv(params: Params, images: jax.Array) -> tuple[jax.Array, jax.Array]:
+    conv = conv_features(params, images)
+    return apply_head(params["head"], conv), conv
+
+
+def chunked_encode(params: Params, images: jax.Array, chunk: int) -> tuple[jax.Array, jax.Array]:
+    """`encode_with_conv` of the batch in pieces of `chunk` images, each piece's activations recomputed for its backward
     pass (jax.checkpoint). Every image's features are its own, so the result is `encode`'s; on a CPU it is
     faster: XLA's CPU convolutions slow per image as the batch's feature maps outgrow the caches (one AMD EPYC
     core, a whole SAC update on 3 frames of 48x48: 58 ms at batch 32 and 578 ms at 128 whole, 44 and 229 ms
     in pieces of 8; 84x84, batch 32: 478 and 252 ms; docs/performance.md)."""
-    piece = jax.checkpoint(encode)
-    return jnp.concatenate([piece(params, part) for part in jnp.split(images, list(range(chunk, images.shape[0], chunk)))])
+    piece = jax.checkpoint(_features_and_conv)
+    parts = [piece(params, part) for part in jnp.split(images, list(range(chunk, images.shape[0], chunk)))]
+    return jnp.concatenate([f for f, _ in parts]), jnp.concatenate([c for _, c in parts])
 
 
 def random_shift(images: jax.Array, key: jax.Array, pad: int) -> jax.Array:

@@ -46,7 +46,7 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     from softac.memory import available_memory_bytes, human_bytes, transition_bytes
 
     batch_row = transition_bytes(obs_dim, act_dim)
-    encoder, conv_activations = 0, 0
+    encoder, conv_activations, actor_head = 0, 0, 0
     if image_shape is not None:  # uint8 images in the batch; the networks read the encoder's features
         from softac.encoder import (conv_output_size, encoder_parameters, image_only_shape, smallest_image,
                                     stacked_image_shape)
@@ -60,6 +60,8 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
         batch_row += obs_dim * (2 - 8)
         obs_dim = config.encoder_features + image_state_dim
         encoder = encoder_parameters(stacked_image_shape(images), config.encoder_channels, config.encoder_features)
+        if config.actor_encoder_head:  # Linear flat -> features, LayerNorm
+            actor_head = (conv_output_size(h) * conv_output_size(w) * config.encoder_channels + 3) * config.encoder_features
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
         conv_activations = 4 * 2 * 4 * conv_output_size(h) * conv_output_size(w) * config.encoder_channels
     actor_hidden = config.actor_hidden_sizes or config.hidden_sizes
@@ -68,7 +70,7 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     critics = config.n_critics * network_parameters(obs_dim + act_dim, critic_hidden, config.n_quantiles or 1,
                                                     config.network)
     # weights + Adam moments; critics also have targets (and the encoder with target_encoder)
-    parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder)
+    parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder + 3 * actor_head)
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
     # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
     widths = sum(actor_hidden) + sum(critic_hidden) * config.n_critics
@@ -178,8 +180,9 @@ class Learner:
     def act_with_noise(self, obs: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Actions tanh(mean + std * noise) for a batch of raw observations and given standard-normal noise:
         (in [-1, 1], env-scaled)."""
-        actions, env_actions = self.functions.act_with_noise(self.state.actor, self.state.actor_stats,
-                                                             self.normalize_obs(obs), noise, self.state.encoder)
+        actor, actor_stats, encoder = self.policy_networks("actor")
+        actions, env_actions = self.functions.act_with_noise(actor, actor_stats, self.normalize_obs(obs), noise,
+                                                             encoder)
         return np.asarray(actions), np.asarray(env_actions)
 
     def act_deterministic(self, obs: np.ndarray, policy: str = "deployed") -> np.ndarray:
@@ -202,7 +205,9 @@ class Learner:
         if policy == "deployed":
             return self.deployed_policy()
         if policy == "actor":
-            return self.state.actor, self.state.actor_stats, self.state.encoder
+            from softac.sac import acting_actor
+
+            return acting_actor(self.state)
         if policy == "average":
             if not self.state.policy_average:
                 raise SoftacError("this agent keeps no weight average of its actor (policy_average_tau is 0): "

@@ -202,15 +202,17 @@ def critic_loss(critic: Any, target_critic: Any, actor: Any, alpha: jax.Array, b
 # ---- the actor's and the entropy coefficient's losses ---------------------------------------------
 
 def policy_loss(actor: Any, actor_stats: Any, critic: Any, critic_stats: Any, alpha: jax.Array, obs: jax.Array,
-                key: jax.Array, policy: Policy, critics: Critics,
-                renorm: jax.Array | bool = False) -> tuple[jax.Array, tuple[jax.Array, Any]]:
+                key: jax.Array, policy: Policy, critics: Critics, renorm: jax.Array | bool = False,
+                critic_obs: jax.Array | None = None) -> tuple[jax.Array, tuple[jax.Array, Any]]:
     """Maximise E[min_i Q_i(s, a) - alpha log pi(a|s)] over reparameterised actions (Haarnoja et al.
     2018a, eq. 12; TQC: the mean of all quantiles in place of the minimum). The actor runs in training mode (with batch renormalisation: the batch's statistics),
     the critics in evaluation mode (their running statistics), as CrossQ does. Returns the loss and (the
-    actions' log-probabilities, which the alpha loss reuses; the actor's new running statistics)."""
+    actions' log-probabilities, which the alpha loss reuses; the actor's new running statistics). `critic_obs`:
+    the observations as the critics read them, where they differ from the actor's (an actor's own image head)."""
     actions, log_prob, actor_stats = policy.sample_training(actor, actor_stats, obs, key, renorm)
     dropout_key = dropout_keys(key, critics)[0]
-    q = critics.for_actor(critics.q_values(critic, critic_stats, obs, actions, dropout_key))
+    critic_obs = obs if critic_obs is None else critic_obs
+    q = critics.for_actor(critics.q_values(critic, critic_stats, critic_obs, actions, dropout_key))
     return jnp.mean(alpha * log_prob - q), (log_prob, actor_stats)
 
 

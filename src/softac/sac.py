@@ -22,7 +22,8 @@ import optax
 
 from softac.config import SACConfig
 from softac.cpus import cpu_has_bf16
-from softac.encoder import (encode, image_only_shape, init_encoder, random_shift, split_image_and_state, stack_channels,
+from softac.encoder import (apply_head, conv_output_size, encode_with_conv, image_only_shape, init_encoder, init_head, random_shift,
+                            split_image_and_state, stack_channels,
                             stacked_image_shape)
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
@@ -48,6 +49,8 @@ class SACState(NamedTuple):
     encoder: Any = ()  # the image encoder (image observations); () without
     encoder_opt: Any = ()
     target_encoder: Any = ()  # the target critics' copy of the encoder (target_encoder); () without
+    actor_head: Any = ()  # the actor's own head on the encoder's convolutions (actor_encoder_head); () without
+    actor_head_opt: Any = ()
     # (actor, actor_stats, encoder) averaged over the actor steps (policy_average_tau); () without
     policy_average: Any = ()
 
@@ -77,6 +80,7 @@ class UpdateSettings:
     policy_average_tau: float = 0.0  # the deployed policy's averaging rate per actor step; 0: the actor itself
     target_encoder: bool = False  # image observations: the target critics read through a target copy of the encoder
     encoder_chunk: int = 0  # image observations: the update's batches go through the encoder in pieces of this many
+    actor_head_tx: optax.GradientTransformation | None = None  # actor_encoder_head: the actor's head's optimiser
 
     @property
     def has_targets(self) -> bool:
@@ -133,10 +137,33 @@ def image_features(encoder: Any, stacks: jax.Array, state_dim: int = 0, key: jax
     """The encoder's features of frame stacks [batch, k, h, w, c], followed by the state values the frames carry
     (`state_dim` of them); with `key`, each observation shifted at random first (one shift for all its frames).
     `chunk`: `encode`'s pieces."""
+    return image_features_and_conv(encoder, stacks, state_dim, key, pad, chunk)[0]
+
+
+def image_features_and_conv(encoder: Any, stacks: jax.Array, state_dim: int = 0, key: jax.Array | None = None,
+                            pad: int = 0, chunk: int = 0) -> tuple[jax.Array, jax.Array]:
+    """`image_features`, and the flattened conv outputs they came from followed by the same state values (what
+    an actor head reads)."""
     images, state = split_image_and_state(stacks, state_dim)
     images = stack_channels(images)
-    features = encode(encoder, images if key is None else random_shift(images, key, pad), chunk)
-    return features if state is None else jnp.concatenate([features, state], axis=-1)
+    features, conv = encode_with_conv(encoder, images if key is None else random_shift(images, key, pad), chunk)
+    if state is None:
+        return features, conv
+    return jnp.concatenate([features, state], axis=-1), jnp.concatenate([conv, state], axis=-1)
+
+
+def actor_head_features(head: Any, conv_and_state: jax.Array) -> jax.Array:
+    """The actor's features from its own head: the conv outputs through it, the state values after them."""
+    flat = head["w"].shape[0]
+    features = apply_head(head, conv_and_state[:, :flat])
+    return features if conv_and_state.shape[1] == flat else jnp.concatenate(
+        [features, conv_and_state[:, flat:]], axis=-1)
+
+
+def policy_encoder(encoder: Any, actor_head: Any) -> Any:
+    """The encoder the policy acts through: the shared convolutions with the actor's own head (DrQ's actor), or
+    the whole shared encoder."""
+    return {"convs": encoder["convs"], "head": actor_head} if jax.tree_util.tree_leaves(actor_head) else encoder
 
 
 def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0) -> jax.Array:
@@ -145,14 +172,15 @@ def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0) -> jax.Array:
     return image_features(encoder, obs, state_dim) if jax.tree_util.tree_leaves(encoder) else obs
 
 
-def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings) -> Batch:
-    """The batch's observations through `encoder`, each augmented (the same shifts for the same `key`); the next
-    observations' features are targets, stopped."""
+def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings) -> tuple[Batch, jax.Array]:
+    """The batch's observations through `encoder`, each augmented (the same shifts for the same `key`), and the
+    observations' conv outputs (with their state values); the next observations' features are targets, stopped."""
     obs_key, next_key = jax.random.split(key)
-    return batch._replace(
-        obs=image_features(encoder, batch.obs, s.image_state_dim, obs_key, s.augment_pad, s.encoder_chunk),
-        next_obs=jax.lax.stop_gradient(image_features(encoder, batch.next_obs, s.image_state_dim, next_key,
-                                                      s.augment_pad, s.encoder_chunk)))
+    obs, conv = image_features_and_conv(encoder, batch.obs, s.image_state_dim, obs_key, s.augment_pad,
+                                        s.encoder_chunk)
+    next_obs = jax.lax.stop_gradient(image_features(encoder, batch.next_obs, s.image_state_dim, next_key,
+                                                    s.augment_pad, s.encoder_chunk))
+    return batch._replace(obs=obs, next_obs=next_obs), conv
 
 
 def target_encoded_batch(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings) -> Batch | None:
@@ -162,23 +190,24 @@ def target_encoded_batch(state: SACState, batch: Batch, key: jax.Array, s: Updat
     next observations' is used (critics without batch renormalisation)."""
     if not jax.tree_util.tree_leaves(state.target_encoder):
         return None
-    return jax.lax.stop_gradient(encoded_batch(state.target_encoder, batch, key, s))
+    return jax.lax.stop_gradient(encoded_batch(state.target_encoder, batch, key, s)[0])
 
 
 def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings,
-                      lr_scale: jax.Array | None = None) -> tuple[SACState, dict, jax.Array]:
-    """`critic_step` through the encoder, which the critic loss trains too; also returns the (stopped)
-    features of the batch's observations, for the actor."""
+                      lr_scale: jax.Array | None = None) -> tuple[SACState, dict, Any]:
+    """`critic_step` through the encoder, which the critic loss trains too; also returns what the actor step
+    reads, stopped: the features of the batch's observations, and with an actor head (critic features, conv
+    outputs with the state values)."""
     augment_key, loss_key = jax.random.split(key)
     target_batch = target_encoded_batch(state, batch, augment_key, s)
 
     def loss(critic: Any, encoder: Any):
-        encoded = encoded_batch(encoder, batch, augment_key, s)
+        encoded, conv = encoded_batch(encoder, batch, augment_key, s)
         value, (metrics, critic_stats) = soft_q_loss(
             critic, state.critic_stats, state.target_critic, state.actor, state.actor_stats, alpha_of(state, s),
             encoded, loss_key, s.policy, s.critics, s.gamma, s.n_step, renorm_active(state, s),
             state.target_critic_stats, target_batch)
-        return value, (metrics, critic_stats, encoded.obs)
+        return value, (metrics, critic_stats, (encoded.obs, conv) if s.actor_head_tx is not None else encoded.obs)
 
     (critic_grads, encoder_grads), (metrics, critic_stats, features) = jax.grad(loss, argnums=(0, 1), has_aux=True)(
         state.critic, state.encoder)
@@ -190,11 +219,27 @@ def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSe
     return state, metrics, jax.lax.stop_gradient(features)
 
 
-def actor_and_alpha_step(state: SACState, obs: jax.Array, key: jax.Array, s: UpdateSettings,
+def actor_and_alpha_step(state: SACState, obs: Any, key: jax.Array, s: UpdateSettings,
                          lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
-    (loss, (log_prob, actor_stats)), grads = jax.value_and_grad(policy_loss, has_aux=True)(
-        state.actor, state.actor_stats, state.critic, state.critic_stats, alpha_of(state, s), obs, key, s.policy,
-        s.critics, renorm_active(state, s))
+    """`obs`: what the actor and the critics read; with an actor head, (the critics' features, the conv outputs
+    the actor's head reads), and the actor loss trains that head too (DrQ's actor)."""
+    if s.actor_head_tx is None:
+        (loss, (log_prob, actor_stats)), grads = jax.value_and_grad(policy_loss, has_aux=True)(
+            state.actor, state.actor_stats, state.critic, state.critic_stats, alpha_of(state, s), obs, key, s.policy,
+            s.critics, renorm_active(state, s))
+    else:
+        critic_obs, conv = obs
+
+        def head_loss(actor: Any, head: Any):
+            return policy_loss(actor, state.actor_stats, state.critic, state.critic_stats, alpha_of(state, s),
+                               actor_head_features(head, conv), key, s.policy, s.critics, renorm_active(state, s),
+                               critic_obs)
+
+        (loss, (log_prob, actor_stats)), (grads, head_grads) = jax.value_and_grad(
+            head_loss, argnums=(0, 1), has_aux=True)(state.actor, state.actor_head)
+        head_updates, head_opt = s.actor_head_tx.update(head_grads, state.actor_head_opt, state.actor_head)
+        state = state._replace(actor_head=optax.apply_updates(state.actor_head, scaled(head_updates, lr_scale)),
+                               actor_head_opt=head_opt)
     updates, actor_opt = s.actor_tx.update(grads, state.actor_opt, state.actor)
     actor = optax.apply_updates(state.actor, scaled(updates, lr_scale))
     if s.weight_norm:
@@ -217,7 +262,8 @@ def averaged_policy(state: SACState, s: UpdateSettings) -> tuple[Any, Any, Any]:
     """The deployed policy moved toward the actor (weight averaging, Nikishin et al. 2018: an average of the
     actor's recent weights acts more steadily than the last of them). Under weight_norm the average is put back
     on the unit sphere, where the actor's own hidden units live."""
-    actor, stats, encoder = polyak(state.policy_average, (state.actor, state.actor_stats, state.encoder),
+    actor, stats, encoder = polyak(state.policy_average, (state.actor, state.actor_stats,
+                                                          policy_encoder(state.encoder, state.actor_head)),
                                    s.policy_average_tau)
     return (unit_norm_hidden_units(actor) if s.weight_norm else actor), stats, encoder
 
@@ -225,7 +271,13 @@ def averaged_policy(state: SACState, s: UpdateSettings) -> tuple[Any, Any, Any]:
 def deployed(state: SACState) -> tuple[Any, Any, Any]:
     """(actor, actor_stats, encoder) that evaluation, predict, sample and export run: the averaged policy with
     policy_average_tau, else the actor itself."""
-    return state.policy_average or (state.actor, state.actor_stats, state.encoder)
+    return state.policy_average or acting_actor(state)
+
+
+def acting_actor(state: SACState) -> tuple[Any, Any, Any]:
+    """(actor, actor_stats, encoder) of the actor that explores (its own head on the shared convolutions with
+    actor_encoder_head)."""
+    return state.actor, state.actor_stats, policy_encoder(state.encoder, state.actor_head)
 
 
 # ---- metrics over many updates ------------------------------------------------------------------------
@@ -390,8 +442,18 @@ def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | No
                         config.encoder_features)
 
 
+def fresh_actor_head(config: SACConfig, image_shape: tuple[int, int, int, int] | None, rng: np.random.Generator,
+                     state_dim: int = 0) -> Any:
+    """The actor's own head on the encoder's convolutions (actor_encoder_head; drawn after the encoder), or ()."""
+    if image_shape is None or not config.actor_encoder_head:
+        return ()
+    _, height, width, _ = image_only_shape(image_shape, state_dim)
+    flat = conv_output_size(height) * conv_output_size(width) * config.encoder_channels
+    return init_head(rng, flat, config.encoder_features)
+
+
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
-             critic_stats: Any, encoder: Any = ()) -> SACState:
+             critic_stats: Any, encoder: Any = (), actor_head: Any = ()) -> SACState:
     """A state around fresh networks: targets copied from the critics (and their statistics, and the encoder with
     target_encoder), the averaged policy (policy_average_tau) from the actor, fresh optimisers."""
     log_alpha = jnp.asarray(np.log(max(initial_alpha, 1e-30)), jnp.float32)
@@ -406,7 +468,8 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
         actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats, s.has_targets),
         encoder=encoder, encoder_opt=s.encoder_tx.init(encoder) if s.encoder_tx is not None else (),
         target_encoder=copy(encoder, s.target_encoder and s.has_targets),
-        policy_average=copy((actor, actor_stats, encoder), s.policy_average_tau > 0),
+        actor_head=actor_head, actor_head_opt=s.actor_head_tx.init(actor_head) if s.actor_head_tx is not None else (),
+        policy_average=copy((actor, actor_stats, policy_encoder(encoder, actor_head)), s.policy_average_tau > 0),
     )
 
 
@@ -459,7 +522,8 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau,
         target_encoder=images and c.target_encoder,
         # on a CPU the convolutions run faster in pieces of 8 images (encoder.chunked_encode); a GPU wants the batch
-        encoder_chunk=8 if images and jax.default_backend() == "cpu" else 0)
+        encoder_chunk=8 if images and jax.default_backend() == "cpu" else 0,
+        actor_head_tx=optax.adam(c.actor_lr, b1=c.adam_b1) if images and c.actor_encoder_head else None)
 
 
 class SACFunctions(NamedTuple):
@@ -493,8 +557,9 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         rng = np.random.default_rng([seed, 0x5AC])
         actor, critic, actor_stats, critic_stats = fresh_networks(config, obs_dim, act_dim, rng)
         key = rng.integers(0, 2**32, 2, dtype=np.uint32)  # a raw PRNGKey
-        return new_state(actor, critic, key, actor_stats, critic_stats,
-                         fresh_encoder(config, image_shape, rng, image_state_dim))
+        encoder = fresh_encoder(config, image_shape, rng, image_state_dim)
+        return new_state(actor, critic, key, actor_stats, critic_stats, encoder,
+                         fresh_actor_head(config, image_shape, rng, image_state_dim))
 
     # Periodic resets (Nikishin et al. 2022, "The Primacy Bias in Deep RL"; D'Oro et al. 2023, SR-SAC):
     # new actor, critics, targets and their optimisers, drawn from the k-th reset's own seed; the replay
@@ -503,8 +568,9 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     def reset(state: SACState, seed: int, k: int) -> SACState:
         rng = np.random.default_rng([seed, 0x5AC, k])
         networks = fresh_networks(config, obs_dim, act_dim, rng)
-        fresh = new_state(networks[0], networks[1], state.key, networks[2], networks[3],
-                          fresh_encoder(config, image_shape, rng, image_state_dim))
+        encoder = fresh_encoder(config, image_shape, rng, image_state_dim)
+        fresh = new_state(networks[0], networks[1], state.key, networks[2], networks[3], encoder,
+                          fresh_actor_head(config, image_shape, rng, image_state_dim))
         return fresh._replace(log_alpha=state.log_alpha, alpha_opt=state.alpha_opt, n_updates=state.n_updates)
 
     return SACFunctions(
