@@ -196,12 +196,12 @@ class SACConfig:
             rows.append(f"| `{f.name}` | `{shown}` | {f.metadata['doc']} |")
         return "\n".join(rows)
 
-    # ---- validation ---------------------------------------------------
-
     @property
     def has_target_critics(self) -> bool:
         """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
         return self.target_critics == "on" or (self.target_critics == "auto" and not self.crossq)
+
+    # ---- validation ---------------------------------------------------
 
     def validate(self) -> None:
         def need(ok: bool, key: str, what: str) -> None:

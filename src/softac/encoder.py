@@ -77,8 +77,12 @@ def encoder_parameters(image_shape: tuple[int, int, int], channels: int = 32, fe
     height, width, in_channels = image_shape
     convs = sum((KERNEL * KERNEL * fan_in + 1) * channels
                 for fan_in in (in_channels, *[channels] * (len(CONV_STRIDES) - 1)))
-    flat = conv_output_size(height) * conv_output_size(width) * channels
-    return convs + (flat + 1) * features + 2 * features
+    return convs + head_parameters(conv_output_size(height) * conv_output_size(width) * channels, features)
+
+
+def head_parameters(flat: int, features: int) -> int:
+    """A head's parameter count: Linear `flat` -> `features` with its bias, LayerNorm's scale and bias."""
+    return (flat + 1) * features + 2 * features
 
 
 def stack_channels(stacks: jax.Array) -> jax.Array:

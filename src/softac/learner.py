@@ -48,8 +48,8 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     batch_row = transition_bytes(obs_dim, act_dim)
     encoder, conv_activations, actor_head = 0, 0, 0
     if image_shape is not None:  # uint8 images in the batch; the networks read the encoder's features
-        from softac.encoder import (conv_output_size, encoder_parameters, image_only_shape, smallest_image,
-                                    stacked_image_shape)
+        from softac.encoder import (conv_output_size, encoder_parameters, head_parameters, image_only_shape,
+                                    smallest_image, stacked_image_shape)
 
         images = image_only_shape(image_shape, image_state_dim)  # [k, h, w, c] without the state's rows
         _, h, w, _ = images
@@ -60,10 +60,11 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
         batch_row += obs_dim * (2 - 8)
         obs_dim = config.encoder_features + image_state_dim
         encoder = encoder_parameters(stacked_image_shape(images), config.encoder_channels, config.encoder_features)
-        if config.actor_encoder_head:  # Linear flat -> features, LayerNorm
-            actor_head = (conv_output_size(h) * conv_output_size(w) * config.encoder_channels + 3) * config.encoder_features
+        flat = conv_output_size(h) * conv_output_size(w) * config.encoder_channels  # the last feature map's size
+        if config.actor_encoder_head:
+            actor_head = head_parameters(flat, config.encoder_features)
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
-        conv_activations = 4 * 2 * 4 * conv_output_size(h) * conv_output_size(w) * config.encoder_channels
+        conv_activations = 4 * 2 * 4 * flat
     actor_hidden = config.actor_hidden_sizes or config.hidden_sizes
     critic_hidden = config.critic_hidden_sizes or config.hidden_sizes
     actor = network_parameters(obs_dim, actor_hidden, 2 * act_dim, config.network)

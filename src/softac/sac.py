@@ -22,9 +22,8 @@ import optax
 
 from softac.config import SACConfig
 from softac.cpus import cpu_has_bf16
-from softac.encoder import (apply_head, conv_output_size, encode_with_conv, image_only_shape, init_encoder, init_head, random_shift,
-                            split_image_and_state, stack_channels,
-                            stacked_image_shape)
+from softac.encoder import (apply_head, encode_with_conv, image_only_shape, init_encoder, init_head, random_shift,
+                            split_image_and_state, stack_channels, stacked_image_shape)
 from softac.losses import (Batch, Critics, actor_loss, alpha_loss, critic_loss, policy_loss,  # noqa: F401
                            soft_q_loss)
 from softac.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
@@ -442,14 +441,12 @@ def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | No
                         config.encoder_features)
 
 
-def fresh_actor_head(config: SACConfig, image_shape: tuple[int, int, int, int] | None, rng: np.random.Generator,
-                     state_dim: int = 0) -> Any:
-    """The actor's own head on the encoder's convolutions (actor_encoder_head; drawn after the encoder), or ()."""
-    if image_shape is None or not config.actor_encoder_head:
+def fresh_actor_head(config: SACConfig, encoder: Any, rng: np.random.Generator) -> Any:
+    """The actor's own head on `encoder`'s convolutions, the shape of the encoder's head (actor_encoder_head;
+    drawn after the encoder), or ()."""
+    if not (config.actor_encoder_head and jax.tree_util.tree_leaves(encoder)):
         return ()
-    _, height, width, _ = image_only_shape(image_shape, state_dim)
-    flat = conv_output_size(height) * conv_output_size(width) * config.encoder_channels
-    return init_head(rng, flat, config.encoder_features)
+    return init_head(rng, *encoder["head"]["w"].shape)
 
 
 def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, key: jax.Array, actor_stats: Any,
@@ -467,7 +464,7 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
         alpha_opt=s.alpha_tx.init(log_alpha), key=key, n_updates=jnp.zeros((), jnp.int32),
         actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats, s.has_targets),
         encoder=encoder, encoder_opt=s.encoder_tx.init(encoder) if s.encoder_tx is not None else (),
-        target_encoder=copy(encoder, s.target_encoder and s.has_targets),
+        target_encoder=copy(encoder, s.target_encoder),  # SACConfig refuses target_encoder without target critics
         actor_head=actor_head, actor_head_opt=s.actor_head_tx.init(actor_head) if s.actor_head_tx is not None else (),
         policy_average=copy((actor, actor_stats, policy_encoder(encoder, actor_head)), s.policy_average_tau > 0),
     )
@@ -559,7 +556,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         key = rng.integers(0, 2**32, 2, dtype=np.uint32)  # a raw PRNGKey
         encoder = fresh_encoder(config, image_shape, rng, image_state_dim)
         return new_state(actor, critic, key, actor_stats, critic_stats, encoder,
-                         fresh_actor_head(config, image_shape, rng, image_state_dim))
+                         fresh_actor_head(config, encoder, rng))
 
     # Periodic resets (Nikishin et al. 2022, "The Primacy Bias in Deep RL"; D'Oro et al. 2023, SR-SAC):
     # new actor, critics, targets and their optimisers, drawn from the k-th reset's own seed; the replay
@@ -570,7 +567,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         networks = fresh_networks(config, obs_dim, act_dim, rng)
         encoder = fresh_encoder(config, image_shape, rng, image_state_dim)
         fresh = new_state(networks[0], networks[1], state.key, networks[2], networks[3], encoder,
-                          fresh_actor_head(config, image_shape, rng, image_state_dim))
+                          fresh_actor_head(config, encoder, rng))
         return fresh._replace(log_alpha=state.log_alpha, alpha_opt=state.alpha_opt, n_updates=state.n_updates)
 
     return SACFunctions(
