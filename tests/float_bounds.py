@@ -259,7 +259,7 @@ def _layer_norm(h: np.ndarray, e: np.ndarray, scale: np.ndarray, bias: np.ndarra
 
 def image_input_bound(agent, stacks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of what an image agent's actor reads for uint8 frame stacks [batch, k, h, w, c]: the
-    encoder's features (softac.encoder.encode: pixels / 255 - 0.5, the convolutions, each output a sum of 9 c_in
+    encoder's features (softac.encoder.encode: pixels / 255 - the pixel offset, the convolutions, each output a sum of 9 c_in
     products as a dense layer's, the linear layer, LayerNorm, tanh), then the state values packed beside the
     images (exact: their float32 bytes)."""
     from softac.encoder import CONV_STRIDES, LN_EPS, image_only_shape, stack_channels
@@ -270,8 +270,9 @@ def image_input_bound(agent, stacks: np.ndarray) -> tuple[np.ndarray, np.ndarray
     stacks = np.asarray(stacks, np.uint8).reshape(-1, *agent.spaces.image_shape)
     images = np.asarray(stack_channels(stacks[:, :, :height])).astype(np.float64)
     scaled = images / 255.0
-    x = scaled - 0.5
-    e = 3 * U * scaled + U * np.abs(x)  # the division (or a product by 1/255) and the subtraction
+    offset = agent.config.pixel_offset
+    x = scaled - offset
+    e = 3 * U * scaled + (U * np.abs(x) if offset else 0.0)  # the division (or a product by 1/255), the subtraction
     encoder = agent.learner.deployed_policy()[2]
     for layer, stride in zip(encoder["convs"], CONV_STRIDES):
         w, b = _weights(layer)

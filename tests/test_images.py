@@ -36,7 +36,8 @@ def _conv_reference(x: np.ndarray, w: np.ndarray, b: np.ndarray, stride: int) ->
     return out
 
 
-def test_encoder_matches_a_hand_computation():
+@pytest.mark.parametrize("offset", [0.0, 0.5])  # pixel_range unit (DrQ's [0, 1]) and centered ([-0.5, 0.5])
+def test_encoder_matches_a_hand_computation(offset):
     rng = np.random.default_rng(0)
     shape = (15, 13, 6)
     params = init_encoder(rng, shape, channels=4, features=5)
@@ -47,13 +48,13 @@ def test_encoder_matches_a_hand_computation():
     images = rng.integers(0, 256, (2, *shape), dtype=np.uint8)
     expected = []
     for image in images:
-        x = image.astype(np.float64) / 255.0 - 0.5
+        x = image.astype(np.float64) / 255.0 - offset
         for layer, stride in zip(params["convs"], CONV_STRIDES):
             x = np.maximum(_conv_reference(x, layer["w"], layer["b"], stride), 0.0)
         h = x.reshape(-1) @ params["head"]["w"] + params["head"]["b"]
         h = (h - h.mean()) / np.sqrt(h.var() + 1e-5) * params["head"]["ln_scale"] + params["head"]["ln_bias"]
         expected.append(np.tanh(h))
-    got = np.asarray(jax.jit(encode)(params, images))
+    got = np.asarray(jax.jit(encode, static_argnums=(2, 3))(params, images, 0, offset))
     assert got.shape == (2, 5)
     # float32 convolutions of a few hundred terms, then tanh: errors of order 1e-6 relative; 1e-4 leaves room
     np.testing.assert_allclose(got, np.array(expected), rtol=0, atol=1e-4)
@@ -89,6 +90,47 @@ def test_the_encoder_in_pieces_gives_each_image_the_features_and_gradients_of_th
     for a, b in zip(*map(jax.tree_util.tree_leaves, grads)):
         scale = np.abs(np.asarray(a)).max() + 1e-6
         assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-4 * scale
+
+
+def test_a_black_image_reads_as_zero_at_the_unit_range_and_not_at_the_centered_one():
+    """DrQ's obs / 255: at [0, 1] the fresh convolutions (zero biases) give a black background zero, so only what is
+    drawn moves the features; at [-0.5, 0.5] the background itself gives large activations (issue 44: the
+    pendulum's dark scene)."""
+    params = jax.tree_util.tree_map(jnp.asarray, init_encoder(np.random.default_rng(0), (16, 16, 6), 8, 12))
+    black = jnp.zeros((2, 16, 16, 6), jnp.uint8)
+    assert np.all(np.asarray(conv_features(params, black)) == 0.0)
+    assert np.abs(np.asarray(conv_features(params, black, 0.5))).max() > 0.1
+
+
+def test_checkpoints_and_numpy_exports_from_before_pixel_range_keep_the_centered_pixels(tiny, tmp_path):
+    """A checkpoint whose config has no pixel_range, or a NumPy export without pixel_offset, was made when
+    softac scaled pixels to [-0.5, 0.5]: loaded, it acts as it did."""
+    import json
+
+    from softac import SAC
+    from softac.export import export_policy
+    from softac.export_numpy import policy_forward
+
+    agent = SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, learning_starts=100, pixel_range="centered"))
+    agent.learn(150, progress=False)
+    path = agent.save(tmp_path / "agent")
+    meta_path = path / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["config"]["pixel_range"]
+    meta_path.write_text(json.dumps(meta))
+    loaded = SAC.load(path)
+    assert loaded.config.pixel_range == "centered"
+    env = agent.make_env()
+    obs = np.stack([env.reset(seed=seed)[0] for seed in range(4)])
+    env.close()
+    np.testing.assert_array_equal(loaded.predict(obs), agent.predict(obs))
+    meta["config"]["pixel_range"] = "unit"  # the same weights read at the other range act otherwise
+    meta_path.write_text(json.dumps(meta))
+    assert np.abs(SAC.load(path).predict(obs) - agent.predict(obs)).max() > 1e-3
+    with np.load(export_policy(agent, tmp_path / "policy.npz", "numpy")) as npz:
+        params = dict(npz)
+    old = {key: value for key, value in params.items() if key != "pixel_offset"}
+    np.testing.assert_array_equal(policy_forward(old, obs), policy_forward(params, obs))
 
 
 def test_encoder_is_differentiable_in_its_parameters():
@@ -617,10 +659,11 @@ def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_a
 # ---- export ------------------------------------------------------------------------------------------------------
 
 @pytest.mark.numerics
-@pytest.mark.parametrize("with_state, actor_head", [(False, False), (True, False), (True, True)])
-def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state, actor_head):
-    """The ONNX graph and the NumPy pass of an image agent (the encoder, the state values beside an image, and
-    the actor's own head on the convolutions) each give predict()'s actions within the float32 bound of the exact ones (tests/float_bounds.py: the
+@pytest.mark.parametrize("with_state, actor_head, pixel_range", [(False, False, "unit"), (True, False, "centered"),
+                                                                 (True, True, "unit")])
+def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state, actor_head, pixel_range):
+    """The ONNX graph and the NumPy pass of an image agent (the encoder at either pixel range, the state values
+    beside an image, and the actor's own head on the convolutions) each give predict()'s actions within the float32 bound of the exact ones (tests/float_bounds.py: the
     convolutions as dense layers' sums, LayerNorm step by step), for a batch and for one observation; and an
     export with its features flattened in the wrong order, or a kernel transposed, falls outside it."""
     onnxruntime = pytest.importorskip("onnxruntime")
@@ -632,7 +675,8 @@ def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state, acto
 
     # 20x20 frames: the convolutions end at 3x3 (at 16x16, 1x1, where any flattening order is the same)
     env = (DotStateImageEnv if with_state else DotImageEnv)(size=20)
-    agent = SAC(tiny("DotImage20", **IMAGE, learning_starts=100, actor_encoder_head=actor_head), env=env)
+    agent = SAC(tiny("DotImage20", **IMAGE, learning_starts=100, actor_encoder_head=actor_head,
+                     pixel_range=pixel_range), env=env)
     agent.learn(300, progress=False)  # the encoder moved from its init, which is mostly zeros
     env = agent.make_env()
     env.action_space.seed(0)

@@ -78,6 +78,7 @@ class SACConfig:
     target_encoder: bool = _f(False, "image observations: the target critics read observations through a target copy of the encoder, Polyak-averaged with them at tau (DrQ, SAC-AE); false: through the online encoder, stopped (DrQ-v2); needs target critics")
     actor_encoder_head: bool = _f(False, "image observations: the actor reads the shared convolutions' output, stopped, through a head of its own (Linear, LayerNorm, tanh, as the encoder's), trained by the actor loss (DrQ's actor); false: the critic-trained encoder's features, stopped")
     augment_pad: int = _f(4, "image observations: DrQ's random shift, each image padded by this many edge pixels and cropped back at a random offset in every update (0 = no augmentation)")
+    pixel_range: str = _f("unit", "image observations: what the encoder scales pixels to: unit, [0, 1] (DrQ's obs / 255, SB3's; a black background reads as zero); centered, [-0.5, 0.5] (DrQ-v2's; softac's only scaling before 2026-11-29, which checkpoints from then keep)")
     n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (TQC: pools their quantiles)")
     target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")
     n_quantiles: int = _f(0, "TQC (Kuznetsov et al. 2020): quantiles each critic predicts (25 in the paper), trained with the quantile Huber loss on the pooled, truncated next-state atoms; 0 = one Q-value per critic (SAC)")
@@ -201,6 +202,11 @@ class SACConfig:
         """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
         return self.target_critics == "on" or (self.target_critics == "auto" and not self.crossq)
 
+    @property
+    def pixel_offset(self) -> float:
+        """What the encoder subtracts from pixels scaled to [0, 1] (`pixel_range`)."""
+        return 0.5 if self.pixel_range == "centered" else 0.0
+
     # ---- validation ---------------------------------------------------
 
     def validate(self) -> None:
@@ -216,10 +222,11 @@ class SACConfig:
         need(15 <= self.pixel_size <= 1024, "pixel_size", "must be between 15 (the encoder's smallest input) and 1024")
         need(1 <= self.frame_stack <= 16, "frame_stack", "must be between 1 (none) and 16")
         need(not (self.pixels and self.obs_norm), "obs_norm",
-             "normalises vector observations; with pixels the encoder scales the images to [-0.5, 0.5]")
+             "normalises vector observations; with pixels the encoder scales the images (pixel_range)")
         need(1 <= self.encoder_channels <= 1024, "encoder_channels", "must be between 1 and 1024")
         need(1 <= self.encoder_features <= 65_536, "encoder_features", "must be between 1 and 65536")
         need(0 <= self.augment_pad <= 64, "augment_pad", "must be between 0 (no augmentation) and 64")
+        need(self.pixel_range in ("unit", "centered"), "pixel_range", "must be unit ([0, 1]) or centered ([-0.5, 0.5])")
         need(0 <= self.env_workers <= self.n_envs, "env_workers",
              f"must be between 0 (the envs stepped in-process) and n_envs={self.n_envs}")
         need(self.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")

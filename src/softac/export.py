@@ -189,7 +189,8 @@ def encoder_arrays(learner: Learner) -> dict[str, np.ndarray]:
 
     encoder, state_dim = learner.deployed_policy()[2], learner.spaces.image_state_dim
     arrays = {"image_shape": np.asarray(image_only_shape(learner.spaces.image_shape, state_dim), np.int64),
-              "conv_strides": np.asarray(CONV_STRIDES, np.int64)}
+              "conv_strides": np.asarray(CONV_STRIDES, np.int64),
+              "pixel_offset": np.asarray(learner.config.pixel_offset, np.float32)}
     for i, layer in enumerate(encoder["convs"]):
         arrays[f"conv{i}_w"], arrays[f"conv{i}_b"] = (np.asarray(layer[k], np.float32) for k in ("w", "b"))
     for key, value in encoder["head"].items():
@@ -260,8 +261,10 @@ def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
 
     onnx = g.onnx
     k, height, width, channels = (int(n) for n in arrays["image_shape"])
-    x = g.op("Sub", g.op("Div", g.op("Cast", images, to=onnx.TensorProto.FLOAT), g.const("pixel_scale", 255.0)),
-             g.const("pixel_offset", 0.5))
+    x = g.op("Div", g.op("Cast", images, to=onnx.TensorProto.FLOAT), g.const("pixel_scale", 255.0))
+    offset = float(arrays["pixel_offset"])
+    if offset:  # as softac.encoder.scale_pixels: no subtraction at offset 0
+        x = g.op("Sub", x, g.const("pixel_offset", offset))
     x = g.op("Reshape", g.op("Transpose", x, perm=[0, 1, 4, 2, 3]),
              g.const("stacked_shape", [-1, k * channels, height, width], np.int64))
     for i, stride in enumerate(int(n) for n in arrays["conv_strides"]):

@@ -90,7 +90,7 @@ class Learner:
     def __init__(self, config: SACConfig, spaces: SpaceInfo):
         if config.obs_norm and spaces.image_shape is not None:  # before anything is built or compiled
             raise SoftacError("obs_norm normalises vector observations; this env's are images, which the encoder "
-                              "scales to [-0.5, 0.5]: set obs_norm=false")
+                              "scales itself (pixel_range): set obs_norm=false")
         check_model_memory(config, spaces.obs_dim, spaces.act_dim, image_shape=spaces.image_shape,
                            image_state_dim=spaces.image_state_dim)
         from softac import sac

@@ -55,8 +55,10 @@ def saved_config(meta: dict[str, Any], where: Path | str, **overrides: Any) -> S
                                    "it resumes that run, but softac cannot load it as an agent")
     if not isinstance(meta.get("config"), dict):
         raise ckpt.CheckpointError(f"corrupt checkpoint {where}: it names no config")
+    saved = dict(meta["config"])
+    saved.setdefault("pixel_range", "centered")  # checkpoints from before the key scaled pixels so
     try:
-        config = SACConfig().replace(**meta["config"])
+        config = SACConfig().replace(**saved)
     except SoftacError as exc:
         raise ckpt.CheckpointError(f"checkpoint {where} has an invalid config: {exc}") from None
     return config.replace(**{key: value for key, value in overrides.items() if value is not None})
