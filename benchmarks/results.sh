@@ -113,16 +113,18 @@ dmc500k() {
 pixels() {
   # issue 44 on a CPU: an update at 84x84 takes 0.3-6 s on one core (hours a run), at 48x48 and batch 32 40-70 ms
   # on an AMD EPYC core (docs/performance.md), so these runs use 48x48 frames and batch 32. cartpole-swingup: the
-  # drq preset (DrQ's settings) at DrQ's PlaNet setting, action repeat 8, 100k frames = 12,500 agent steps.
-  # InvertedPendulum-v5: its own preset from pixels (chosen over drq on tuning seed 100, benchmarks/screens), up to
-  # 50k steps or the first evaluation of 1000, beside SB3's CnnPolicy on the same frames (benchmarks/sb3_pixels.py)
+  # drq preset (DrQ's settings) at DrQ's PlaNet setting, action repeat 8, 100k frames = 12,500 agent steps (pixels at
+  # [0, 1]; dmc-cartpole-swingup-softac-drq-48px holds the runs from before pixel_range, at [-0.5, 0.5]).
+  # InvertedPendulum-v5: its own preset from pixels with target_encoder (chosen on tuning seed 100,
+  # benchmarks/screens), up to 50k steps or the first evaluation of 1000, beside SB3's CnnPolicy on the same frames
+  # (benchmarks/sb3_pixels.py), which stops there too
   $SOFTAC sweep --env dmc:cartpole-swingup --seeds 3 --steps 12500 --preset drq \
-    --set action_repeat=8 pixel_size=48 batch_size=32 eval_interval=1250 --out $SWEEPS/pixels/dmc-cartpole-swingup-softac-drq-48px
+    --set action_repeat=8 pixel_size=48 batch_size=32 eval_interval=1250 --out $SWEEPS/pixels/dmc-cartpole-swingup-softac-drq-48px-unit
   $SOFTAC sweep --env InvertedPendulum-v5 --seeds 2 --steps 50000 --threshold 1000 --target-return=1000 \
-    --set pixels=true pixel_size=48 batch_size=32 --out $SWEEPS/pixels/InvertedPendulum-v5-softac-48px
+    --set pixels=true pixel_size=48 batch_size=32 target_encoder=true --out $SWEEPS/pixels/InvertedPendulum-v5-softac-48px
   for seed in 0 1; do
     "$(dirname "$SOFTAC")/python" benchmarks/sb3_pixels.py --env InvertedPendulum-v5 --steps 50000 --seed $seed \
-      --pixel-size 48 --eval-interval 1000 --eval-episodes 10 --threads 1 \
+      --pixel-size 48 --eval-interval 1000 --eval-episodes 10 --threads 1 --target-return 1000 \
       --out $SWEEPS/pixels/InvertedPendulum-v5-sb3-cnn-48px/seed=$seed
   done
 }

@@ -8,9 +8,9 @@ SB3's CnnPolicy reads (NatureCNN, transposed to channels-first by SB3's VecTrans
 defaults (lr 3e-4, batch 256, one gradient step per env step, tau 0.005, automatic entropy) except: the replay
 buffer holds `--buffer` transitions (SB3's 1M of 84x84x9 frames, stored twice, would take ~127 GB) and
 learning starts after 1,000 steps (the drq preset's random steps). Every `--eval-interval` steps, `--eval-episodes`
-deterministic episodes on a second env; writes eval.csv (step, return_mean, return_std, wall_s) and
-summary.json (wall seconds, train-only seconds, the final evaluation, the machine). Needs torch and
-stable-baselines3.
+deterministic episodes on a second env (`--target-return`: the run stops at the first that reaches it); writes
+eval.csv (step, return_mean, return_std, wall_s) and summary.json (wall seconds, train-only seconds, the final
+evaluation and its step, the machine). Needs torch and stable-baselines3.
 """
 
 from __future__ import annotations
@@ -61,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval-interval", type=int, default=2_000)
     p.add_argument("--eval-episodes", type=int, default=5)
     p.add_argument("--device", default="auto")
+    p.add_argument("--target-return", type=float, default=None,
+                   help="stop at the first evaluation that reaches this return (softac sweep's --threshold)")
     p.add_argument("--threads", type=int, default=0, help="torch's CPU threads (0: torch's default); 1 beside "
                                                             "`taskset -c N` for a one-core run")
     a = p.parse_args(argv)
@@ -95,13 +97,15 @@ def main(argv: list[str] | None = None) -> int:
             writer.writerow(rows[-1])
             f.flush()
             print(f"step {done}: eval {mean:.1f} +- {std:.1f} ({rows[-1][3]:.0f} s)", flush=True)
+            if a.target_return is not None and mean >= a.target_return:
+                break
     from softac.cpus import machine_description
 
     summary = {"framework": "sb3-cnn", "env": a.env, "seed": a.seed, "steps": a.steps, "pixel_size": a.pixel_size,
                "frames": a.frames, "action_repeat": a.action_repeat, "buffer": a.buffer, "learning_starts": a.learning_starts,
                "device": str(model.device), "wall_s": time.perf_counter() - start, "train_s": train_s,
                "batch_size": model.batch_size, "threads": torch.get_num_threads(), "machine": machine_description(),
-               "final_return": rows[-1][1]}
+               "final_return": rows[-1][1], "final_step": rows[-1][0], "target_return": a.target_return}
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     env.close()
     eval_env.close()
