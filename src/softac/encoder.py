@@ -4,7 +4,7 @@ actor and critics read.
 The encoder is DrQ's (Kostrikov et al. 2021, "Image Augmentation Is All You Need"; Yarats et al. 2021, SAC-AE):
 four 3x3 convolutions of `channels` filters (strides 2, 1, 1, 1, no padding, ReLU), then a linear layer to
 `features` units, a LayerNorm (with scale and bias) and tanh. Pixels go in as uint8 and are scaled inside to
-[0, 1] (DrQ's obs / 255, and SB3's), or to [-0.5, 0.5] with `offset` 0.5 (DrQ-v2's; config `pixel_range`).
+[0, 1] (DrQ's obs / 255, and SB3's), or to [-0.5, 0.5] with `pixel_offset` 0.5 (DrQ-v2's; config `pixel_range`).
 One encoder serves actor and critics; the critic loss alone trains it and the actor reads its output stopped
 (`jax.lax.stop_gradient`), as in DrQ and DrQ-v2: the actor's gradient through a shared encoder destabilises it
 (SAC-AE, sec. 4).
@@ -117,19 +117,19 @@ def stacked_image_shape(stack_shape: tuple[int, int, int, int]) -> tuple[int, in
     return height, width, k * channels
 
 
-def scale_pixels(images: jax.Array, offset: float = 0.0) -> jax.Array:
-    """uint8 pixels to float32 in [-offset, 1 - offset]: [0, 1] (DrQ's) at offset 0, [-0.5, 0.5] (DrQ-v2's) at 0.5.
+def scale_pixels(images: jax.Array, pixel_offset: float = 0.0) -> jax.Array:
+    """uint8 pixels to float32 in [-pixel_offset, 1 - pixel_offset]: [0, 1] (DrQ's) at 0, [-0.5, 0.5] (DrQ-v2's) at 0.5.
     At [0, 1] a black background is zero and the convolutions (zero biases at the start) answer only to what is
     drawn; at [-0.5, 0.5] the background of a dark scene (MuJoCo's InvertedPendulum) gave every image the same
     large activations, its pole a small part of them, and the critic could not tell the pole's angles apart."""
     scaled = images.astype(jnp.float32) / 255.0
-    return scaled - offset if offset else scaled
+    return scaled - pixel_offset if pixel_offset else scaled
 
 
-def conv_features(params: Params, images: jax.Array, offset: float = 0.0) -> jax.Array:
+def conv_features(params: Params, images: jax.Array, pixel_offset: float = 0.0) -> jax.Array:
     """The convolutions' output, flattened: [batch, conv_output_size(h) * conv_output_size(w) * channels], of
-    uint8 images scaled by `scale_pixels` at `offset`."""
-    x = scale_pixels(images, offset)
+    uint8 images scaled by `scale_pixels` at `pixel_offset`."""
+    x = scale_pixels(images, pixel_offset)
     for layer, stride in zip(params["convs"], CONV_STRIDES):
         x = jax.lax.conv_general_dilated(x, layer["w"], (stride, stride), "VALID",
                                          dimension_numbers=("NHWC", "HWIO", "NHWC"))
@@ -146,35 +146,35 @@ def apply_head(head: Params, conv: jax.Array) -> jax.Array:
     return jnp.tanh(h)
 
 
-def encode(params: Params, images: jax.Array, chunk: int = 0, offset: float = 0.0) -> jax.Array:
+def encode(params: Params, images: jax.Array, chunk: int = 0, pixel_offset: float = 0.0) -> jax.Array:
     """uint8 images [batch, h, w, c] to features [batch, features] in (-1, 1). `chunk` > 0: the batch goes
-    through in pieces of that many images, each recomputed in the backward pass (`chunked_encode`). `offset`:
-    `scale_pixels`'."""
-    return encode_with_conv(params, images, chunk, offset)[0]
+    through in pieces of that many images, each recomputed in the backward pass (`chunked_encode`).
+    `pixel_offset`: `scale_pixels`'."""
+    return encode_with_conv(params, images, chunk, pixel_offset)[0]
 
 
 def encode_with_conv(params: Params, images: jax.Array, chunk: int = 0,
-                     offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
+                     pixel_offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
     """`encode`'s features and the flattened conv outputs they came from (what a second head reads)."""
     if 0 < chunk < images.shape[0]:
-        return chunked_encode(params, images, chunk, offset)
-    return _features_and_conv(params, images, offset)
+        return chunked_encode(params, images, chunk, pixel_offset)
+    return _features_and_conv(params, images, pixel_offset)
 
 
-def _features_and_conv(params: Params, images: jax.Array, offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
-    conv = conv_features(params, images, offset)
+def _features_and_conv(params: Params, images: jax.Array, pixel_offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
+    conv = conv_features(params, images, pixel_offset)
     return apply_head(params["head"], conv), conv
 
 
 def chunked_encode(params: Params, images: jax.Array, chunk: int,
-                   offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
+                   pixel_offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
     """`encode_with_conv` of the batch in pieces of `chunk` images, each piece's activations recomputed for its backward
     pass (jax.checkpoint). Every image's features are its own, so the result is `encode`'s; on a CPU it is
     faster: XLA's CPU convolutions slow per image as the batch's feature maps outgrow the caches (one AMD EPYC
     core, a whole SAC update on 3 frames of 48x48: 58 ms at batch 32 and 578 ms at 128 whole, 44 and 229 ms
     in pieces of 8; 84x84, batch 32: 478 and 252 ms; docs/performance.md)."""
     piece = jax.checkpoint(_features_and_conv, static_argnums=(2,))
-    parts = [piece(params, part, offset) for part in jnp.split(images, list(range(chunk, images.shape[0], chunk)))]
+    parts = [piece(params, part, pixel_offset) for part in jnp.split(images, list(range(chunk, images.shape[0], chunk)))]
     return jnp.concatenate([f for f, _ in parts]), jnp.concatenate([c for _, c in parts])
 
 

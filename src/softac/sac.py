@@ -133,21 +133,21 @@ def apply_critic_grads(state: SACState, grads: Any, s: UpdateSettings, lr_scale:
 # shared encoder destabilises it (SAC-AE, Yarats et al. 2021). Each pass augments with its own random shift.
 
 def image_features(encoder: Any, stacks: jax.Array, state_dim: int = 0, key: jax.Array | None = None,
-                   pad: int = 0, chunk: int = 0, offset: float = 0.0) -> jax.Array:
+                   pad: int = 0, chunk: int = 0, pixel_offset: float = 0.0) -> jax.Array:
     """The encoder's features of frame stacks [batch, k, h, w, c], followed by the state values the frames carry
     (`state_dim` of them); with `key`, each observation shifted at random first (one shift for all its frames).
-    `chunk`: `encode`'s pieces; `offset`: its pixel offset (config pixel_range)."""
-    return image_features_and_conv(encoder, stacks, state_dim, key, pad, chunk, offset)[0]
+    `chunk`: `encode`'s pieces; `pixel_offset`: `encode`'s (config pixel_range)."""
+    return image_features_and_conv(encoder, stacks, state_dim, key, pad, chunk, pixel_offset)[0]
 
 
 def image_features_and_conv(encoder: Any, stacks: jax.Array, state_dim: int = 0, key: jax.Array | None = None,
-                            pad: int = 0, chunk: int = 0, offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
+                            pad: int = 0, chunk: int = 0, pixel_offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
     """`image_features`, and the flattened conv outputs they came from followed by the same state values (what
     an actor head reads)."""
     images, state = split_image_and_state(stacks, state_dim)
     images = stack_channels(images)
     features, conv = encode_with_conv(encoder, images if key is None else random_shift(images, key, pad), chunk,
-                                      offset)
+                                      pixel_offset)
     if state is None:
         return features, conv
     return jnp.concatenate([features, state], axis=-1), jnp.concatenate([conv, state], axis=-1)
@@ -167,10 +167,10 @@ def policy_encoder(encoder: Any, actor_head: Any) -> Any:
     return {"convs": encoder["convs"], "head": actor_head} if jax.tree_util.tree_leaves(actor_head) else encoder
 
 
-def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0, offset: float = 0.0) -> jax.Array:
+def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0, pixel_offset: float = 0.0) -> jax.Array:
     """What actor and critics read: `image_features` of image observations, or vector observations as they are
     (no encoder)."""
-    return image_features(encoder, obs, state_dim, offset=offset) if jax.tree_util.tree_leaves(encoder) else obs
+    return image_features(encoder, obs, state_dim, pixel_offset=pixel_offset) if jax.tree_util.tree_leaves(encoder) else obs
 
 
 def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings) -> tuple[Batch, jax.Array]:
@@ -383,30 +383,30 @@ def update(s: UpdateSettings, state: SACState, batches: Batch, totals: dict | No
 # ---- acting ------------------------------------------------------------------------------------------
 
 # Each takes the encoder last (`()` for vector observations): the policy reads `features_of(encoder, obs,
-# state_dim, offset)`, `state_dim` and `offset` bound when built.
+# state_dim, pixel_offset)`, `state_dim` and `pixel_offset` bound when built.
 
 def act(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
         key: jax.Array, encoder: Any = (), state_dim: int = 0,
-        offset: float = 0.0) -> tuple[jax.Array, jax.Array, jax.Array]:
+        pixel_offset: float = 0.0) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(action in [-1, 1], the same action in env bounds, next key): one call per env step."""
     key, sample_key = jax.random.split(key)
-    action = policy.sample(actor, actor_stats, features_of(encoder, obs, state_dim, offset), sample_key)[0]
+    action = policy.sample(actor, actor_stats, features_of(encoder, obs, state_dim, pixel_offset), sample_key)[0]
     return action, scaler.to_env(action, jnp), key
 
 
 def act_with_noise(policy: Policy, scaler: ActionScaler, actor: Any, actor_stats: Any, obs: jax.Array,
                    noise: jax.Array, encoder: Any = (), state_dim: int = 0,
-                   offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
+                   pixel_offset: float = 0.0) -> tuple[jax.Array, jax.Array]:
     """(action in [-1, 1], in env bounds) for given standard-normal noise (`Policy.with_noise`: coloured noise
     or gSDE's exploration matrices, softac.exploration)."""
-    action = policy.with_noise(actor, actor_stats, features_of(encoder, obs, state_dim, offset), noise)
+    action = policy.with_noise(actor, actor_stats, features_of(encoder, obs, state_dim, pixel_offset), noise)
     return action, scaler.to_env(action, jnp)
 
 
 def act_deterministic(policy: Policy, actor: Any, actor_stats: Any, obs: jax.Array, encoder: Any = (),
-                      state_dim: int = 0, offset: float = 0.0) -> jax.Array:
+                      state_dim: int = 0, pixel_offset: float = 0.0) -> jax.Array:
     """The mean action in [-1, 1]."""
-    return policy.deterministic(actor, actor_stats, features_of(encoder, obs, state_dim, offset))
+    return policy.deterministic(actor, actor_stats, features_of(encoder, obs, state_dim, pixel_offset))
 
 
 # ---- the state: fresh, and reset -----------------------------------------------------------------------
@@ -579,11 +579,11 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         init=init,
         reset=reset,
         update=jax.jit(partial(update, s), donate_argnums=(0, 2)),
-        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, offset=s.pixel_offset)),
+        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, pixel_offset=s.pixel_offset)),
         act_deterministic=jax.jit(partial(act_deterministic, s.policy, state_dim=image_state_dim,
-                                          offset=s.pixel_offset)),
+                                          pixel_offset=s.pixel_offset)),
         act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler, state_dim=image_state_dim,
-                                       offset=s.pixel_offset)),
+                                       pixel_offset=s.pixel_offset)),
         policy=s.policy,
         target_entropy=s.target_entropy,
         scaler=scaler,
