@@ -639,15 +639,17 @@ def pixel_runs(d: Path) -> tuple[str, str, list[dict], str] | None:
         spec = load_spec(d)
         threshold = ENVS.get(spec.env_id)
         rows = [r for r in trial_rows(d, spec, threshold) if r["status"] == "done"]
-        seeds = []
+        seeds, ranges = [], set()
         for row in rows:
             config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
+            ranges.add(config.get("pixel_range", "centered"))  # before the key, pixels were at [-0.5, 0.5]
             seeds.append({"final": row["final_eval_mean"], "steps": row["steps"], "wall_s": row["wall_s"],
                           "at_threshold": (row.get("steps_to_threshold"), row.get("seconds_to_threshold")),
                           "frames": (f"{config['pixel_size']}x{config['pixel_size']}, {config['frame_stack']} "
                                      f"stacked, action repeat {config.get('action_repeat', 1)}, batch "
                                      f"{config['batch_size']}")})
-        return spec.env_id, spec.describe(), seeds, machines_of([d / r["trial"] for r in rows])
+        name = spec.describe() + ("" if ranges <= {"unit"} else ", pixels at [-0.5, 0.5] (pixel_range=centered)")
+        return spec.env_id, name, seeds, machines_of([d / r["trial"] for r in rows])
     summaries = sorted(d.glob("seed=*/summary.json"))
     if not summaries:
         return None
@@ -659,7 +661,8 @@ def pixel_runs(d: Path) -> tuple[str, str, list[dict], str] | None:
             evals = [(int(r["step"]), float(r["return_mean"]), float(r["wall_s"])) for r in csv.DictReader(f)]
         crossing = next(((step, wall) for step, value, wall in evals if threshold is not None and value >= threshold),
                         (None, None))
-        seeds.append({"final": summary["final_return"], "steps": summary["steps"], "wall_s": summary["wall_s"],
+        seeds.append({"final": summary["final_return"], "steps": summary.get("final_step", summary["steps"]),
+                      "wall_s": summary["wall_s"],
                       "at_threshold": crossing,
                       "frames": (f"{summary['pixel_size']}x{summary['pixel_size']}, {summary['frames']} stacked, "
                                  f"action repeat {summary['action_repeat']}, batch {summary.get('batch_size', 256)}")})
@@ -692,7 +695,7 @@ def pixels_section(sweeps: Path) -> list[str]:
             "Image observations through the convolutional encoder (docs/guides/pixels.md), one pinned CPU core a run, "
             "and, where run, Stable-Baselines3's SAC with its CnnPolicy on the same frames. A run's seconds include "
             "its evaluations." + (f" First evaluation at the solved mark ({thresholds}): the step and the run's "
-                                   "seconds then; softac's runs stop there, SB3's run their budget." if thresholds
+                                   "seconds then; the runs stop there (SB3's with benchmarks/sb3_pixels.py --target-return)." if thresholds
                                    else ""), "",
             "| env | configuration | frames | seeds | final return, each seed (mean) | first evaluation at the mark | "
             "steps run | wall s | machine |",
