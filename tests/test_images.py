@@ -459,6 +459,8 @@ def test_image_settings_that_cannot_work_are_refused(tiny):
                                           "critics have none"):
         SACConfig().replace(crossq=True, target_encoder=True)
     SACConfig().replace(crossq=True, target_critics="on", target_encoder=True)  # CrossQ+WN's targets take one
+    with pytest.raises(ConfigError, match=r"pixel_range=.*must be unit \(\[0, 1\]\) or centered"):
+        SACConfig().replace(pixel_range="0,1")
     with pytest.raises(SoftacError, match="obs_norm normalises vector observations"):
         SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, obs_norm=True))
     from softac.learner import check_model_memory
