@@ -695,7 +695,8 @@ def pixels_section(sweeps: Path) -> list[str]:
             "Image observations through the convolutional encoder (docs/guides/pixels.md), one pinned CPU core a run, "
             "and, where run, Stable-Baselines3's SAC with its CnnPolicy on the same frames. A run's seconds include "
             "its evaluations." + (f" First evaluation at the solved mark ({thresholds}): the step and the run's "
-                                   "seconds then; the runs stop there (SB3's with benchmarks/sb3_pixels.py --target-return)." if thresholds
+                                   "seconds then; the runs stop there (SB3's with benchmarks/sb3_pixels.py "
+                                   "--target-return)." if thresholds
                                    else ""), "",
             "| env | configuration | frames | seeds | final return, each seed (mean) | first evaluation at the mark | "
             "steps run | wall s | machine |",

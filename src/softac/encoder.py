@@ -118,12 +118,11 @@ def stacked_image_shape(stack_shape: tuple[int, int, int, int]) -> tuple[int, in
 
 
 def scale_pixels(images: jax.Array, pixel_offset: float = 0.0) -> jax.Array:
-    """uint8 pixels to float32 in [-pixel_offset, 1 - pixel_offset]: [0, 1] (DrQ's) at 0, [-0.5, 0.5] (DrQ-v2's) at 0.5.
-    At [0, 1] a black background is zero and the convolutions (zero biases at the start) answer only to what is
+    """uint8 pixels to float32 in [-pixel_offset, 1 - pixel_offset]: [0, 1] (DrQ's) at 0, [-0.5, 0.5] (DrQ-v2's)
+    at 0.5. At [0, 1] a black background is zero and the convolutions (zero biases at the start) answer only to what is
     drawn; at [-0.5, 0.5] the background of a dark scene (MuJoCo's InvertedPendulum) gave every image the same
     large activations, its pole a small part of them, and the critic could not tell the pole's angles apart."""
-    scaled = images.astype(jnp.float32) / 255.0
-    return scaled - pixel_offset if pixel_offset else scaled
+    return images.astype(jnp.float32) / 255.0 - pixel_offset  # exact at 0: x - 0.0 is x
 
 
 def conv_features(params: Params, images: jax.Array, pixel_offset: float = 0.0) -> jax.Array:
@@ -174,7 +173,8 @@ def chunked_encode(params: Params, images: jax.Array, chunk: int,
     core, a whole SAC update on 3 frames of 48x48: 58 ms at batch 32 and 578 ms at 128 whole, 44 and 229 ms
     in pieces of 8; 84x84, batch 32: 478 and 252 ms; docs/performance.md)."""
     piece = jax.checkpoint(_features_and_conv, static_argnums=(2,))
-    parts = [piece(params, part, pixel_offset) for part in jnp.split(images, list(range(chunk, images.shape[0], chunk)))]
+    parts = [piece(params, part, pixel_offset)
+             for part in jnp.split(images, list(range(chunk, images.shape[0], chunk)))]
     return jnp.concatenate([f for f, _ in parts]), jnp.concatenate([c for _, c in parts])
 
 

@@ -261,10 +261,8 @@ def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
 
     onnx = g.onnx
     k, height, width, channels = (int(n) for n in arrays["image_shape"])
-    x = g.op("Div", g.op("Cast", images, to=onnx.TensorProto.FLOAT), g.const("pixel_scale", 255.0))
-    offset = float(arrays["pixel_offset"])
-    if offset:  # as softac.encoder.scale_pixels: no subtraction at offset 0
-        x = g.op("Sub", x, g.const("pixel_offset", offset))
+    x = g.op("Sub", g.op("Div", g.op("Cast", images, to=onnx.TensorProto.FLOAT), g.const("pixel_scale", 255.0)),
+             g.const("pixel_offset", float(arrays["pixel_offset"])))
     x = g.op("Reshape", g.op("Transpose", x, perm=[0, 1, 4, 2, 3]),
              g.const("stacked_shape", [-1, k * channels, height, width], np.int64))
     for i, stride in enumerate(int(n) for n in arrays["conv_strides"]):

@@ -123,10 +123,8 @@ def encoded(params: dict, obs) -> np.ndarray:
     k, height, width, channels = (int(n) for n in params["image_shape"])
     stacks = image.reshape(-1, k, height, width, channels)
     x = np.moveaxis(stacks, 1, 3).reshape(len(stacks), height, width, k * channels)  # frames along the channels
-    x = x.astype(np.float32) / np.float32(255.0)
-    offset = np.float32(params["pixel_offset"]) if "pixel_offset" in params else np.float32(0.5)  # older files: 0.5
-    if offset:
-        x = x - offset
+    offset = params["pixel_offset"] if "pixel_offset" in params else 0.5  # files from before pixel_range: 0.5
+    x = x.astype(np.float32) / np.float32(255.0) - np.float32(offset)
     for i, stride in enumerate(params["conv_strides"]):
         x = np.maximum(conv2d(x, params[f"conv{i}_w"], int(stride)) + params[f"conv{i}_b"], 0)
     h = x.reshape(len(x), -1) @ params["enc_w"] + params["enc_b"]

@@ -170,7 +170,9 @@ def policy_encoder(encoder: Any, actor_head: Any) -> Any:
 def features_of(encoder: Any, obs: jax.Array, state_dim: int = 0, pixel_offset: float = 0.0) -> jax.Array:
     """What actor and critics read: `image_features` of image observations, or vector observations as they are
     (no encoder)."""
-    return image_features(encoder, obs, state_dim, pixel_offset=pixel_offset) if jax.tree_util.tree_leaves(encoder) else obs
+    if not jax.tree_util.tree_leaves(encoder):
+        return obs
+    return image_features(encoder, obs, state_dim, pixel_offset=pixel_offset)
 
 
 def encoded_batch(encoder: Any, batch: Batch, key: jax.Array, s: UpdateSettings) -> tuple[Batch, jax.Array]:
