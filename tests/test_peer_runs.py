@@ -276,6 +276,28 @@ def test_a_her_peer_trains_a_goal_env_resumes_with_its_dict_buffer_and_reports_s
     assert json.loads((run / "summary.json").read_text())["last_success"] == float(evals[-1]["success_rate"])
 
 
+def test_a_her_peer_stops_at_its_target_success(tmp_path):
+    """`--target-success` (a sweep's): the peer stops after the first evaluation whose success rate reaches it, as
+    softac train does (a rate of 0 is reached by any evaluation: the sweep itself takes only (0, 1])."""
+    run = tmp_path / "her"
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", "softac_test_envs:PointGoal-v0",
+                        "--seed", "0", "--steps", "900", "--out", str(run), "--eval-interval", "300",
+                        "--eval-episodes", "2", "--target-success=0"], capture_output=True, text=True, timeout=300,
+                       env=child_env(FAKE_PEERS))
+    assert r.returncode == 0, r.stderr
+    assert [int(row["step"]) for row in read_csv(run / "eval.csv")] == [300]
+    summary = json.loads((run / "summary.json").read_text())
+    assert (summary["steps"], summary["stopped_early"], summary["stop_reason"]) == (300, True, "target_success")
+    # an unreached rate leaves the run to its budget
+    again = tmp_path / "unreached"
+    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", "softac_test_envs:PointGoal-v0",
+                        "--seed", "0", "--steps", "600", "--out", str(again), "--eval-interval", "300",
+                        "--eval-episodes", "2", "--target-success=1.5"], capture_output=True, text=True, timeout=300,
+                       env=child_env(FAKE_PEERS))
+    assert r.returncode == 0, r.stderr
+    assert json.loads((again / "summary.json").read_text())["stop_reason"] == "steps"
+
+
 def test_a_her_peer_on_an_env_without_goals_is_refused_in_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", DRIFT, "--steps", "100",
                         "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=300,

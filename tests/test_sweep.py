@@ -92,24 +92,28 @@ def test_a_peer_trial_checkpoints_at_the_sweeps_interval_and_continues_with_the_
     assert cmd[cmd.index("--action-repeat") + 1] == "2"
 
 
-def test_a_target_return_goes_to_every_trials_command_and_names_the_configuration(tmp_path):
-    """`softac sweep --target-return R`: softac's new and resumed trials and a peer's stop at R (train's
-    --target-return; `python -m softac.peers run --target-return`), and tables say so."""
+@pytest.mark.parametrize("key, flag, value, other, named", [
+    ("target_return", "--target-return", 200.0, -5.5, ", stops at 200"),
+    ("target_success", "--target-success", 0.75, 0.5, ", stops at success 0.75"),
+])
+def test_a_target_goes_to_every_trials_command_and_names_the_configuration(tmp_path, key, flag, value, other, named):
+    """`softac sweep --target-return R` (`--target-success S`): softac's new and resumed trials and a peer's stop
+    at it (train's flag; `python -m softac.peers run` takes the same), and tables say so."""
     for framework in ("softac", "sbx"):
-        spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], framework=framework, target_return=200.0)
+        spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], framework=framework, **{key: value})
         trial, run = sweep.grid_trials(spec)[0], tmp_path / framework / "seed=0"
         cmd = sweep.trial_command(spec, spec.base_config(), trial, run)
-        assert "--target-return=200.0" in cmd
-        assert spec.describe().endswith(", stops at 200")
+        assert f"{flag}={value!r}" in cmd
+        assert spec.describe().endswith(named)
     (run.parent.parent / "softac" / "seed=0" / "checkpoints" / "last").mkdir(parents=True)
-    spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], target_return=-5.5)
+    spec = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0], **{key: other})
     resume = sweep.trial_command(spec, spec.base_config(), trial, tmp_path / "softac" / "seed=0")
-    assert resume[3:5] == ["train", "--resume"] and "--target-return=-5.5" in resume
+    assert resume[3:5] == ["train", "--resume"] and f"{flag}={other!r}" in resume
     plain = sweep.SweepSpec(env_id=DRIFT, steps=500, seeds=[0])
-    assert not any(arg.startswith("--target-return") for arg in sweep.trial_command(plain, plain.base_config(), trial,
-                                                                                    tmp_path / "new"))
+    assert not any(arg.startswith("--target") for arg in sweep.trial_command(plain, plain.base_config(), trial,
+                                                                             tmp_path / "new"))
     # a sweep.json written before the key existed is the same sweep without a target
-    assert sweep.SweepSpec.from_dict({"env_id": DRIFT, "steps": 500, "seeds": [0]}).target_return is None
+    assert getattr(sweep.SweepSpec.from_dict({"env_id": DRIFT, "steps": 500, "seeds": [0]}), key) is None
 
 
 def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
@@ -230,6 +234,7 @@ def test_a_resumed_sweeps_progress_counts_the_trials_that_ended_before_it(tmp_pa
     (["--address", "127.0.0.1:1"], "cannot reach the Ray cluster"),
     (["--search", "random", "--space", "/nonexistent/space.yaml"], "space"),
     (["--success-threshold", "1.5"], "--success-threshold is a success rate in (0, 1]"),
+    (["--target-success", "0"], "--target-success is a success rate in (0, 1]"),
     (["--framework", "sb3-her"], "--framework sb3-her needs a goal env"),
     (["--framework", "sb3-zoo"], "RL Zoo's SAC settings are here for Pendulum-v1"),  # the default env has none
     (["--max-retries", "-1"], "--max-retries"),
@@ -385,6 +390,8 @@ def test_trials_stop_at_the_target_return_and_count_as_finished(tmp_path):
     assert again.returncode == 0 and "2 trials (2 already finished)" in again.stderr, again.stderr
     given = run_cli("sweep", "--resume", str(out), "--target-return", "5", timeout=60)
     assert_clean_error(given, "--resume continues a sweep with its own settings; drop --target-return")
+    given = run_cli("sweep", "--resume", str(out), "--target-success", "0.5", timeout=60)
+    assert_clean_error(given, "--resume continues a sweep with its own settings; drop --target-success")
 
 
 def test_a_grid_sweep_may_gain_seeds_and_nothing_else(tmp_path):

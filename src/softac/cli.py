@@ -138,9 +138,12 @@ def _sweep_arguments(sw: argparse.ArgumentParser) -> None:
     sw.add_argument("--target-return", type=_finite_float, metavar="R",
                     help="stop each trial once its deterministic eval mean reaches R (softac's trials and the "
                          "peers'); the summary's steps and seconds to it are reported as with --threshold R")
-    sw.add_argument("--success-threshold", type=_finite_float, metavar="S", default=0.9,
+    sw.add_argument("--target-success", type=_finite_float, metavar="S",
+                    help="goal envs: stop each trial once its eval success rate reaches S (softac's trials and the "
+                         "peers'); the summary's steps to it are reported as with --success-threshold S")
+    sw.add_argument("--success-threshold", type=_finite_float, metavar="S",
                     help="for envs that report success (goal envs): the summary's steps until the eval success "
-                         "rate first reaches S (default 0.9)")
+                         "rate first reaches S (default: --target-success, else 0.9)")
 
 
 def build_parser() -> _Parser:

@@ -306,7 +306,8 @@ def sweep_spec_from_args(args: argparse.Namespace):
         preset=args.preset, overrides=[pair for group in args.overrides for pair in group],
         grid=sweep.parse_grid([g for group in args.grid for g in group]),
         framework=args.framework, search=args.search, samples=args.samples if args.search else 0,
-        space=sweep.load_space(args.space) if args.search else None, asha=args.asha, target_return=args.target_return)
+        space=sweep.load_space(args.space) if args.search else None, asha=args.asha, target_return=args.target_return,
+        target_success=args.target_success)
     spec.steps = spec.steps or spec.preset_config().total_steps  # default: the preset's budget
     return spec
 
@@ -317,7 +318,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if args.resume:
         given = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--out", args.out),
                                           ("--space", args.space), ("--search", args.search),
-                                          ("--target-return", args.target_return))
+                                          ("--target-return", args.target_return),
+                                          ("--target-success", args.target_success))
                  if value is not None] + (["--grid"] if args.grid else []) + (["--set"] if args.overrides else [])
         if given:
             raise SoftacError(f"--resume continues a sweep with its own settings; drop {', '.join(given)}")
@@ -331,13 +333,17 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         spec = sweep_spec_from_args(args)
     from softac.loop import check_success_rate
 
+    check_success_rate(args.target_success, "--target-success")
     check_success_rate(args.success_threshold, "--success-threshold")
     threshold = args.threshold
     if threshold is None:
         threshold = spec.target_return if spec.target_return is not None else sweep.default_threshold(spec.env_id)
+    success_threshold = args.success_threshold
+    if success_threshold is None:
+        success_threshold = spec.target_success if spec.target_success is not None else sweep.SUCCESS_THRESHOLD
     result = sweep.run_sweep(spec, out, address=args.address, cpus_per_trial=args.cpus_per_trial,
                              max_concurrent=args.max_concurrent, threshold=threshold,
-                             success_threshold=args.success_threshold, max_retries=args.max_retries,
+                             success_threshold=success_threshold, max_retries=args.max_retries,
                              gpus_per_trial=args.gpus_per_trial)
     if result["failed"]:
         print(f"softac: {len(result['failed'])} trial(s) failed, first: {result['failed'][0]}", file=sys.stderr)

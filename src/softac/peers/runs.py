@@ -63,7 +63,7 @@ def peer_solve(framework: str, env_id: str, seed: int, target: float, max_steps:
 def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
              eval_episodes: int, log_interval: int, checkpoint_interval: int = 0, preset: str | None = None,
              overrides: list[str] | None = None, action_repeat: int = 1,
-             target_return: float | None = None) -> dict[str, Any]:
+             target_return: float | None = None, target_success: float | None = None) -> dict[str, Any]:
     """Train a peer and write a softac-style run directory (config.yaml, progress.csv, episodes.csv,
     eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions, episode i of
     every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what softac's mean
@@ -74,7 +74,8 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     whose settings are a sweep's runs at the config `preset` and `overrides` make (sweep_config). With
     `action_repeat` (or a sweep peer's action_repeat setting) its training and evaluation envs repeat each
     action, as softac's do; steps count the agent's actions, as softac's. With `target_return` the run stops
-    after the first evaluation whose mean reaches it (softac train's --target-return)."""
+    after the first evaluation whose mean reaches it (softac train's --target-return); with `target_success`,
+    a goal env's, after the first whose success rate reaches it (--target-success)."""
     from softac.errors import TrainingInterrupted
     from softac.rundir import run_lock
 
@@ -82,7 +83,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     with run_lock(out):
         try:
             return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,
-                           checkpoint_interval, sweep, action_repeat, target_return).run()
+                           checkpoint_interval, sweep, action_repeat, target_return, target_success).run()
         except TrainingInterrupted as exc:
             # said before the lock goes: a stopped sweep waits for the lock, then its user reads the trial's log
             print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr,
@@ -111,14 +112,17 @@ class PeerRun:
 
     def __init__(self, framework: str, env_id: str, seed: int, steps: int, out: Path, eval_interval: int,
                  eval_episodes: int, log_interval: int, checkpoint_interval: int,
-                 sweep: dict[str, Any] | None = None, action_repeat: int = 1, target_return: float | None = None):
+                 sweep: dict[str, Any] | None = None, action_repeat: int = 1, target_return: float | None = None,
+                 target_success: float | None = None):
         from softac import checkpoint as ckpt
         from softac.errors import SoftacError
         from softac.rundir import checkpoint_path
 
         self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
         self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
-        self.checkpoint_interval, self.target_return, self.reached = checkpoint_interval, target_return, False
+        self.checkpoint_interval, self.target_return = checkpoint_interval, target_return
+        self.target_success = target_success
+        self.reached: str | None = None  # target_return or target_success once an evaluation reached it
         self.sweep = sweep if PEERS[framework].settings == "sweep" else None  # the softac settings it runs at
         self.checkpoint = checkpoint_path(out, "last")
         if action_repeat < 1:
@@ -193,8 +197,8 @@ class PeerRun:
         elapsed = time.perf_counter() - self.t0
         summary = {"steps": int(self.model.num_timesteps), "episodes": self.record["episodes"],
                    "train_time_s": elapsed, "wall_s": elapsed, "last_eval": self.record["last"],
-                   "best_eval": self.record["best"], "stopped_early": self.reached,
-                   "stop_reason": "target_return" if self.reached else "steps", "best_step": self.record["best_step"],
+                   "best_eval": self.record["best"], "stopped_early": self.reached is not None,
+                   "stop_reason": self.reached or "steps", "best_step": self.record["best_step"],
                    "total_steps": self.steps, "framework": self.framework}
         if self.layout is not None and "last_success" in self.record:
             summary.update(last_success=self.record["last_success"], recent_success_rate=self.rows.success_rate())
@@ -220,10 +224,19 @@ class PeerRun:
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
         if self.eval_interval > 0 and step % self.eval_interval == 0:
             self.evaluate(step)
-            self.reached = self.target_return is not None and self.record["last"] >= self.target_return
+            self.reached = self.target_reached()
         if self.stop.requested or (self.checkpoint_interval > 0 and step % self.checkpoint_interval == 0):
             self.save(step)
         return not (self.stop.requested or self.reached)
+
+    def target_reached(self) -> str | None:
+        """`target_return` or `target_success` when the last evaluation reached it (as softac's loop decides)."""
+        if self.target_return is not None and self.record["last"] >= self.target_return:
+            return "target_return"
+        success = self.record.get("last_success")
+        if self.target_success is not None and success is not None and success >= self.target_success:
+            return "target_success"
+        return None
 
     def make_env(self) -> Any:
         """An evaluation env: softac's, each action repeated as in training."""
@@ -290,6 +303,7 @@ def arguments() -> argparse.ArgumentParser:
     p.add_argument("--preset", help="a peer that runs at a sweep's settings: softac's preset (default: the env's)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="... and its overrides")
     p.add_argument("--target-return", type=float, help="run: stop once an evaluation's mean return reaches this")
+    p.add_argument("--target-success", type=float, help="run: stop once an evaluation's success rate reaches this")
     return p
 
 
@@ -306,7 +320,8 @@ def main(argv: list[str]) -> None:
             if not a.out:
                 parser.error("run needs --out")
             out = peer_run(a.framework, a.env, a.seed, a.steps, Path(a.out), a.eval_interval, a.eval_episodes,
-                           a.log_interval, a.checkpoint_interval, a.preset, a.set, a.action_repeat, a.target_return)
+                           a.log_interval, a.checkpoint_interval, a.preset, a.set, a.action_repeat, a.target_return,
+                           a.target_success)
         elif a.kind == "throughput":
             out = peer_throughput(a.framework, a.env, a.warmup, a.steps, a.seed)
         else:

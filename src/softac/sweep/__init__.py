@@ -20,12 +20,12 @@ from softac.sweep.spec import (DEFAULT_SPACE, FRAMEWORKS, INSTALL_RAY, LOG_DIR, 
                                grid_trials, load_space, load_spec, parse_grid, parse_seeds, planned_trials,
                                prepare_out_dir, trial_name, validate, value_text)
 from softac.sweep.trial import read_evals, run_trial, trial_command, trial_process_env, trial_state
-from softac.sweep.results import (aggregate, check_command, ended_trials, markdown_table, trial_dirs, trial_rows,
-                                  unfinished_trials, write_summaries)
+from softac.sweep.results import (SUCCESS_THRESHOLD, aggregate, check_command, ended_trials, markdown_table,
+                                  trial_dirs, trial_rows, unfinished_trials, write_summaries)
 from softac.sweep.driver import run_sweep
 
 __all__ = ["DEFAULT_SPACE", "FRAMEWORKS", "INSTALL_RAY", "LOG_DIR", "METRIC", "PLOT_DIR", "RAY_DIR", "SEARCHES",
-           "SPACE_KINDS", "SPEC_FILE", "SweepSpec", "aggregate", "check_command", "check_space", "default_threshold",
+           "SPACE_KINDS", "SPEC_FILE", "SUCCESS_THRESHOLD", "SweepSpec", "aggregate", "check_command", "check_space", "default_threshold",
            "ended_trials",
            "grid_points", "grid_trials", "load_space", "load_spec", "markdown_table", "parse_grid", "parse_seeds",
            "planned_trials", "prepare_out_dir", "read_evals", "run_sweep", "run_trial", "trial_command", "trial_dirs",

@@ -203,7 +203,9 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None,
             "Final eval: the last deterministic evaluation of each trial; 95% CI: Student t over seeds; IQM: the "
             "interquartile mean over seeds (rliable's; the plain mean below 4 seeds)."
             + ("" if spec.target_return is None else
-               f" Each trial stops at the first evaluation that reaches {spec.target_return:g} (its final eval)."), "",
+               f" Each trial stops at the first evaluation that reaches {spec.target_return:g} (its final eval).")
+            + ("" if spec.target_success is None else
+               f" Each trial stops at the first evaluation whose success rate reaches {spec.target_success:g}."), "",
             markdown_table(table, threshold, success_threshold), ""]
     if spec.search and table:
         best = max((r for r in rows if r["final_eval_mean"] is not None), key=lambda r: r["final_eval_mean"],

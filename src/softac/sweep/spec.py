@@ -77,6 +77,8 @@ class SweepSpec:
     # each trial stops once its deterministic eval mean reaches this (RLlib's stop criterion; `softac train
     # --target-return`): its last evaluation is then that one
     target_return: float | None = None
+    # ... or once its eval success rate reaches this (a goal env's; `softac train --target-success`)
+    target_success: float | None = None
 
     def preset_config(self) -> SACConfig:
         """The preset (or the env's own) with the overrides, before the sweep's step budget."""
@@ -89,9 +91,13 @@ class SweepSpec:
     def describe(self) -> str:
         """The configuration by framework and preset, for tables and legends: "softac, crossq preset",
         "softac, env preset + obs_norm=true", "SBX CrossQ, its defaults" (a peer's own settings are fixed);
-        ", stops at R" where the trials stop at a target return."""
+        ", stops at R" where the trials stop at a target return (", stops at success S" at a success rate)."""
         name = self._configuration()
-        return name if self.target_return is None else f"{name}, stops at {self.target_return:g}"
+        if self.target_return is not None:
+            name += f", stops at {self.target_return:g}"
+        if self.target_success is not None:
+            name += f", stops at success {self.target_success:g}"
+        return name
 
     def _configuration(self) -> str:
         if self.framework in PEERS and PEERS[self.framework].settings != "sweep":
@@ -295,6 +301,10 @@ def validate(spec: SweepSpec) -> SACConfig:
     if spec.framework not in FRAMEWORKS:
         raise SoftacError(f"--framework must be one of {', '.join(FRAMEWORKS)}")
     resolve_env_id(spec.env_id)
+    if spec.target_success is not None:
+        from softac.loop import check_success_rate
+
+        check_success_rate(spec.target_success, "--target-success")
     base = spec.base_config()
     if spec.framework != "softac":
         check_peer_spec(spec, base)

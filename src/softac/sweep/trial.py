@@ -56,6 +56,8 @@ def sweep_settings(spec: SweepSpec) -> list[str]:
 def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: Path) -> list[str]:
     # one token: a negative target (Pendulum's -200) must not read as an option
     target = [] if spec.target_return is None else [f"--target-return={float(spec.target_return)!r}"]
+    if spec.target_success is not None:
+        target.append(f"--target-success={float(spec.target_success)!r}")
     if spec.framework != "softac":
         # the same command continues a peer's run from its last checkpoint
         return [sys.executable, "-m", "softac.peers", "run", spec.framework, "--env", spec.env_id,
