@@ -278,24 +278,21 @@ def test_a_her_peer_trains_a_goal_env_resumes_with_its_dict_buffer_and_reports_s
 
 def test_a_her_peer_stops_at_its_target_success(tmp_path):
     """`--target-success` (a sweep's): the peer stops after the first evaluation whose success rate reaches it, as
-    softac train does (a rate of 0 is reached by any evaluation: the sweep itself takes only (0, 1])."""
-    run = tmp_path / "her"
-    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", "softac_test_envs:PointGoal-v0",
-                        "--seed", "0", "--steps", "900", "--out", str(run), "--eval-interval", "300",
-                        "--eval-episodes", "2", "--target-success=0"], capture_output=True, text=True, timeout=300,
-                       env=child_env(FAKE_PEERS))
-    assert r.returncode == 0, r.stderr
-    assert [int(row["step"]) for row in read_csv(run / "eval.csv")] == [300]
-    summary = json.loads((run / "summary.json").read_text())
-    assert (summary["steps"], summary["stopped_early"], summary["stop_reason"]) == (300, True, "target_success")
-    # an unreached rate leaves the run to its budget
-    again = tmp_path / "unreached"
-    r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env", "softac_test_envs:PointGoal-v0",
-                        "--seed", "0", "--steps", "600", "--out", str(again), "--eval-interval", "300",
-                        "--eval-episodes", "2", "--target-success=1.5"], capture_output=True, text=True, timeout=300,
-                       env=child_env(FAKE_PEERS))
-    assert r.returncode == 0, r.stderr
-    assert json.loads((again / "summary.json").read_text())["stop_reason"] == "steps"
+    softac train does (a rate of 0 is reached by any evaluation: the sweep itself takes only (0, 1]); a rate it
+    does not reach leaves the run to its budget."""
+    def run_to(target: str, steps: int) -> dict:
+        run = tmp_path / target
+        r = subprocess.run([sys.executable, "-m", "softac.peers", "run", "sbx-her", "--env",
+                            "softac_test_envs:PointGoal-v0", "--seed", "0", "--steps", str(steps), "--out", str(run),
+                            "--eval-interval", "300", "--eval-episodes", "2", f"--target-success={target}"],
+                           capture_output=True, text=True, timeout=300, env=child_env(FAKE_PEERS))
+        assert r.returncode == 0, r.stderr
+        summary = json.loads((run / "summary.json").read_text())
+        return {"evals": [int(row["step"]) for row in read_csv(run / "eval.csv")],
+                **{k: summary[k] for k in ("steps", "stopped_early", "stop_reason")}}
+
+    assert run_to("0", 900) == {"evals": [300], "steps": 300, "stopped_early": True, "stop_reason": "target_success"}
+    assert run_to("1.5", 600) == {"evals": [300, 600], "steps": 600, "stopped_early": False, "stop_reason": "steps"}
 
 
 def test_a_her_peer_on_an_env_without_goals_is_refused_in_one_line(tmp_path):
