@@ -18,6 +18,7 @@ import csv
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from softac.cpus import machine_description
 from softac.peers import PEERS
 from softac.plots import plot_aggregate, plot_comparison, plot_front
 from softac.stats import stratified_bootstrap_iqm
-from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
+from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows, value_text
 
 # env -> the threshold its sweeps were given (None: no threshold columns)
 ENVS: dict[str, float | None] = {"InvertedPendulum-v5": 1000.0, "InvertedPendulum-v4": 1000.0, "Pusher-v5": -40.0,
@@ -548,25 +549,33 @@ def own_preset_runs(sweeps: Path, finals: dict[str, dict[str, list[float]]],
     return own_finals, own_seconds, used
 
 
-def trained_as_today(sweep: Path, env_id: str) -> bool:
-    """Whether every finished trial of `sweep` trained with what SACConfig.for_env(env_id) holds today, seed and
-    budget aside (the frames filter is the caller's), as its config.yaml records it. The record, not the sweep's
-    preset name: a preset's file can change after its runs. A key a trial's record lacks (it predates the key)
-    is that key's default, which is what the code did then."""
+def departures(record: dict, today: Any) -> dict[str, Any]:
+    """The settings a trial's config.yaml (`record`) holds that differ from the SACConfig `today`, seed and budget
+    aside: {key: the value the trial ran with}. The record, not the sweep's preset name: a preset's file can change
+    after its runs. A key the record lacks predates it, so the trial ran at that key's default (what the code did
+    then), save pixel_range: pixels were at [-0.5, 0.5] before it (`centered`, as softac.snapshot reads old
+    checkpoints)."""
     import dataclasses
 
+    from softac.config import SACConfig
+
+    names = {f.name for f in dataclasses.fields(SACConfig)}
+    before = {"pixel_range": "centered"} if record.get("pixels") else {}
+    ran = SACConfig().replace(**{**before, **{k: v for k, v in record.items() if k in names}})
+    expected = today.replace(seed=ran.seed, total_steps=ran.total_steps)
+    return {f: getattr(ran, f) for f in sorted(names) if getattr(ran, f) != getattr(expected, f)}
+
+
+def trained_as_today(sweep: Path, env_id: str) -> bool:
+    """Whether every finished trial of `sweep` trained with what SACConfig.for_env(env_id) holds today, seed and
+    budget aside (the frames filter is the caller's), as its config.yaml records it (`departures`)."""
     import yaml
 
     from softac.config import SACConfig
 
-    names, today = {f.name for f in dataclasses.fields(SACConfig)}, SACConfig.for_env(env_id)
+    today = SACConfig.for_env(env_id)
     trials = [t for t in sorted(sweep.glob("*/config.yaml")) if (t.parent / "summary.json").exists()]
-    for path in trials:
-        record = yaml.safe_load(path.read_text()) or {}
-        ran = SACConfig().replace(**{k: v for k, v in record.items() if k in names})
-        if ran != today.replace(seed=ran.seed, total_steps=ran.total_steps):
-            return False
-    return bool(trials)
+    return bool(trials) and not any(departures(yaml.safe_load(t.read_text()) or {}, today) for t in trials)
 
 
 def dmc_500k_section(sweeps: Path) -> list[str]:
@@ -639,16 +648,18 @@ def pixel_runs(d: Path) -> tuple[str, str, list[dict], str] | None:
         spec = load_spec(d)
         threshold = ENVS.get(spec.env_id)
         rows = [r for r in trial_rows(d, spec, threshold) if r["status"] == "done"]
-        seeds, ranges = [], set()
+        seeds, then, today = [], {}, spec.base_config()
         for row in rows:
             config = yaml.safe_load((d / row["trial"] / "config.yaml").read_text()) or {}
-            ranges.add(config.get("pixel_range", "centered"))  # before the key, pixels were at [-0.5, 0.5]
+            then.update(departures(config, today))
             seeds.append({"final": row["final_eval_mean"], "steps": row["steps"], "wall_s": row["wall_s"],
                           "at_threshold": (row.get("steps_to_threshold"), row.get("seconds_to_threshold")),
                           "frames": (f"{config['pixel_size']}x{config['pixel_size']}, {config['frame_stack']} "
                                      f"stacked, action repeat {config.get('action_repeat', 1)}, batch "
                                      f"{config['batch_size']}")})
-        name = spec.describe() + ("" if ranges <= {"unit"} else ", pixels at [-0.5, 0.5] (pixel_range=centered)")
+        # a sweep run before its preset changed names what it ran with (pixel_range=centered: [-0.5, 0.5])
+        ran_with = " ".join(f"{k}={value_text(v).strip(chr(34))}" for k, v in then.items())
+        name = spec.describe() + (f", as run then: {ran_with}" if then else "")
         return spec.env_id, name, seeds, machines_of([d / r["trial"] for r in rows])
     summaries = sorted(d.glob("seed=*/summary.json"))
     if not summaries:

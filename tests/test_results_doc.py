@@ -378,9 +378,19 @@ def test_the_pixels_section_sets_softacs_pixel_runs_beside_sb3s_cnn_policy_runs(
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
     softac = sweeps / "pixels" / "Pendulum-v1-softac-48px"
     copy_seed_0("Pendulum-v1-softac", softac)
-    config = yaml.safe_load((softac / "seed=0" / "config.yaml").read_text())
-    config.update(pixels=True, pixel_size=48, frame_stack=3, batch_size=32)
+    spec = json.loads((softac / "sweep.json").read_text())
+    spec["overrides"] = ["pixels=true", "pixel_size=48", "batch_size=32"]
+    (softac / "sweep.json").write_text(json.dumps(spec))
+    from softac.config import SACConfig
+
+    config = dict(vars(SACConfig.for_env("Pendulum-v1").with_overrides(spec["overrides"])))
+    config.update(hidden_sizes=list(config["hidden_sizes"]), seed=0)
     (softac / "seed=0" / "config.yaml").write_text(yaml.safe_dump(config))
+    # the same sweep run before pixel_range and target_encoder's preset: its row names what it ran with
+    older = sweeps / "pixels" / "Pendulum-v1-softac-48px-older"
+    shutil.copytree(softac, older)
+    (older / "seed=0" / "config.yaml").write_text(yaml.safe_dump(
+        {k: v for k, v in config.items() if k != "pixel_range"} | {"target_encoder": True}))
     sb3 = sweeps / "pixels" / "Pendulum-v1-sb3-cnn-48px" / "seed=1"
     sb3.mkdir(parents=True)
     (sb3 / "eval.csv").write_text("step,return_mean,return_std,wall_s\n1000,-900,1,50\n2000,-190,1,120\n3000,-170,1,200\n")
@@ -395,7 +405,9 @@ def test_the_pixels_section_sets_softacs_pixel_runs_beside_sb3s_cnn_policy_runs(
     rows = {line.split("|")[2].strip(): [c.strip() for c in line.strip("|").split("|")]
             for line in section.splitlines() if line.startswith("| Pendulum-v1")}
     summary = json.loads((softac / "seed=0" / "summary.json").read_text())
-    [ours] = [cells for name, cells in rows.items() if name.startswith("softac")]
+    today = "softac, env preset + pixels=true pixel_size=48 batch_size=32"
+    assert set(rows) >= {today, f"{today}, as run then: pixel_range=centered target_encoder=true"}, rows
+    ours = rows[today]
     assert ours[2] == "48x48, 3 stacked, action repeat 1, batch 32" and ours[3] == "1"
     assert ours[4] == f"{summary['last_eval']:.0f} ({summary['last_eval']:.0f})"
     assert ours[5].startswith("2k (") and ours[6] == "20k" and ours[7] == f"{summary['train_time_s']:.0f}"
