@@ -245,6 +245,21 @@ def test_bad_sweeps_exit_2_before_ray_starts(tmp_path, args, fragment):
     assert not (tmp_path / "sweep" / "_ray").exists()
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity API on this OS")
+def test_a_local_ray_offers_trials_the_cpus_this_process_may_run_on():
+    """`taskset -c 0 softac sweep ...` runs its 1-CPU trials one at a time on CPU 0, not side by side on it (a
+    local Ray sized by the machine's count put two trials on the one CPU)."""
+    from softac.sweep.driver import local_cpus
+
+    allowed = os.sched_getaffinity(0)
+    try:
+        os.sched_setaffinity(0, {min(allowed)})
+        assert local_cpus() == 1
+    finally:
+        os.sched_setaffinity(0, allowed)
+    assert local_cpus() == len(allowed)
+
+
 def test_the_sweep_guide_lists_the_default_search_space():
     readme = (TESTS.parent / "docs" / "guides" / "sweeps.md").read_text()
     block = readme.split("The default search space")[1].split("```yaml\n")[1].split("```")[0]

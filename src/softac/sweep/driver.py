@@ -69,13 +69,22 @@ def _start_ray(address: str | None) -> Any:
             ray.init(address=address, **kwargs)
         else:
             # "local": a Ray of its own even where `ray start` runs on this machine (ray.init() would join that one)
-            ray.init(address="local", num_cpus=os.cpu_count() or 1, **kwargs)
+            ray.init(address="local", num_cpus=local_cpus(), **kwargs)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"the Ray cluster at {address}" if address else "a local Ray"
         raise SoftacError(f"cannot start {where}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
                           ) from None
     _shorten_ray_error_messages()
     return ray
+
+
+def local_cpus() -> int:
+    """The CPUs a local Ray offers trials: those this process may run on, so a sweep started under `taskset -c 0`
+    runs one 1-CPU trial at a time on that CPU instead of several side by side on it (the machine's count where
+    the OS has no affinity API)."""
+    from softac.cpus import usable_cpus
+
+    return len(usable_cpus()) or os.cpu_count() or 1
 
 
 def _shorten_ray_error_messages() -> None:
