@@ -6,8 +6,8 @@
     taskset -c 0 python benchmarks/update_time.py --preset InvertedPendulum-v5 --image 3x84x84x3 --act 1  # pixels (frames x H x W x C)
 
 Isolates the jitted update from the env and the loop (docs/performance.md, "The MuJoCo presets' update"):
-warm-up updates first (the first call's seconds, mostly compilation, printed too), then rounds of updates each timed to completion; prints the median
-and every round. Compare configurations by alternating runs of this script; the machine drifts.
+warm-up updates first (the first call's seconds, mostly compilation, printed too), then rounds of updates each
+timed to completion; prints the median and every round. Compare configurations by alternating runs of this script; the machine drifts.
 `--peer` times a peer's own gradient step instead (`model.train(gradient_steps=1)` after a 2,000-step random
 buffer on `--env`: its replay sampling and host bookkeeping included, as they are in its training loop).
 """
@@ -93,7 +93,7 @@ def peer_update_time(a: argparse.Namespace) -> int:
             model.train(gradient_steps=1, batch_size=model.batch_size)
         rounds.append((time.perf_counter() - start) / a.updates * 1e3)  # train() reads its losses back: synced
     print(f"{a.peer} on {a.env}: {statistics.median(rounds):.2f} ms per train(gradient_steps=1) "
-          f"(rounds: {' '.join(f'{r:.2f}' for r in rounds)}); first call (compiling) {first:.1f} s")
+          f"(rounds: {' '.join(f'{r:.2f}' for r in rounds)})")
     return 0
 
 
