@@ -7,7 +7,8 @@
 
 Isolates the jitted update from the env and the loop (docs/performance.md, "The MuJoCo presets' update"):
 warm-up updates first (the first call's seconds, mostly compilation, printed too), then rounds of updates each
-timed to completion; prints the median and every round. Compare configurations by alternating runs of this script; the machine drifts.
+timed to completion; prints the median and every round. Compare configurations by alternating runs of this
+script; the machine drifts.
 `--peer` times a peer's own gradient step instead (`model.train(gradient_steps=1)` after a 2,000-step random
 buffer on `--env`: its replay sampling and host bookkeeping included, as they are in its training loop).
 """
