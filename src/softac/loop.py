@@ -39,6 +39,17 @@ def check_success_rate(value: float | None, name: str) -> None:
         raise SoftacError(f"{name} is a success rate in (0, 1], got {value}")
 
 
+def target_reached(mean_return: float, success_rate: float | None, target_return: float | None,
+                   target_success: float | None) -> str | None:
+    """Which target an evaluation reached, `target_return` or `target_success` (a goal env's), else None: what stops
+    softac's training and a peer's run (softac.peers) alike."""
+    if target_return is not None and mean_return >= target_return:
+        return "target_return"
+    if target_success is not None and success_rate is not None and success_rate >= target_success:
+        return "target_success"
+    return None
+
+
 def crossed(before: int, after: int, interval: int) -> bool:
     """Did the step counter pass a multiple of `interval` going from `before` to `after`?"""
     return interval > 0 and before // interval != after // interval
@@ -336,12 +347,7 @@ class TrainingLoop:
         """`target_return` or `target_success` when an evaluation reached it (either stops training)."""
         if stats is None:
             return None
-        if self.target_return is not None and stats["mean_return"] >= self.target_return:
-            return "target_return"
-        success = stats.get("success_rate")
-        if self.target_success is not None and success is not None and success >= self.target_success:
-            return "target_success"
-        return None
+        return target_reached(stats["mean_return"], stats.get("success_rate"), self.target_return, self.target_success)
 
     def log_row(self, step: int) -> None:
         self.logged_at = step

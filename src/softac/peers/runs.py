@@ -223,20 +223,14 @@ class PeerRun:
             row = self.rows.row(step, time.perf_counter() - self.t0, self.record["episodes"])
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
         if self.eval_interval > 0 and step % self.eval_interval == 0:
+            from softac.loop import target_reached
+
             self.evaluate(step)
-            self.reached = self.target_reached()
+            self.reached = target_reached(self.record["last"], self.record.get("last_success"), self.target_return,
+                                          self.target_success)
         if self.stop.requested or (self.checkpoint_interval > 0 and step % self.checkpoint_interval == 0):
             self.save(step)
         return not (self.stop.requested or self.reached)
-
-    def target_reached(self) -> str | None:
-        """`target_return` or `target_success` when the last evaluation reached it (as softac's loop decides)."""
-        if self.target_return is not None and self.record["last"] >= self.target_return:
-            return "target_return"
-        success = self.record.get("last_success")
-        if self.target_success is not None and success is not None and success >= self.target_success:
-            return "target_success"
-        return None
 
     def make_env(self) -> Any:
         """An evaluation env: softac's, each action repeated as in training."""

@@ -25,9 +25,8 @@ from softac.sweep.results import (SUCCESS_THRESHOLD, aggregate, check_command, e
 from softac.sweep.driver import run_sweep
 
 __all__ = ["DEFAULT_SPACE", "FRAMEWORKS", "INSTALL_RAY", "LOG_DIR", "METRIC", "PLOT_DIR", "RAY_DIR", "SEARCHES",
-           "SPACE_KINDS", "SPEC_FILE", "SUCCESS_THRESHOLD", "SweepSpec", "aggregate", "check_command", "check_space", "default_threshold",
-           "ended_trials",
-           "grid_points", "grid_trials", "load_space", "load_spec", "markdown_table", "parse_grid", "parse_seeds",
-           "planned_trials", "prepare_out_dir", "read_evals", "run_sweep", "run_trial", "trial_command", "trial_dirs",
-           "trial_name", "trial_process_env", "trial_rows", "trial_state", "unfinished_trials", "validate",
-           "value_text", "write_summaries"]
+           "SPACE_KINDS", "SPEC_FILE", "SUCCESS_THRESHOLD", "SweepSpec", "aggregate", "check_command", "check_space",
+           "default_threshold", "ended_trials", "grid_points", "grid_trials", "load_space", "load_spec",
+           "markdown_table", "parse_grid", "parse_seeds", "planned_trials", "prepare_out_dir", "read_evals",
+           "run_sweep", "run_trial", "trial_command", "trial_dirs", "trial_name", "trial_process_env", "trial_rows",
+           "trial_state", "unfinished_trials", "validate", "value_text", "write_summaries"]
