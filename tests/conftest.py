@@ -30,6 +30,19 @@ def tiny_config(env_id: str = "softac_test_envs:Drift-v0", **extra) -> SACConfig
     return SACConfig.for_env(env_id).replace(**{**TINY, **extra})
 
 
+SLOW_MARKERS = ("slow", "faults", "bench")  # the learning test, the kill/signal campaigns, the bench runs
+
+
+def run_order(item) -> int:
+    """0: the Ray sweeps, 1: the fast tests, 2: the slow ones. The Ray sweeps run one after another on one worker
+    (a group, below), the suite's longest chain: handed out first, it starts at once (issue 64). The other tests
+    follow the fast ones first, so that a failure among them shows in minutes (and, with CI's --maxfail=1, ends
+    the run there) instead of after the learning test and the kill campaigns."""
+    if item.get_closest_marker("ray") is not None:
+        return 0
+    return 2 if any(item.get_closest_marker(m) is not None for m in SLOW_MARKERS) else 1
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook reads the groups
 def pytest_collection_modifyitems(config, items):
     # `make test` runs the suite on two pytest-xdist workers (--dist loadgroup); the Ray sweeps go to one
@@ -37,6 +50,8 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("ray") is not None:
             item.add_marker(pytest.mark.xdist_group("ray"))
+    # a stable sort: pytest-randomly's order (it shuffles before any other plugin's hook) within each rank
+    items.sort(key=run_order)
 
 
 def pytest_terminal_summary(terminalreporter, config):
