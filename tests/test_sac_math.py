@@ -289,6 +289,24 @@ SAPPHIRE_RAPIDS = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", 
 ZEN5 = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16"}
 
 
+@pytest.mark.parametrize("cpu, isa, changed_by_avx2_limit", [
+    (SAPPHIRE_RAPIDS, "AMX", True),
+    (ZEN5, "AVX512_BF16", True),
+    ({"avx2", "avx512f"}, "AVX512", True),
+    ({"avx", "avx2", "fma", "sse4_2"}, "AVX2", False),  # the AVX2-only AMD EPYC: test-isa would rerun the same code
+    ({"sse4_2"}, "SSE4_2", False),
+    (set(), None, True),  # no /proc/cpuinfo, or an ARM CPU: cannot tell, so test-isa runs
+])
+def test_cpu_isa_is_the_newest_instruction_set_xla_knows_and_the_cpu_has(monkeypatch, cpu, isa,
+                                                                         changed_by_avx2_limit):
+    monkeypatch.setattr(cpus, "cpu_flags", lambda: cpu)
+    assert cpus.cpu_isa() == isa
+    assert cpus.xla_limit_changes_code("AVX2") is changed_by_avx2_limit
+    assert cpus.xla_limit_changes_code("avx2") is changed_by_avx2_limit  # XLA matches the names in any case
+    assert cpus.xla_limit_changes_code("PENTIUM")  # a limit XLA does not know: it warns and runs unlimited
+    assert not cpus.xla_limit_changes_code("AMX_FP16") or isa is None  # the newest: never a limit
+
+
 @pytest.mark.parametrize("cpu,xla_flags,bf16", [
     ({"avx2", "fma"}, "", False),
     (ZEN5, "", True),
