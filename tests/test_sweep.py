@@ -16,6 +16,7 @@ import yaml
 from conftest import TESTS, assert_clean_error, assert_same_last_checkpoint, child_env, run_cli, signal_when
 from softac import sweep
 from softac.errors import SoftacError
+from softac.sweep.driver import local_cpus
 
 pytest.importorskip("ray.tune", reason="the [ray] extra is not installed")
 
@@ -320,9 +321,30 @@ def test_peers_take_eval_settings_spelled_either_way(framework):
 # ---- on a local Ray ----------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def grid_sweep(tmp_path_factory):
+def shared_ray():
+    """One Ray for the sweeps here that need none of their own: a head of this machine's CPUs (Ray's test
+    cluster, the trials' environment as a local Ray's: the test envs, Ray's workers leaving their child
+    processes alive), which each joins through RAY_ADDRESS, as under `ray job submit`. Each then skips a local
+    Ray's start and stop (5.5 s of a 2-trial sweep's 23.5 s, measured on an AMD EPYC; issue 64). The sweeps of a
+    local Ray's own behaviour start their own: a driver stopped by a signal, a failing trial's report, a pinned
+    trial against `softac train --cpus 1`, and one driver per directory (test_run_lock)."""
+    from ray.cluster_utils import Cluster
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+        patch.setenv("RAY_kill_child_processes_on_worker_exit", "false")
+        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": local_cpus(),
+                                                          "include_dashboard": False})
+    try:
+        yield {"RAY_ADDRESS": cluster.address}
+    finally:
+        cluster.shutdown()
+
+
+@pytest.fixture(scope="module")
+def grid_sweep(tmp_path_factory, shared_ray):
     out = tmp_path_factory.mktemp("sweeps") / "grid"
-    result = run_cli(*GRID_SWEEP, "--out", str(out), *TINY_SET, timeout=600)
+    result = run_cli(*GRID_SWEEP, "--out", str(out), *TINY_SET, timeout=600, env_extra=shared_ray)
     return out, result
 
 
@@ -388,14 +410,15 @@ def test_rerunning_a_finished_sweep_redoes_nothing(grid_sweep):
 
 
 @pytest.mark.ray
-def test_trials_stop_at_the_target_return_and_count_as_finished(tmp_path):
+def test_trials_stop_at_the_target_return_and_count_as_finished(tmp_path, shared_ray):
     """Each trial stops after the first evaluation that reaches the target (here any: -1e9), its summary says
     so, the sweep's table reports the steps to it, and a rerun redoes nothing."""
     out = tmp_path / "target"
     command = ["sweep", "--env", DRIFT, "--seeds", "2", "--steps", "600", "--target-return=-1e9", "--out", str(out),
                *TINY_SET]
-    result = run_cli(*command, timeout=600)
+    result = run_cli(*command, timeout=600, env_extra=shared_ray)
     assert result.returncode == 0, result.stderr
+    assert "joining the Ray cluster at" in result.stderr
     for row in _rows(out / "summary.csv"):
         summary = json.loads((out / row["trial"] / "summary.json").read_text())
         assert (summary["steps"], summary["stopped_early"], summary["stop_reason"]) == (200, True, "target_return")
@@ -468,15 +491,15 @@ def test_plot_takes_sweep_directories(grid_sweep, tmp_path):
 
 
 @pytest.mark.ray
-def test_a_finished_sweep_given_more_steps_continues_its_trials_exactly(tmp_path):
+def test_a_finished_sweep_given_more_steps_continues_its_trials_exactly(tmp_path, shared_ray):
     """`softac sweep --resume DIR --steps N` past the sweep's budget: each finished trial continues from its
     checkpoint to N (`softac train --resume --total-steps N`), and ends as one run of N steps would (same
     CPU count), its evaluations on the same grid; the summary and sweep.json say N."""
     out, straight = tmp_path / "s", tmp_path / "straight"
     first = run_cli("sweep", "--env", DRIFT, "--seeds", "1", "--steps", "400", "--out", str(out), *TINY_SET,
-                    timeout=600)
+                    timeout=600, env_extra=shared_ray)
     assert first.returncode == 0, first.stderr
-    more = run_cli("sweep", "--resume", str(out), "--steps", "800", timeout=600)
+    more = run_cli("sweep", "--resume", str(out), "--steps", "800", timeout=600, env_extra=shared_ray)
     assert more.returncode == 0, more.stderr
     assert "1 trial (0 already finished)" in more.stderr and "800 steps each" in more.stderr
     commands = _commands(out, "seed=0")
@@ -565,12 +588,13 @@ def test_a_stopped_sweep_lets_its_running_trial_write_its_checkpoint(tmp_path, f
 
 @pytest.mark.ray
 @pytest.mark.parametrize("search, asha", [("optuna", True), ("random", False)])
-def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
+def test_search_samples_configurations_from_the_space(tmp_path, search, asha, shared_ray):
     space = tmp_path / "space.yaml"
     space.write_text("tau: {loguniform: [0.01, 0.2]}\nbatch_size: {choice: [16, 32]}\n")
     out = tmp_path / "search"
     result = run_cli("sweep", "--env", DRIFT, "--search", search, "--samples", "3", "--space", str(space),
-                     "--steps", "600", "--out", str(out), *TINY_SET, *(["--asha"] if asha else []), timeout=600)
+                     "--steps", "600", "--out", str(out), *TINY_SET, *(["--asha"] if asha else []), timeout=600,
+                     env_extra=shared_ray)
     assert result.returncode == 0, result.stderr
     rows = _rows(out / "summary.csv")
     assert len(rows) == 3 and len({r["trial"] for r in rows}) == 3
@@ -590,8 +614,9 @@ def test_search_samples_configurations_from_the_space(tmp_path, search, asha):
 
 
 @pytest.mark.ray
-def test_python_api_runs_a_sweep(tmp_path, monkeypatch):
+def test_python_api_runs_a_sweep(tmp_path, monkeypatch, shared_ray):
     monkeypatch.setenv("PYTHONPATH", str(TESTS) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    monkeypatch.setenv("RAY_ADDRESS", shared_ray["RAY_ADDRESS"])
     tiny = [pair for pair in TINY_SET[1:]]
     spec = sweep.SweepSpec(env_id=DRIFT, steps=300, seeds=[5], overrides=tiny, grid={"gamma": [0.9]})
     result = sweep.run_sweep(spec, tmp_path / "api", log=lambda *a: None)
