@@ -144,3 +144,36 @@ def test_bench_crossq_runs_the_crossq_preset_beside_sbx_crossq_at_its_settings()
     assert out["throughput"]["sbx-crossq-softac"]["median_steps_per_s"] > 0
     assert "softac_ratio" in out["throughput"]["sbx-crossq-softac"]
     assert "SBX's CrossQ at softac's crossq preset settings" in r.stderr
+
+
+def test_suite_time_script_counts_each_tests_compiles_processes_and_markers(tmp_path):
+    """benchmarks/suite_time.py (docs/development.md, issue 64): a pytest session of its own with the probe in
+    every process; the tables count per file and per marker the tests, the XLA compiles (the test's own and its
+    child process's) and the processes started; --report prints them again from what it kept."""
+    import subprocess
+    import sys
+
+    from conftest import TESTS
+
+    tests = tmp_path / "tests"
+    tests.mkdir()
+    (tests / "test_probed.py").write_text(
+        "import subprocess, sys\nimport jax\nimport pytest\n\n\n@pytest.mark.numerics\ndef test_compiles():\n"
+        "    assert float(jax.jit(lambda x: x * 2.0)(3.0)) == 6.0\n\n\ndef test_starts_a_jax_process():\n"
+        "    subprocess.run([sys.executable, '-c', 'import jax; jax.jit(lambda x: x + 1)(1)'], check=True)\n")
+    script, out = TESTS.parent / "benchmarks" / "suite_time.py", tmp_path / "record"
+    r = subprocess.run([sys.executable, str(script), "--out", str(out), "--workers", "0", "--", "-c", "pyproject.toml",
+                        "--rootdir", str(tests), "-p", "no:randomly", str(tests / "test_probed.py")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "tests: 2," in r.stdout and "processes the tests started (with JAX): 1," in r.stdout
+    rows = {line.split(" | ")[0].lstrip("| "): [cell.strip() for cell in line.strip(" |").split(" | ")[1:]]
+            for line in r.stdout.splitlines() if line.startswith("| ") and "---" not in line}
+    # tests, seconds, compile, backend, compiles, over 1 s, cache saved, processes, ...
+    assert rows["test_probed.py"][0] == "2" and int(rows["test_probed.py"][4]) >= 2 and rows["test_probed.py"][7] == "1"
+    assert rows["numerics"][0] == "1" and rows["(no marker)"][0] == "1" and rows["(no marker)"][7] == "1"
+    again = subprocess.run([sys.executable, str(script), "--report", str(out)], capture_output=True, text=True,
+                           timeout=60)
+    assert again.returncode == 0 and again.stdout.strip() == r.stdout[r.stdout.index("session: "):].strip(), again.stderr
+    refused = subprocess.run([sys.executable, str(script), "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "is not empty" in refused.stderr
