@@ -147,9 +147,9 @@ def test_bench_crossq_runs_the_crossq_preset_beside_sbx_crossq_at_its_settings()
 
 
 def test_suite_time_script_counts_each_tests_compiles_processes_and_markers(tmp_path):
-    """benchmarks/suite_time.py (docs/development.md, issue 64): a pytest session of its own with the probe in
-    every process; the tables count per file and per marker the tests, the XLA compiles (the test's own and its
-    child process's) and the processes started; --report prints them again from what it kept."""
+    """benchmarks/suite_time.py (docs/development.md, issue 64): a pytest session of its own (one xdist worker)
+    with the probe in every process; the tables count per file and per marker the tests, the XLA compiles (the
+    test's own and its child process's) and the processes started; --report prints them again from what it kept."""
     import subprocess
     import sys
 
@@ -162,11 +162,13 @@ def test_suite_time_script_counts_each_tests_compiles_processes_and_markers(tmp_
         "    assert float(jax.jit(lambda x: x * 2.0)(3.0)) == 6.0\n\n\ndef test_starts_a_jax_process():\n"
         "    subprocess.run([sys.executable, '-c', 'import jax; jax.jit(lambda x: x + 1)(1)'], check=True)\n")
     script, out = TESTS.parent / "benchmarks" / "suite_time.py", tmp_path / "record"
-    r = subprocess.run([sys.executable, str(script), "--out", str(out), "--workers", "0", "--", "-c", "pyproject.toml",
+    r = subprocess.run([sys.executable, str(script), "--out", str(out), "--workers", "1", "--", "-c", "pyproject.toml",
                         "--rootdir", str(tests), "-p", "no:randomly", str(tests / "test_probed.py")],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "tests: 2," in r.stdout and "processes the tests started (with JAX): 1," in r.stdout
+    # each test's seconds once: from the worker that ran it (pytest-xdist's controller hears its reports again)
+    assert sorted(p.name for p in (out / "events").glob("durations-*")) == ["durations-gw0.json"]
     rows = {line.split(" | ")[0].lstrip("| "): [cell.strip() for cell in line.strip(" |").split(" | ")[1:]]
             for line in r.stdout.splitlines() if line.startswith("| ") and "---" not in line}
     # tests, seconds, compile, backend, compiles, over 1 s, cache saved, processes, ...

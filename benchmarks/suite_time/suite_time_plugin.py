@@ -16,14 +16,15 @@ def _path(kind: str) -> str:
 def pytest_collection_modifyitems(session, config, items):
     if not os.environ.get("SUITE_TIME_EVENTS"):
         return
-    ours = {line.split(":", 1)[0].strip() for line in config.getini("markers")}
+    ours = {line.split(":", 1)[0].strip() for line in config.getini("markers")} - {"xdist_group"}  # the Ray group
     markers = {item.nodeid.split("@", 1)[0]: sorted({m.name for m in item.iter_markers()} & ours) for item in items}
     with open(_path("markers"), "w") as f:
         json.dump(markers, f)
 
 
 def pytest_runtest_logreport(report):
-    if os.environ.get("SUITE_TIME_EVENTS"):
+    # under pytest-xdist the controller hears each worker's reports again (they carry the worker's node)
+    if os.environ.get("SUITE_TIME_EVENTS") and not hasattr(report, "node"):
         _seconds[report.nodeid.split("@", 1)[0]] += report.duration
 
 
