@@ -607,7 +607,9 @@ def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at
     batches = jax.tree_util.tree_map(lambda x: np.stack([x, x]), batch)
     new, _ = fns.update(jax.tree_util.tree_map(jnp.copy, state), batches)
     first = jax.tree_util.tree_map(jnp.copy, state)
-    (after_one, _), _ = sac.gradient_step(s, None, (first, sac.zero_totals()), batch)
+    # jitted, as the update runs it (op by op, this one step took about a minute of the suite's time: issue 64)
+    (after_one, _), _ = jax.jit(lambda carry, b: sac.gradient_step(s, None, carry, b))((first, sac.zero_totals()),
+                                                                                      batch)
     for target, start in zip(leaves(after_one.target_encoder), leaves(state.target_encoder)):
         np.testing.assert_array_equal(np.asarray(target), np.asarray(start))  # not due yet
     for target, start, online in zip(leaves(new.target_encoder), leaves(state.target_encoder), leaves(new.encoder)):
