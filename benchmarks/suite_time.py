@@ -101,7 +101,7 @@ def _table(title: str, groups: dict[str, collections.Counter], top: int | None =
     lines = [f"| {title} | " + " | ".join(COLUMNS) + " |", "| --- " * (len(COLUMNS) + 1) + "|"]
     for name, c in rows[:top]:
         r = _row(c)
-        lines.append(f"| {name} | " + " | ".join(f"{r[k]:,.0f}" for k in COLUMNS) + " |")
+        lines.append(f"| {name} | " + " | ".join(f"{round(r[k]):,}" for k in COLUMNS) + " |")
     return lines
 
 
