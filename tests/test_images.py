@@ -81,12 +81,14 @@ def test_the_encoder_in_pieces_gives_each_image_the_features_and_gradients_of_th
     a remainder piece included (10 images in pieces of 4)."""
     params = jax.tree_util.tree_map(jnp.asarray, init_encoder(np.random.default_rng(0), (16, 16, 6), 8, 12))
     images = jnp.asarray(np.random.default_rng(1).integers(0, 256, (10, 16, 16, 6), dtype=np.uint8))
-    whole, pieces = encode(params, images), encode(params, images, chunk=4)
+    # jitted, as the update runs it (op by op the test spent ~20 s compiling each op: issue 64)
+    jit_encode = jax.jit(encode, static_argnums=2)
+    whole, pieces = jit_encode(params, images, 0), jit_encode(params, images, 4)
     # the same float32 sums compiled for two batch shapes may round apart by a few units of 2^-24 of the
     # LayerNorm's and tanh's inputs (order ~1); 1e-5 leaves room
     assert pieces.shape == whole.shape and np.abs(np.asarray(pieces) - np.asarray(whole)).max() < 1e-5
     weights = jnp.asarray(np.random.default_rng(2).normal(size=whole.shape), jnp.float32)
-    grads = [jax.grad(lambda p, c=c: jnp.sum(encode(p, images, c) * weights))(params) for c in (0, 4)]
+    grads = [jax.jit(jax.grad(lambda p, c=c: jnp.sum(encode(p, images, c) * weights)))(params) for c in (0, 4)]
     for a, b in zip(*map(jax.tree_util.tree_leaves, grads)):
         scale = np.abs(np.asarray(a)).max() + 1e-6
         assert np.abs(np.asarray(a) - np.asarray(b)).max() <= 1e-4 * scale
