@@ -87,10 +87,10 @@ test-fast: $(TEST_STAMP)
 # compiled the same object files with it as without (issue 64), so make test ran these tests as test-isa would,
 # and test-isa says so and stops.
 ISA ?= AVX2
+ISA_TESTS = XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q $(XDIST) $(STOP_EARLY) -m "numerics and not ray"
 test-isa: $(TEST_STAMP)
 	@if $(BIN)/python -c "import sys; from softac.cpus import xla_limit_changes_code; sys.exit(not xla_limit_changes_code('$(ISA)'))"; then \
-	  echo 'XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q $(XDIST) $(STOP_EARLY) -m "numerics and not ray"'; \
-	  XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(BIN)/python -m pytest -q $(XDIST) $(STOP_EARLY) -m "numerics and not ray"; \
+	  echo '$(ISA_TESTS)'; $(ISA_TESTS); \
 	else \
 	  echo "test-isa: this CPU has no instruction set newer than $(ISA) ($$($(BIN)/python -c 'from softac.cpus import machine_description; print(machine_description())')): XLA compiles the same code with the limit as without, so make test ran these tests as test-isa would"; \
 	fi

@@ -197,6 +197,10 @@ ISA_FLAGS = (("AMX_FP16", "amx_fp16"), ("AMX", "amx_bf16"), ("AVX512_BF16", "avx
              ("AVX512_VNNI", "avx512_vnni"), ("AVX512", "avx512f"), ("AVX2", "avx2"), ("AVX", "avx"),
              ("SSE4_2", "sse4_2"))
 
+# the label machine_description gives each of cpu_isa's answers (none below AVX2)
+VECTOR_EXTENSIONS = {"AMX_FP16": "AMX", "AMX": "AMX", "AVX512_BF16": "AVX-512 BF16", "AVX512_VNNI": "AVX-512",
+                     "AVX512": "AVX-512", "AVX2": "AVX2"}
+
 
 def cpu_isa() -> str | None:
     """The newest of XLA_MAX_ISAS this CPU has (None where it has none of them, e.g. an ARM CPU, or no
@@ -238,14 +242,8 @@ def cpu_has_bf16() -> bool:
 def vector_extensions() -> str:
     """The widest vector instructions the CPU has (what XLA's matmuls run on): two machines sold under one
     model name ("AMD EPYC") ran the same update 7x apart, one with AVX-512 BF16 and one without AVX-512."""
-    flags = cpu_flags()
-    if "amx_bf16" in flags:
-        return "AMX"
-    if "avx512_bf16" in flags:
-        return "AVX-512 BF16"
-    if "avx512f" in flags:
-        return "AVX-512"
-    return "AVX2" if "avx2" in flags else ""
+    return VECTOR_EXTENSIONS.get(cpu_isa() or "", "")
+
 
 
 def machine_description() -> str:
