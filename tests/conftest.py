@@ -1,3 +1,4 @@
+import contextlib
 import os
 import subprocess
 import sys
@@ -85,6 +86,24 @@ def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra
     env = {**child_env(), **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "softac", *args], capture_output=True, text=True,
                           timeout=timeout, env=env, cwd=cwd, **popen)
+
+
+@contextlib.contextmanager
+def ray_test_cluster(**head_node_args):
+    """Ray's test cluster (ray.cluster_utils.Cluster), its head started with `head_node_args` (no dashboard). While
+    it runs, this process's environment, which its nodes' processes (started now or added later) inherit, has
+    the test envs' module on PYTHONPATH and Ray's workers leaving their child processes alive on exit, as
+    docs/cluster.md's `ray start` and a sweep's local Ray have them."""
+    from ray.cluster_utils import Cluster
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
+        patch.setenv("RAY_kill_child_processes_on_worker_exit", "false")
+        cluster = Cluster(initialize_head=True, head_node_args={"include_dashboard": False, **head_node_args})
+        try:
+            yield cluster
+        finally:
+            cluster.shutdown()
 
 
 def signal_when(proc: subprocess.Popen, ready, sig: int, within_s: float = 600) -> str:

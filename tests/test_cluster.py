@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import TESTS, assert_same_last_checkpoint, run_cli
+from conftest import TESTS, assert_same_last_checkpoint, ray_test_cluster, run_cli
 from softac import sweep
 
 pytest.importorskip("ray.tune", reason="the [ray] extra is not installed")
@@ -65,18 +65,9 @@ def cluster():
     """A head without CPUs (the driver's node) and two worker nodes of one CPU each: two trials at a time, one per
     node. The nodes' processes inherit this environment: the test envs' module, and Ray's workers leaving their
     child processes alive on exit (docs/cluster.md's `ray start` does the same)."""
-    from ray.cluster_utils import Cluster
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-        patch.setenv("RAY_kill_child_processes_on_worker_exit", "false")
-        cluster = Cluster(initialize_head=True, head_node_args={
-            "num_cpus": 0, "include_dashboard": False, "_system_config": FAST_HEALTH_CHECKS})
-        try:
-            _two_live_workers(cluster)
-            yield cluster
-        finally:
-            cluster.shutdown()
+    with ray_test_cluster(num_cpus=0, _system_config=FAST_HEALTH_CHECKS) as cluster:
+        _two_live_workers(cluster)
+        yield cluster
 
 
 def _two_live_workers(cluster) -> None:

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from conftest import TESTS, assert_clean_error, assert_same_last_checkpoint, child_env, run_cli, signal_when
+from conftest import (TESTS, assert_clean_error, assert_same_last_checkpoint, child_env, ray_test_cluster, run_cli,
+                      signal_when)
 from softac import sweep
 from softac.errors import SoftacError
 from softac.sweep.driver import local_cpus
@@ -323,22 +324,13 @@ def test_peers_take_eval_settings_spelled_either_way(framework):
 @pytest.fixture(scope="module")
 def shared_ray():
     """One Ray for the sweeps here that need none of their own: a head of this machine's CPUs (Ray's test
-    cluster, the trials' environment as a local Ray's: the test envs, Ray's workers leaving their child
-    processes alive), which each joins through RAY_ADDRESS, as under `ray job submit`. Each then skips a local
-    Ray's start and stop (5.5 s of a 2-trial sweep's 23.5 s, measured on an AMD EPYC; issue 64). The sweeps of a
-    local Ray's own behaviour start their own: a driver stopped by a signal, a failing trial's report, a pinned
-    trial against `softac train --cpus 1`, and one driver per directory (test_run_lock)."""
-    from ray.cluster_utils import Cluster
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("PYTHONPATH", os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]))
-        patch.setenv("RAY_kill_child_processes_on_worker_exit", "false")
-        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": local_cpus(),
-                                                          "include_dashboard": False})
-    try:
+    cluster, the trials' environment as a local Ray's: conftest.ray_test_cluster), which each joins through
+    RAY_ADDRESS, as under `ray job submit`. Each then skips a local Ray's start and stop (5.5 s of a 2-trial
+    sweep's 23.5 s, measured on an AMD EPYC; issue 64). The sweeps of a local Ray's own behaviour start their
+    own: a driver stopped by a signal, a failing trial's report, a pinned trial against `softac train --cpus 1`,
+    and one driver per directory (test_run_lock)."""
+    with ray_test_cluster(num_cpus=local_cpus()) as cluster:
         yield {"RAY_ADDRESS": cluster.address}
-    finally:
-        cluster.shutdown()
 
 
 @pytest.fixture(scope="module")
