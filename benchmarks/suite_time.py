@@ -31,7 +31,8 @@ RAY = ("ray_init", "ray_shutdown", "ray_cluster_start", "ray_cluster_shutdown")
 OUTSIDE = "(outside a test: collection, session fixtures)"
 
 
-def run(out: Path, workers: int, pytest_args: list[str]) -> float:
+def run(out: Path, workers: int, pytest_args: list[str]) -> int:
+    """pytest's exit code; its wall time and command go to out/session.json."""
     events = out / "events"
     events.mkdir(parents=True, exist_ok=True)
     # a session of its own, also when started from inside another (its test): not that one's worker or test
@@ -45,7 +46,7 @@ def run(out: Path, workers: int, pytest_args: list[str]) -> float:
     wall = time.monotonic() - start
     (out / "session.json").write_text(json.dumps({"wall_s": wall, "exit_code": code, "workers": workers,
                                                   "command": cmd[1:]}))
-    return wall
+    return code
 
 
 def _test_seconds(out: Path) -> dict[str, float]:
@@ -151,9 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--out DIR is required to run the suite")
     if a.out.exists() and any(a.out.iterdir()):
         p.error(f"{a.out} is not empty")
-    run(a.out, a.workers, a.pytest_args)
+    code = run(a.out, a.workers, a.pytest_args)
     print(report(a.out))
-    return json.loads((a.out / "session.json").read_text())["exit_code"]
+    return code
 
 
 if __name__ == "__main__":
