@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.softac-installed
 TEST_STAMP := $(VENV)/.softac-test-installed
 DEMO   := runs/demo/$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: demo test test-deps test-fast test-isa test-min test-min-full bench docs docs-site venv clean-venv render-deps system-deps
+.PHONY: demo test test-deps test-venv min-deps docs-deps test-fast test-isa test-min test-min-full bench docs docs-site venv clean-venv render-deps system-deps
 
 venv: $(STAMP)
 
@@ -27,8 +27,12 @@ $(TEST_STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[test]"
 	@touch $(STAMP) $@
 
-# the test venv and the Debian packages, without running anything (.ci/run times the installs on their own)
+# the test venv and the Debian packages, without running anything
 test-deps: $(TEST_STAMP) system-deps
+
+# each install on its own: .ci/run runs them at once (the .venv, then its docs extra; .venv-min; the Debian
+# packages), since they wait on the package registry and dpkg more than on the CPU (issue 64)
+test-venv: $(TEST_STAMP)
 
 # Debian packages, installed when missing and we may (root, or passwordless sudo):
 # libosmesa6 lets MuJoCo render headless where EGL does not work; chromium runs the report test.
@@ -108,6 +112,8 @@ $(MIN_STAMP): pyproject.toml .ci/min-versions.txt
 	  "pytest-randomly>=3.15" "pytest-xdist>=3.5"
 	@touch $@
 
+min-deps: $(MIN_STAMP)
+
 test-min: $(MIN_STAMP)
 	$(MIN_VENV)/bin/python -m pytest -q -p no:cacheprovider $(XDIST) $(STOP_EARLY) -m "(numerics or exact) and not ray and not robotics"
 
@@ -135,6 +141,8 @@ DOCS_STAMP := $(VENV)/.softac-docs-installed
 $(DOCS_STAMP): $(STAMP)
 	$(BIN)/python -m pip install -q -e ".[docs]"
 	@touch $@
+
+docs-deps: $(DOCS_STAMP)
 
 docs-site: $(DOCS_STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet

@@ -56,8 +56,11 @@ def _test_seconds(out: Path) -> dict[str, float]:
     return seconds
 
 
-def _events(out: Path) -> tuple[dict[str, collections.Counter], dict[str, list[str]]]:
+def _events(out: Path) -> tuple[dict[str, collections.Counter], dict[str, list[str]], dict[str, collections.Counter]]:
+    """Per test, the events' seconds and counts; each test's markers; per compiled function (JAX's name for it,
+    `jit(update)`), its XLA backend seconds and compiles."""
     per_test: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    per_function: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     markers: dict[str, list[str]] = {}
     for path in sorted((out / "events").iterdir()):
         if path.name.startswith("markers-"):
@@ -79,10 +82,16 @@ def _events(out: Path) -> tuple[dict[str, collections.Counter], dict[str, list[s
                 continue
             c[e["event"]] += e["secs"]
             c["n " + e["event"]] += 1
-            if e["event"] == BACKEND and e["secs"] >= 1.0:
-                c["n big compile"] += 1
-                c["big compile"] += e["secs"]
-    return per_test, markers
+            if e["event"] == BACKEND:
+                f = per_function[e.get("fun", "(unnamed)")]
+                f["compiles"] += 1
+                f["backend"] += e["secs"]
+                if e["secs"] >= 1.0:
+                    c["n big compile"] += 1
+                    c["big compile"] += e["secs"]
+                    f["over 1 s"] += 1
+                    f["over 1 s seconds"] += e["secs"]
+    return per_test, markers, per_function
 
 
 def _row(c: collections.Counter) -> dict[str, float]:
@@ -106,9 +115,19 @@ def _table(title: str, groups: dict[str, collections.Counter], top: int | None =
     return lines
 
 
+def _function_table(per_function: dict[str, collections.Counter], top: int = 12) -> list[str]:
+    """The compiled functions that took XLA's backend the longest (a cache hit counts too, at its reading's
+    seconds): one program per distinct config and shapes, so `jit(update)` leads."""
+    columns = ["backend", "compiles", "over 1 s", "over 1 s seconds"]
+    lines = ["| compiled function | " + " | ".join(columns) + " |", "| --- " * (len(columns) + 1) + "|"]
+    for name, f in sorted(per_function.items(), key=lambda kv: -kv[1]["backend"])[:top]:
+        lines.append(f"| {name} | " + " | ".join(f"{round(f[k]):,}" for k in columns) + " |")
+    return lines
+
+
 def report(out: Path) -> str:
     seconds = _test_seconds(out)
-    per_test, markers = _events(out)
+    per_test, markers, per_function = _events(out)
     files: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     by_marker: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     total: collections.Counter = collections.Counter()
@@ -134,7 +153,7 @@ def report(out: Path) -> str:
              f"Ray: {total['n ray_init']:,.0f} ray.init ({total['ray_init']:,.0f} s), {total['n ray_shutdown']:,.0f} "
              f"ray.shutdown ({total['ray_shutdown']:,.0f} s), {total['n ray_cluster_start']:,.0f} test clusters "
              f"({total['ray_cluster_start'] + total['ray_cluster_shutdown']:,.0f} s to start and stop)",
-             "", *_table("file", files), "", *_table("marker", by_marker)]
+             "", *_table("file", files), "", *_table("marker", by_marker), "", *_function_table(per_function)]
     return "\n".join(lines)
 
 

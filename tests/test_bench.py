@@ -149,7 +149,8 @@ def test_bench_crossq_runs_the_crossq_preset_beside_sbx_crossq_at_its_settings()
 def test_suite_time_script_counts_each_tests_compiles_processes_and_markers(tmp_path):
     """benchmarks/suite_time.py (docs/development.md, issue 64): a pytest session of its own (one xdist worker)
     with the probe in every process; the tables count per file and per marker the tests, the XLA compiles (the
-    test's own and its child process's) and the processes started; --report prints them again from what it kept."""
+    test's own and its child process's) and the processes started, and per compiled function its compiles; --report
+    prints them again from what it kept."""
     import subprocess
     import sys
 
@@ -174,6 +175,8 @@ def test_suite_time_script_counts_each_tests_compiles_processes_and_markers(tmp_
     # tests, seconds, compile, backend, compiles, over 1 s, cache saved, processes, ...
     assert rows["test_probed.py"][0] == "2" and int(rows["test_probed.py"][4]) >= 2 and rows["test_probed.py"][7] == "1"
     assert rows["numerics"][0] == "1" and rows["(no marker)"][0] == "1" and rows["(no marker)"][7] == "1"
+    # per compiled function (JAX's name for it): the test's jit(<lambda>) and the child process's, 2 compiles
+    assert int(rows["jit(<lambda>)"][1]) == 2, r.stdout
     again = subprocess.run([sys.executable, str(script), "--report", str(out)], capture_output=True, text=True,
                            timeout=60)
     assert again.returncode == 0 and again.stdout.strip() == r.stdout[r.stdout.index("session: "):].strip(), again.stderr

@@ -42,7 +42,9 @@ def _after_jax(module) -> None:
     _write("jax_import", time.time() - _START)
     from jax import monitoring
 
-    monitoring.register_event_duration_secs_listener(lambda event, secs, **_: _write(event, secs))
+    # JAX names the compiled function (fun_name) with its tracing, lowering and backend events
+    monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: _write(event, secs, **({"fun": kw["fun_name"]} if "fun_name" in kw else {})))
 
 
 def _after_ray(module) -> None:
