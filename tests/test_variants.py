@@ -316,7 +316,8 @@ def test_simba_init_follows_the_authors_code():
 
 
 def test_simba_agent_acts_and_its_update_learns(tiny):
-    cfg = tiny(network="simba", hidden_sizes=[16], critic_hidden_sizes=[32, 32], obs_norm=True)
+    # the resume test's SimBa config (VARIANTS below): one update program for both, compiled once (issue 64)
+    cfg = tiny(**VARIANTS["simba"])
     agent = SAC(cfg)
     assert list(agent.learner.state.critic) == ["blocks", "embed", "head"]
     assert agent.learner.state.critic["blocks"][1]["w1"].shape == (2, 32, 128)  # two critics stacked
@@ -395,7 +396,8 @@ def test_an_averaging_runs_last_checkpoint_gives_its_final_evaluation_again_and_
     from softac.evaluation import evaluate
 
     run = tmp_path / "run"
-    SAC(tiny(policy_average_tau=0.05, eval_interval=400)).learn(400, run_dir=run, progress=False)
+    # the resume test's averaging config (VARIANTS below): their update program is compiled once (issue 64)
+    SAC(tiny(**{**VARIANTS["policy-average"], "eval_interval": 400})).learn(400, run_dir=run, progress=False)
     final = float((run / "eval.csv").read_text().splitlines()[-1].split(",")[1])
     agent = SAC.load(run, which="last")
     deployed, average, actor = (evaluate(agent, episodes=2, policy=p) for p in ("deployed", "average", "actor"))
@@ -447,7 +449,8 @@ VARIANTS = {
     "crossq-targets-adamw": dict(crossq=True, target_critics="on", weight_norm=True, weight_decay=0.01,
                                  weight_decay_layers="output", batch_renorm_warmup=400),
     "droq": dict(critic_dropout=0.01, critic_layer_norm=True, gradient_steps=3, policy_delay=3),
-    "simba": dict(network="simba", hidden_sizes=[16], obs_norm=True, weight_decay=0.01, target_entropy_scale=0.5),
+    "simba": dict(network="simba", hidden_sizes=[16], critic_hidden_sizes=[32, 32], obs_norm=True, weight_decay=0.01,
+                  target_entropy_scale=0.5),
     # evaluations run the averaged actor: eval.csv alike means the average resumed exactly too
     "policy-average": dict(crossq=True, policy_average_tau=0.05, policy_delay=3),
 }
