@@ -245,7 +245,6 @@ def vector_extensions() -> str:
     return VECTOR_EXTENSIONS.get(cpu_isa() or "", "")
 
 
-
 def machine_description() -> str:
     """CPU model (with its vector extensions), core count and Python version: the line every benchmark,
     report and run directory is labelled with."""
