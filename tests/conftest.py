@@ -88,6 +88,22 @@ def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra
                           timeout=timeout, env=env, cwd=cwd, **popen)
 
 
+def run_cli_in_process(*args: str) -> subprocess.CompletedProcess:
+    """`softac ARGS` as softac.cli.main runs it in this process (a notebook's or a script's call), its exit code
+    and its stdout and stderr captured: for tests of what a command does with many configurations (every preset
+    trains), which would otherwise pay a process, its `import jax` and its compile-cache reads each (issue 64:
+    about 3 s of CPU a run). The tests of how a command behaves as a process of its own (exit codes as a shell
+    sees them, signals, one-line errors) run it through run_cli."""
+    import io
+
+    from softac.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(list(args))
+    return subprocess.CompletedProcess(["softac", *args], code, out.getvalue(), err.getvalue())
+
+
 @contextlib.contextmanager
 def ray_test_cluster(**head_node_args):
     """Ray's test cluster (ray.cluster_utils.Cluster), its head started with `head_node_args` (no dashboard). While

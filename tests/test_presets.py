@@ -1,12 +1,13 @@
 """Every preset trains: 110 steps (10 of them learning: enough env steps for every preset's critic and actor
-steps, policy delay 3 included, to run) with its own networks and settings, through the CLI."""
+steps, policy delay 3 included, to run) with its own networks and settings, through the CLI's main() in the
+test's process (conftest.run_cli_in_process)."""
 
 import json
 
 import pytest
 import yaml
 
-from conftest import run_cli
+from conftest import run_cli_in_process
 from softac.config import DMC_PRESET, GENERIC_PRESETS, SACConfig, load_preset, preset_names
 from softac.dmc import is_dmc_id
 from softac.envs import ROBOTICS_PREFIXES
@@ -40,8 +41,8 @@ def test_env_preset_trains_a_few_hundred_steps(name, tmp_path):
     # the preset's networks, batch, rates and flags as they are; only the budget, the warm-up and the
     # buffer shrink so that the run includes learning (10 env steps of the preset's updates: what a wrong shape,
     # dtype or flag breaks fails at the first); the env's own preset, as a user who gives only --env gets it
-    r = run_cli("train", "--env", env, "--steps", str(steps), "--out", str(run), "--no-progress", "--set",
-                "learning_starts=100", "buffer_size=5000", f"eval_interval={steps}", "eval_episodes=1", timeout=600)
+    r = run_cli_in_process("train", "--env", env, "--steps", str(steps), "--out", str(run), "--no-progress", "--set",
+                           "learning_starts=100", "buffer_size=5000", f"eval_interval={steps}", "eval_episodes=1")
     assert r.returncode == 0, r.stderr
     config = yaml.safe_load((run / "config.yaml").read_text())
     for key in ("hidden_sizes", "critic_hidden_sizes", "batch_size", "critic_lr", "gamma", "gradient_steps", "obs_norm", "crossq",
@@ -60,9 +61,9 @@ SHRUNK = {"drq": ["pixel_size=24", "batch_size=16", "hidden_sizes=64,64", "encod
 def test_generic_preset_trains_any_env_a_few_hundred_steps(name, tmp_path):
     """`--preset NAME` on an env it was not written for (a 4-value observation, 1 action; drq: its frames)."""
     run = tmp_path / "run"
-    r = run_cli("train", "--env", "InvertedPendulum-v5", "--preset", name, "--steps", "110", "--out", str(run),
-                "--no-progress", "--set", "learning_starts=100", "buffer_size=5000", "eval_interval=110",
-                "eval_episodes=1", *SHRUNK.get(name, []), timeout=600)
+    r = run_cli_in_process("train", "--env", "InvertedPendulum-v5", "--preset", name, "--steps", "110", "--out",
+                           str(run), "--no-progress", "--set", "learning_starts=100", "buffer_size=5000",
+                           "eval_interval=110", "eval_episodes=1", *SHRUNK.get(name, []))
     assert r.returncode == 0, r.stderr
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["env_id"] == "InvertedPendulum-v5"

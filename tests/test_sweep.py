@@ -581,8 +581,10 @@ def test_a_stopped_sweep_lets_its_running_trial_write_its_checkpoint(tmp_path, f
 @pytest.mark.ray
 @pytest.mark.parametrize("search, asha", [("optuna", True), ("random", False)])
 def test_search_samples_configurations_from_the_space(tmp_path, search, asha, shared_ray):
+    # a continuous key the host draws with (random_action_prob) and one that shapes the compiled update
+    # (batch_size): the trials compile two update programs, where a sampled tau gave each its own (issue 64)
     space = tmp_path / "space.yaml"
-    space.write_text("tau: {loguniform: [0.01, 0.2]}\nbatch_size: {choice: [16, 32]}\n")
+    space.write_text("random_action_prob: {loguniform: [0.01, 0.2]}\nbatch_size: {choice: [16, 32]}\n")
     out = tmp_path / "search"
     result = run_cli("sweep", "--env", DRIFT, "--search", search, "--samples", "3", "--space", str(space),
                      "--steps", "600", "--out", str(out), *TINY_SET, *(["--asha"] if asha else []), timeout=600,
@@ -591,15 +593,15 @@ def test_search_samples_configurations_from_the_space(tmp_path, search, asha, sh
     rows = _rows(out / "summary.csv")
     assert len(rows) == 3 and len({r["trial"] for r in rows}) == 3
     for row in rows:
-        assert 0.01 <= float(row["tau"]) <= 0.2 and row["batch_size"] in ("16", "32")
+        assert 0.01 <= float(row["random_action_prob"]) <= 0.2 and row["batch_size"] in ("16", "32")
         assert row["status"] in (("done", "stopped early") if asha else ("done",))
     md = (out / "summary.md").read_text()
-    assert "Best trial" in md and "--set" in md and " tau=" in md
+    assert "Best trial" in md and "--set" in md and " random_action_prob=" in md
     argv = __import__("shlex").split(md.split("more seeds: `")[1].split("`")[0])
     sets = argv[argv.index("--set") + 1:argv.index("--out")]
     kept = [pair for pair in TINY_SET[1:] if not pair.startswith("batch_size=")]  # batch_size is sampled
     assert sets[:len(kept)] == kept  # the search's overrides, then its sampled values
-    assert {pair.split("=")[0] for pair in sets[len(kept):]} == {"tau", "batch_size"}
+    assert {pair.split("=")[0] for pair in sets[len(kept):]} == {"random_action_prob", "batch_size"}
     again = run_cli("sweep", "--resume", str(out), timeout=300)  # a finished search is not rerun
     assert again.returncode == 0, again.stderr
     assert len(_rows(out / "summary.csv")) == 3
