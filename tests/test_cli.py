@@ -14,6 +14,7 @@ import time
 import pytest
 
 from conftest import assert_clean_error, assert_same_last_checkpoint, child_env, run_cli, signal_when
+from softac.errors import SoftacError
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "buffer_size=5000",
              "log_interval=100", "eval_episodes=2"]
@@ -186,6 +187,8 @@ def test_main_called_in_process_leaves_the_callers_sigterm_handling_as_it_was_af
     (["train", "--preset", "nope"], ["unknown preset 'nope'"]),
     (["train", "--config", "/nonexistent/c.yaml"], ["config file not found"]),
     (["train", "--steps", "-5"], ["--steps"]),
+    # a flag and a --set of its key must agree (the flag used to win silently; issue 65)
+    (["train", "--steps", "600", "--set", "total_steps=1200"], ["--steps 600 and --set total_steps=1200 disagree"]),
     (["train", "--set", "buffer_size=100000000000"], ["replay buffer", "available"]),
     (["train", "--resume", "/nonexistent/run"], ["no such run or checkpoint"]),
     (["train", "--cpus", "0"], ["--cpus must be >= 1"]),
@@ -202,6 +205,22 @@ def test_main_called_in_process_leaves_the_callers_sigterm_handling_as_it_was_af
 ])
 def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
     assert_clean_error(run_cli(*args, cwd=tmp_path), *fragments)
+
+
+def test_a_flag_and_a_set_of_its_key_may_say_the_same():
+    from softac.cli import build_parser
+    from softac.commands import FLAG_OF_KEY, _resolve_train_config
+
+    args = build_parser().parse_args(["train", "--env", "Pendulum-v1", "--steps", "600", "--seed", "3", "--logger",
+                                      "tensorboard,mlflow", "--set", "total_steps=600", "seed=3",
+                                      "loggers=tensorboard, mlflow"])
+    config = _resolve_train_config(args)
+    assert (config.env_id, config.total_steps, config.seed) == ("Pendulum-v1", 600, 3)
+    assert set(FLAG_OF_KEY) <= set(type(config).__dataclass_fields__)
+    for flag, key in (("--seed", "seed=4"), ("--n-envs", "n_envs=3"), ("--logger", "loggers=none")):
+        value = {"--seed": "3", "--n-envs": "2", "--logger": "tensorboard"}[flag]
+        with pytest.raises(SoftacError, match=f"^{flag} {value} and --set {key} disagree; give one$"):
+            _resolve_train_config(build_parser().parse_args(["train", flag, value, "--set", key]))
 
 
 def test_concurrent_processes_claim_different_cpus(tmp_path, monkeypatch):

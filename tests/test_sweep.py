@@ -231,6 +231,9 @@ def test_a_resumed_sweeps_progress_counts_the_trials_that_ended_before_it(tmp_pa
     (["--search", "random", "--seeds", "2"], "one seed"),
     (["--seeds", "0"], "--seeds"),
     (["--set", "batch_size=0"], "batch_size"),
+    # the sweep sets each trial's seed and budget itself (a trial's --seed and --steps)
+    (["--set", "seed=3"], "--set seed: a sweep sets seed from its --seeds; drop it from --set"),
+    (["--grid", "total_steps=100,200"], "--grid total_steps: a sweep sets total_steps from its --steps"),
     (["--env", "NoSuchEnv-v9"], "NoSuchEnv-v9"),
     (["--cpus-per-trial", "0"], "--cpus-per-trial"),
     (["--address", "127.0.0.1:1"], "cannot reach the Ray cluster"),

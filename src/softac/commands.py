@@ -30,8 +30,29 @@ def _resolve_train_config(args: argparse.Namespace):
     overrides = parse_overrides([pair for group in args.overrides for pair in group])
     direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "env_workers": args.env_workers,
               "device": args.device, "loggers": args.logger}
+    _refuse_flags_that_disagree_with_set(overrides, direct)
     # one replace, checked once: `--set env_workers=4 --n-envs 4` is valid though neither half is alone
     return config.replace(**{**overrides, **{k: v for k, v in direct.items() if v is not None}})
+
+
+# train's flags that set a config key, by key (--env picks the preset, which `--set env_id=` may move to another
+# env: a sweep's grid over env_id does, each trial keeping the sweep env's preset)
+FLAG_OF_KEY = {"total_steps": "--steps", "seed": "--seed", "n_envs": "--n-envs", "env_workers": "--env-workers",
+               "device": "--device", "loggers": "--logger"}
+
+
+def _refuse_flags_that_disagree_with_set(overrides: dict, flags: dict) -> None:
+    """A flag and a `--set` of its key that say different things: one line naming both (the flag used to win
+    silently, and `--steps 600 --set total_steps=1200` recorded 600, so a later --resume trained nothing; issue
+    65). The same value twice is allowed."""
+    for key, flag_value in flags.items():
+        if flag_value is None or key not in overrides:
+            continue
+        value = overrides[key]
+        same = (str(value).replace(" ", "") == str(flag_value).replace(" ", "") if key == "loggers"
+                else value == flag_value)
+        if not same:
+            raise SoftacError(f"{FLAG_OF_KEY[key]} {flag_value} and --set {key}={value} disagree; give one")
 
 
 def _default_run_dir(config) -> Path:

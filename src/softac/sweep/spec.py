@@ -294,6 +294,20 @@ def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
                           "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
 
 
+# the keys a sweep sets in each trial's command itself, by the sweep's option that sets them
+SWEEP_SETS = {"seed": "--seeds", "total_steps": "--steps"}
+
+
+def _refuse_keys_the_sweep_sets(spec: SweepSpec) -> None:
+    """`--set seed=3` (or a grid or space over it) beside the sweep's own --seeds would disagree with each trial's
+    --seed flag (a trial's `softac train` refuses that; issue 65): one line now, before Ray starts."""
+    for where, keys in (("--set", [override_key(pair.split("=", 1)[0]) for pair in spec.overrides]),
+                        ("--grid", list(spec.grid)), ("--space", list(spec.space or {}) if spec.search else [])):
+        for key in keys:
+            if key in SWEEP_SETS:
+                raise SoftacError(f"{where} {key}: a sweep sets {key} from its {SWEEP_SETS[key]}; drop it from {where}")
+
+
 def validate(spec: SweepSpec) -> SACConfig:
     """Every trial's config, checked before Ray starts (bad input fails in a second, with one line)."""
     from softac.envs import resolve_env_id
@@ -305,6 +319,7 @@ def validate(spec: SweepSpec) -> SACConfig:
         from softac.loop import check_success_rate
 
         check_success_rate(spec.target_success, "--target-success")
+    _refuse_keys_the_sweep_sets(spec)
     base = spec.base_config()
     if spec.framework != "softac":
         check_peer_spec(spec, base)
