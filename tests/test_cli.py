@@ -366,13 +366,27 @@ def test_checkpoint_problems_are_clean_errors(tmp_path):
     assert_clean_error(run_cli("eval", str(empty)), "holds no checkpoint")
 
 
-def test_presets_lists_every_preset():
+def test_presets_lists_every_preset_a_line_each_and_shows_one_whole():
+    from softac.config import load_preset, preset_names
+
     r = run_cli("presets")
     assert r.returncode == 0
-    for name in ("InvertedPendulum-v5", "InvertedPendulum-v4", "Pusher-v5", "sb3", "cleanrl", "default"):
-        assert name in r.stdout
-    [dmc] = [line for line in r.stdout.splitlines() if line.startswith("dmc ")]
+    lines = r.stdout.splitlines()
+    assert [line.split()[0] for line in lines] == preset_names()  # a line each, nothing else on stdout
+    assert all(len(line) <= 140 for line in lines), max(lines, key=len)
+    [dmc] = [line for line in lines if line.startswith("dmc ")]
     assert "[dmc]" in dmc and "action repeat 2" in dmc
+    assert "softac presets NAME" in r.stderr
+    r = run_cli("presets", "crossq-avg")
+    assert r.returncode == 0, r.stderr
+    page = r.stdout.splitlines()
+    assert page[0] == "crossq-avg  [any env]" and page[1].startswith("CrossQ deploying a weight average")
+    assert "Nikishin et al. 2018" in r.stdout and "(with those of crossq, which it extends)" in r.stdout
+    assert max(len(line) for line in page) <= 100
+    settings = page[page.index(next(line for line in page if line.startswith("settings"))) + 1:]
+    assert [line.split(":")[0].strip() for line in settings] == list(load_preset("crossq-avg"))
+    assert "  policy_average_tau: 0.001" in settings and "  hidden_sizes: [256, 256]" in settings
+    assert_clean_error(run_cli("presets", "crosq"), "unknown preset 'crosq'", "did you mean crossq?")
     assert_clean_error(run_cli("train", "--preset", "dmc", "--steps", "10"), "preset 'dmc' is for DeepMind Control")
 
 

@@ -34,14 +34,17 @@ def test_a_dmc_task_gets_its_own_preset_in_either_id_form_and_the_others_get_dmc
 def test_every_preset_has_a_description_and_a_row_in_the_readme_and_the_presets_guide():
     from pathlib import Path
 
-    from softac.config import preset_summary
+    from softac.config import preset_description, preset_summary
 
     root = Path(__file__).resolve().parent.parent
     readme = (root / "README.md").read_text()
     short = readme.split("## Presets")[1].split("\n## ")[0]  # one line each, several names to a line
     full = (root / "docs" / "guides" / "presets.md").read_text().split("\n\n")[1]
     for name in preset_names():
-        assert preset_summary(name), name
+        # one sentence a newcomer reads in a list (`softac presets`), the rest for `softac presets NAME`
+        summary = preset_summary(name)
+        assert summary and len(summary) <= 100 and summary.endswith("."), name
+        assert preset_description(name), name
         assert f"`{name}`" in short, name
         assert f"| `{name}` |" in full, name
 

@@ -165,7 +165,8 @@ def build_parser() -> _Parser:
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     _add_allow_new_bounds(e)
 
-    sub.add_parser("presets", help="list presets")
+    pr = sub.add_parser("presets", help="list presets, a line each; with NAME, that one's description and settings")
+    pr.add_argument("name", nargs="?", metavar="NAME", help="a preset to show whole")
 
     pl = sub.add_parser("plot", help="learning curve and metric grid; several runs: mean and 95%% CI across seeds")
     pl.add_argument("runs", nargs="+", metavar="RUN")

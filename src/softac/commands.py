@@ -307,14 +307,48 @@ def cmd_baselines(args: argparse.Namespace) -> int:
 
 
 def cmd_presets(args: argparse.Namespace) -> int:
-    from softac.config import DMC_PRESET, GENERIC_PRESETS, preset_names, preset_summary
+    """A line per preset; with a name, that preset whole: its description and its settings."""
+    from softac.config import preset_names, preset_summary
 
+    if args.name:
+        print(_preset_page(args.name))
+        return EXIT_OK
     names = preset_names()
     width = max(len(n) for n in names)
     for name in names:
-        kind = "[any env]" if name in GENERIC_PRESETS else "[dmc]" if name == DMC_PRESET else "[env]"
-        print(f"{name:<{width}}  {kind:<9}  {preset_summary(name)}")
+        print(f"{name:<{width}}  {_preset_family(name):<9}  {preset_summary(name)}")
+    print("\nsoftac presets NAME shows one whole; softac train --preset NAME trains with it", file=sys.stderr)
     return EXIT_OK
+
+
+def _preset_family(name: str) -> str:
+    from softac.config import DMC_PRESET, GENERIC_PRESETS
+
+    return "[any env]" if name in GENERIC_PRESETS else "[dmc]" if name == DMC_PRESET else "[env]"
+
+
+def _preset_page(name: str) -> str:
+    import textwrap
+
+    import yaml
+
+    from softac.config import load_preset, preset_description, preset_summary
+
+    values = load_preset(name)  # an unknown name: one line naming the closest
+    text = [f"{name}  {_preset_family(name)}", preset_summary(name), ""]
+    text += [textwrap.fill(paragraph, 100) for paragraph in preset_description(name).splitlines()]
+    extends = (yaml.safe_load((_preset_file(name)).read_text()) or {}).get("extends")
+    text += ["", f"settings{f' (with those of {extends}, which it extends)' if extends else ''}; any other key is "
+                 "SACConfig's default:"]
+    text += [f"  {key}: {yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
+             for key, value in values.items()]
+    return "\n".join(text)
+
+
+def _preset_file(name: str) -> Path:
+    from softac.config import _preset_dir
+
+    return _preset_dir() / f"{name}.yaml"
 
 
 def sweep_spec_from_args(args: argparse.Namespace):

@@ -454,10 +454,17 @@ def load_preset(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
     return {**load_preset(str(base), (*_seen, name)), **data} if base else data
 
 
-def preset_summary(name: str) -> str:
-    """The first comment line of a preset file: what it is for."""
+def _preset_comments(name: str) -> list[str]:
     text = (_preset_dir() / f"{name}.yaml").read_text()
-    for line in text.splitlines():
-        if line.startswith("#"):
-            return line.lstrip("# ").strip()
-    return ""
+    return [line.lstrip("#").strip() for line in text.splitlines() if line.startswith("#")]
+
+
+def preset_summary(name: str) -> str:
+    """The first comment line of a preset file: what it is for, in one sentence (`softac presets` lists it)."""
+    comments = _preset_comments(name)
+    return comments[0] if comments else ""
+
+
+def preset_description(name: str) -> str:
+    """The comment lines after the summary: settings, sources, departures and figures (`softac presets NAME`)."""
+    return "\n".join(_preset_comments(name)[1:])
