@@ -20,7 +20,8 @@ from pathlib import Path
 
 from softac.cpus import machine_description
 
-# the page sections' modules sit beside this script (also when a test loads it by its path)
+# the page sections' modules sit beside this script (also when a test loads it by its path); AGAINST_BEST,
+# machines_of, short_machines, wall_ratio and published_means are imported for the tests, which read them here
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results_common import (AGAINST_BEST, AGGREGATE, DMC, ENVS, FRONT, SUITE, SUITE_V4,  # noqa: E402

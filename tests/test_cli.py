@@ -217,8 +217,8 @@ def test_a_flag_and_a_set_of_its_key_may_say_the_same():
     config = _resolve_train_config(args)
     assert (config.env_id, config.total_steps, config.seed) == ("Pendulum-v1", 600, 3)
     assert set(FLAG_OF_KEY) <= set(type(config).__dataclass_fields__)
-    for flag, key in (("--seed", "seed=4"), ("--n-envs", "n_envs=3"), ("--logger", "loggers=none")):
-        value = {"--seed": "3", "--n-envs": "2", "--logger": "tensorboard"}[flag]
+    for flag, value, key in (("--seed", "3", "seed=4"), ("--n-envs", "2", "n_envs=3"),
+                             ("--logger", "tensorboard", "loggers=none")):
         with pytest.raises(SoftacError, match=f"^{flag} {value} and --set {key} disagree; give one$"):
             _resolve_train_config(build_parser().parse_args(["train", flag, value, "--set", key]))
 

@@ -16,6 +16,12 @@ from softac.errors import SoftacError, TrainingInterrupted
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_RUN_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 
 
+# train's flags that set a config key, by key, each read from its argparse destination (--env is not one: it picks
+# the preset, which `--set env_id=` may move to another env, as a sweep's grid over env_id does)
+FLAG_OF_KEY = {"total_steps": "--steps", "seed": "--seed", "n_envs": "--n-envs", "env_workers": "--env-workers",
+               "device": "--device", "loggers": "--logger"}
+
+
 def _resolve_train_config(args: argparse.Namespace):
     from softac.config import SACConfig, parse_overrides
 
@@ -28,17 +34,10 @@ def _resolve_train_config(args: argparse.Namespace):
     else:
         config = SACConfig.for_env(args.env)
     overrides = parse_overrides([pair for group in args.overrides for pair in group])
-    direct = {"total_steps": args.steps, "seed": args.seed, "n_envs": args.n_envs, "env_workers": args.env_workers,
-              "device": args.device, "loggers": args.logger}
+    direct = {key: getattr(args, flag.removeprefix("--").replace("-", "_")) for key, flag in FLAG_OF_KEY.items()}
     _refuse_flags_that_disagree_with_set(overrides, direct)
     # one replace, checked once: `--set env_workers=4 --n-envs 4` is valid though neither half is alone
     return config.replace(**{**overrides, **{k: v for k, v in direct.items() if v is not None}})
-
-
-# train's flags that set a config key, by key (--env picks the preset, which `--set env_id=` may move to another
-# env: a sweep's grid over env_id does, each trial keeping the sweep env's preset)
-FLAG_OF_KEY = {"total_steps": "--steps", "seed": "--seed", "n_envs": "--n-envs", "env_workers": "--env-workers",
-               "device": "--device", "loggers": "--logger"}
 
 
 def _refuse_flags_that_disagree_with_set(overrides: dict, flags: dict) -> None:
@@ -332,23 +331,17 @@ def _preset_page(name: str) -> str:
 
     import yaml
 
-    from softac.config import load_preset, preset_description, preset_summary
+    from softac.config import load_preset, preset_description, preset_extends, preset_summary
 
     values = load_preset(name)  # an unknown name: one line naming the closest
     text = [f"{name}  {_preset_family(name)}", preset_summary(name), ""]
     text += [textwrap.fill(paragraph, 100) for paragraph in preset_description(name).splitlines()]
-    extends = (yaml.safe_load((_preset_file(name)).read_text()) or {}).get("extends")
+    extends = preset_extends(name)
     text += ["", f"settings{f' (with those of {extends}, which it extends)' if extends else ''}; any other key is "
                  "SACConfig's default:"]
     text += [f"  {key}: {yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
              for key, value in values.items()]
     return "\n".join(text)
-
-
-def _preset_file(name: str) -> Path:
-    from softac.config import _preset_dir
-
-    return _preset_dir() / f"{name}.yaml"
 
 
 def sweep_spec_from_args(args: argparse.Namespace):

@@ -492,15 +492,28 @@ def load_preset(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
         raise ConfigError(f"unknown preset '{name}'{hint}; `softac presets` lists them")
     if name in _seen:
         raise ConfigError(f"preset '{name}' extends itself ({' -> '.join((*_seen, name))})")
-    text = (_preset_dir() / f"{name}.yaml").read_text()
-    data = dict(yaml.safe_load(text) or {})
+    data = _preset_file_values(name)
     base = data.pop("extends", None)
     return {**load_preset(str(base), (*_seen, name)), **data} if base else data
 
 
+def _preset_text(name: str) -> str:
+    return (_preset_dir() / f"{name}.yaml").read_text()
+
+
+def _preset_file_values(name: str) -> dict[str, Any]:
+    """What the preset's own file sets, `extends` included."""
+    return dict(yaml.safe_load(_preset_text(name)) or {})
+
+
+def preset_extends(name: str) -> str | None:
+    """The preset a preset's file starts from (`extends:`), or None."""
+    base = _preset_file_values(name).get("extends")
+    return str(base) if base else None
+
+
 def _preset_comments(name: str) -> list[str]:
-    text = (_preset_dir() / f"{name}.yaml").read_text()
-    return [line.lstrip("#").strip() for line in text.splitlines() if line.startswith("#")]
+    return [line.lstrip("#").strip() for line in _preset_text(name).splitlines() if line.startswith("#")]
 
 
 def preset_summary(name: str) -> str:
