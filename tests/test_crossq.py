@@ -13,8 +13,6 @@ from softac.networks import BatchRenorm, init_norm_stats
 from conftest import assert_clean_error, run_cli
 from test_sac_losses import ACT, BATCH, OBS, batch, constant_actor, constant_critics
 
-pytestmark = pytest.mark.numerics
-
 NORM = BatchRenorm(momentum=0.9)
 POLICY = sac.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=NORM)
 CRITICS = sac.Critics("relu", unroll=True, batch_renorm=NORM)
@@ -24,6 +22,7 @@ def _layer(n, scale=1.0, bias=0.0):
     return {"norm_scale": np.full(n, scale, np.float32), "norm_bias": np.full(n, bias, np.float32)}
 
 
+@pytest.mark.numerics
 def test_training_mode_normalises_with_the_batch_and_moves_the_running_statistics():
     x = jnp.asarray(np.random.default_rng(0).normal(3.0, 2.0, size=(64, 4)), jnp.float32)
     stats = {"mean": np.zeros(4, np.float32), "var": np.ones(4, np.float32)}
@@ -37,6 +36,7 @@ def test_training_mode_normalises_with_the_batch_and_moves_the_running_statistic
     np.testing.assert_allclose(new["var"], 0.9 + 0.1 * np.asarray(x).var(0), rtol=1e-5)
 
 
+@pytest.mark.numerics
 def test_evaluation_mode_uses_the_running_statistics_and_keeps_them():
     x = jnp.asarray([[1.0, 5.0], [3.0, -1.0]], jnp.float32)
     stats = {"mean": np.asarray([1.0, 2.0], np.float32), "var": np.asarray([4.0, 9.0], np.float32)}
@@ -47,6 +47,7 @@ def test_evaluation_mode_uses_the_running_statistics_and_keeps_them():
     assert same is stats
 
 
+@pytest.mark.numerics
 def test_renormalisation_corrects_the_batch_statistics_towards_the_running_ones():
     """After the warm-up, x_hat = (x - mean_B) / std_B * r + d with r = std_B / std_run clipped to [1/3, 3]
     and d = (mean_B - mean_run) / std_run clipped to [-5, 5] (Ioffe 2017): with r and d inside their clips
@@ -65,6 +66,7 @@ def test_renormalisation_corrects_the_batch_statistics_towards_the_running_ones(
     np.testing.assert_allclose(np.asarray(y), z * 3.0 + 5.0, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.numerics
 def test_crossq_critic_loss_bootstraps_from_the_online_critics():
     """No target critics: the target takes the smaller of the online critics' Q(s', a')."""
     mean, log_std, alpha, gamma = [0.3, -0.2], [-1.0, -0.5], 0.2, 0.9
@@ -97,6 +99,7 @@ def test_crossq_critic_loss_bootstraps_from_the_online_critics():
     assert float(grads[-1]["b"][1, 0]) == pytest.approx(np.mean(2.0 - target), rel=1e-5)
 
 
+@pytest.mark.numerics
 def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_actors():
     actor = constant_actor([0.1, 0.1], [-1.0, -1.0])
     actor = [{**layer, **_layer(layer["w"].shape[0])} for layer in actor]
@@ -126,6 +129,7 @@ def _batches(rng, steps, size, obs_dim=3, act_dim=2):
                      terminated=np.zeros((steps, size), np.float32), steps=np.ones((steps, size), np.float32))
 
 
+@pytest.mark.numerics
 def test_crossq_update_keeps_no_targets_and_moves_both_networks_statistics():
     cfg = SACConfig().replace(crossq=True, hidden_sizes=[16, 16], batch_size=8, policy_delay=3)
     fns = sac.build(cfg, 3, 2)
@@ -139,6 +143,7 @@ def test_crossq_update_keeps_no_targets_and_moves_both_networks_statistics():
     assert np.any(np.asarray(state.actor_stats[0]["mean"]))
 
 
+@pytest.mark.numerics
 def test_adam_b1_sets_the_first_moment_decay():
     """After one step Adam's first moment is (1 - b1) * gradient: b1 0.5 keeps 5x what b1 0.9 keeps."""
     moments = {}
@@ -149,6 +154,7 @@ def test_adam_b1_sets_the_first_moment_decay():
     np.testing.assert_allclose(moments[0.5], 5.0 * moments[0.9], rtol=1e-4, atol=1e-9)
 
 
+@pytest.mark.exact
 def test_crossq_reset_renews_the_statistics(tiny):
     agent = SAC(tiny(crossq=True))
     agent.learn(400, progress=False)
@@ -159,6 +165,7 @@ def test_crossq_reset_renews_the_statistics(tiny):
         np.testing.assert_array_equal(leaf, fresh)
 
 
+@pytest.mark.exact
 def test_a_crossq_agent_learns_and_predicts_with_its_statistics(tiny, tmp_path):
     agent = SAC(tiny(crossq=True, adam_b1=0.5, policy_delay=3, eval_interval=300))
     agent.learn(600, run_dir=tmp_path / "run", progress=False)
@@ -189,6 +196,7 @@ def _hidden_unit_norms(layers):
                     np.square(np.asarray(layer["b"], np.float64))) for layer in layers[:-1]]
 
 
+@pytest.mark.numerics
 def test_weight_norm_keeps_every_hidden_unit_on_the_unit_sphere_and_the_output_layers_free():
     """CrossQ+WN (Palenicek et al. 2025): after init and after every optimiser step of the critics and of the
     actor, each hidden unit's incoming (weights, bias) has length 1; the output layers are left as they are."""
@@ -216,6 +224,7 @@ def test_weight_norm_keeps_every_hidden_unit_on_the_unit_sphere_and_the_output_l
         state = new
 
 
+@pytest.mark.numerics
 def test_weight_norm_changes_nothing_for_a_network_whose_units_are_already_unit_length():
     from softac.networks import unit_norm_hidden_units
 
@@ -231,6 +240,7 @@ def test_weight_norm_changes_nothing_for_a_network_whose_units_are_already_unit_
     np.testing.assert_allclose(ratio, np.broadcast_to(ratio[:, :1, :], ratio.shape), rtol=1e-12)  # one scale per unit
 
 
+@pytest.mark.exact
 def test_a_crossq_wn_agent_resumes_exactly(tiny, tmp_path):
     agent = SAC(tiny(crossq=True, weight_norm=True, eval_interval=300))
     agent.learn(300, run_dir=tmp_path / "run", progress=False)

@@ -23,8 +23,6 @@ from softac import SAC, SoftacError
 from softac.export import export_policy
 from softac.networks import jit_keeps_bf16_rounding
 
-pytestmark = pytest.mark.numerics
-
 EXPORT_NUMPY = Path(softac.__file__).parent / "export_numpy.py"
 DRIFT = "softac_test_envs:Drift-v0"  # actions in [-1, 3]
 TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and batch statistics have moved
@@ -151,6 +149,7 @@ def trained(tmp_path_factory):
 
 
 @pytest.mark.parametrize("kind", list(TRAINED))
+@pytest.mark.numerics
 def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     agent, _ = trained(kind)
     if kind == "crossq":  # the running statistics folded into the weights are not the initial ones
@@ -184,6 +183,7 @@ def assert_exports_agree_with_predict_on_most(agent: SAC, directory: Path, obs: 
         assert np.mean(relative <= 1e-5) >= 0.9, (name, np.quantile(relative, [0.5, 0.9, 1.0]))
 
 
+@pytest.mark.numerics
 def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
     def arrays(**extra):
         path = export_policy(SAC(tiny_config("Pusher-v5", **extra)), tmp_path / "policy.npz", "numpy")
@@ -209,6 +209,7 @@ def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
 
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "gelu"])
+@pytest.mark.numerics
 def test_every_activation_matches_jax(activation, tmp_path):
     """Untrained agents (PyTorch's default init: outputs well away from zero); gelu is JAX's tanh form."""
     agent = SAC(tiny_config(DRIFT, activation=activation))
@@ -221,6 +222,7 @@ def _checkpoint_digests(run: Path) -> dict[str, str]:
             for p in sorted((run / "checkpoints").rglob("*")) if p.is_file()}
 
 
+@pytest.mark.numerics
 def test_cli_exports_a_run_to_its_export_folder_and_leaves_checkpoints_alone(trained, tmp_path):
     agent, run = trained("obs_norm")
     before = _checkpoint_digests(run)
@@ -277,6 +279,7 @@ def test_the_numpy_forward_pass_imports_only_numpy():
     assert imported == {"numpy", "__future__"}
 
 
+@pytest.mark.numerics
 def test_the_export_guides_forward_pass_is_the_modules(tmp_path):
     section = (TESTS.parent / "docs" / "guides" / "export.md").read_text()
     code = next(block for block in section.split("```python\n") if "def policy_forward" in block).split("```")[0]

@@ -11,9 +11,8 @@ from softac import checkpoint as ckpt
 from softac.checkpoint import CheckpointError
 from softac.normalization import EPSILON, RunningObsNorm
 
-pytestmark = pytest.mark.numerics
 
-
+@pytest.mark.numerics
 def test_running_statistics_equal_those_of_all_observations_at_once():
     rng = np.random.default_rng(0)
     data = rng.normal(loc=[5.0, -300.0, 0.0], scale=[1.0, 50.0, 1e-3], size=(1000, 3))
@@ -41,6 +40,7 @@ def test_running_statistics_equal_those_of_all_observations_at_once():
     assert np.abs(norm.normalize(np.array([1e6, 1e6, 1e6]))).max() == 4.0  # clipped
 
 
+@pytest.mark.exact
 def test_predict_eval_and_every_checkpoint_use_the_statistics(tiny, tmp_path):
     agent = SAC(tiny(obs_norm=True, eval_interval=200))
     agent.learn(600, run_dir=tmp_path / "run", progress=False)

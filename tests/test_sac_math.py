@@ -11,8 +11,6 @@ from float_bounds import assert_within_bound, mlp_bound
 from softac import cpus, networks, sac
 from softac.config import SACConfig
 
-pytestmark = pytest.mark.numerics
-
 
 def squashed_probability(lo, hi, mean, std):
     """P(lo < tanh(U) <= hi) for U ~ N(mean, std^2): an independent route to the density. In a tail, from erfc:
@@ -27,6 +25,7 @@ def squashed_probability(lo, hi, mean, std):
 
 
 @pytest.mark.parametrize("mean,log_std", [(0.0, 0.0), (0.7, -0.5), (-1.5, 0.8), (2.5, -1.5)])
+@pytest.mark.numerics
 def test_log_prob_matches_numerical_density(mean, log_std):
     std = math.exp(log_std)
     h = 1e-6
@@ -43,6 +42,7 @@ def test_log_prob_matches_numerical_density(mean, log_std):
         assert ours == pytest.approx(math.log(numerical), abs=32 * 2**-24 * size + 1e-7), a
 
 
+@pytest.mark.numerics
 def test_log_prob_density_integrates_to_one():
     a = np.linspace(-1 + 1e-7, 1 - 1e-7, 400_001)
     u = jnp.asarray(np.arctanh(a)[:, None], jnp.float32)
@@ -53,6 +53,7 @@ def test_log_prob_density_integrates_to_one():
     assert integrate(np.exp(logp), a) == pytest.approx(1.0, abs=1e-5)
 
 
+@pytest.mark.numerics
 def test_log_prob_is_finite_where_tanh_saturates():
     u = jnp.array([[-40.0], [-12.0], [12.0], [40.0]])
     logp = sac.squashed_gaussian_log_prob(u, jnp.zeros_like(u), jnp.zeros_like(u))
@@ -61,6 +62,7 @@ def test_log_prob_is_finite_where_tanh_saturates():
     assert float(sac.log_one_minus_tanh_sq(jnp.array(40.0))) == pytest.approx(2 * (math.log(2) - 40), rel=1e-5)
 
 
+@pytest.mark.numerics
 def test_log_prob_sums_over_action_dims():
     u = jnp.array([[0.3, -0.2]])
     mean, log_std = jnp.array([[0.1, 0.0]]), jnp.array([[-0.2, 0.4]])
@@ -70,6 +72,7 @@ def test_log_prob_sums_over_action_dims():
     assert both == pytest.approx(each, rel=1e-5)
 
 
+@pytest.mark.numerics
 def test_log_std_bounds():
     raw = jnp.linspace(-50, 50, 101)
     clamped = sac.bound_log_std(raw, -5.0, 2.0, "clamp")
@@ -80,6 +83,7 @@ def test_log_std_bounds():
     assert float(sac.bound_log_std(jnp.array(1.0), -5.0, 2.0, "clamp")) == 1.0
 
 
+@pytest.mark.numerics
 def test_action_rescaling_with_asymmetric_bounds():
     scaler = sac.ActionScaler(np.array([-1.0, 0.0, -10.0]), np.array([3.0, 10.0, -2.0]))
     np.testing.assert_allclose(scaler.to_env(-np.ones(3)), [-1.0, 0.0, -10.0])
@@ -90,6 +94,7 @@ def test_action_rescaling_with_asymmetric_bounds():
     assert np.all(scaler.to_env(np.full(3, 1.5)) <= scaler.high)
 
 
+@pytest.mark.numerics
 def test_polyak_update():
     target = {"w": jnp.zeros(3)}
     online = {"w": jnp.ones(3) * 2.0}
@@ -112,6 +117,7 @@ def _leaves(tree):
     return [np.array(x, copy=True) for x in jax.tree_util.tree_leaves(tree)]  # a view would see donated buffers change
 
 
+@pytest.mark.numerics
 def test_update_moves_targets_by_tau_every_interval():
     cfg = SACConfig().replace(hidden_sizes=[16], tau=0.5, target_update_interval=2, batch_size=8)
     functions = sac.build(cfg, 3, 2)
@@ -142,6 +148,7 @@ def test_gradient_steps_fuse_in_one_call():
                                              "log_prob_mean"}
 
 
+@pytest.mark.numerics
 def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     rng = np.random.default_rng(0)
     fixed = sac.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
@@ -154,6 +161,7 @@ def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     assert tuned.target_entropy == -2.0
 
 
+@pytest.mark.numerics
 def test_terminated_transitions_do_not_bootstrap():
     """With gamma=1 and terminated=1 the critic's target is the reward alone."""
     cfg = SACConfig().replace(hidden_sizes=[16], gamma=1.0, critic_lr=0.05, batch_size=16)
@@ -167,6 +175,7 @@ def test_terminated_transitions_do_not_bootstrap():
     assert sac.metric_means(totals)["q1_mean"] == pytest.approx(3.0, abs=0.15)
 
 
+@pytest.mark.numerics
 def test_n_step_target_bootstraps_with_gamma_to_the_steps():
     """An n-step batch row that summed `steps` rewards bootstraps with gamma^steps: the update equals
     one-step SAC with gamma^steps in place of gamma, on the same state, batch and keys."""
@@ -211,6 +220,7 @@ def test_policy_schedule_counts_actor_and_alpha_steps(frequency, delay, actor_st
     assert (_adam_steps(state.actor_opt), _adam_steps(state.alpha_opt)) == (actor_steps, actor_steps)
 
 
+@pytest.mark.numerics
 def test_bfloat16_matmuls_stay_close_to_float32():
     f32 = sac.build(SACConfig().replace(hidden_sizes=[64, 64]), 3, 2)
     bf16 = sac.build(SACConfig().replace(hidden_sizes=[64, 64], matmul_dtype="bfloat16"), 3, 2)
@@ -226,6 +236,7 @@ def test_bfloat16_matmuls_stay_close_to_float32():
     assert jax.tree_util.tree_leaves(new_state.actor)[0].dtype == jnp.float32  # parameters stay f32
 
 
+@pytest.mark.numerics
 def test_bfloat16_matmul_gradients_match_float32():
     from softac.networks import bf16_matmul
 
@@ -241,6 +252,7 @@ def test_bfloat16_matmul_gradients_match_float32():
         assert float(jnp.linalg.norm(g16 - g32) / jnp.linalg.norm(g32)) < 2e-2
 
 
+@pytest.mark.numerics
 def test_critic_layer_norm_normalises_hidden_features():
     from softac.networks import critics_apply, init_critics, layer_norm
 
@@ -258,6 +270,7 @@ def test_critic_layer_norm_normalises_hidden_features():
     assert float(jnp.abs(normed).max()) < 0.1 * float(jnp.abs(plain).max())  # huge inputs stay bounded
 
 
+@pytest.mark.numerics
 def test_unrolled_and_vmapped_critics_agree():
     from softac.networks import critics_apply, init_critics
 
@@ -324,6 +337,7 @@ def test_cpu_isa_is_the_newest_instruction_set_xla_knows_and_the_cpu_has(monkeyp
     (ZEN5, "--xla_cpu_max_isa=PENTIUM", True),  # XLA ignores a value it does not know
     ({"avx2"}, "--xla_cpu_max_isa=AMX", False),  # a limit adds no units
 ])
+@pytest.mark.numerics
 def test_cpu_has_bf16_honours_xla_max_isa(monkeypatch, cpu, xla_flags, bf16):
     # probed (and cached) before XLA_FLAGS changes: a compile under flags the JAX does not know aborts (0.4.30)
     keeps_rounding = networks.jit_keeps_bf16_rounding()
