@@ -148,6 +148,29 @@ def test_gradient_steps_fuse_in_one_call():
                                              "log_prob_mean"}
 
 
+def test_configs_differing_only_in_the_updates_numbers_share_one_compiled_update():
+    """Learning rates, gamma, tau, alpha and the entropy target are arguments of the compiled update, not
+    constants in it (issue 64): a sweep over them compiles one program; a new shape compiles another."""
+    # shapes of this test's own (5 observations, 3 actions, 12 units): no other test's program in the cache
+    base = SACConfig().replace(hidden_sizes=[12], batch_size=8, autotune_alpha=False)
+    batch = _batch(np.random.default_rng(0), 2, 8, 5, 3)
+
+    def trained(cfg):
+        functions = sac.build(cfg, 5, 3)
+        return _leaves(functions.update(functions.init(0), batch)[0])
+
+    first = trained(base)
+    programs = sac.compiled_update._cache_size()
+    others = [trained(base.replace(**change)) for change in (
+        dict(actor_lr=1e-3, critic_lr=2e-3), dict(gamma=0.9), dict(tau=0.5), dict(alpha=0.5),
+        dict(target_entropy=-0.5, autotune_alpha=True, alpha_lr=1e-2), dict(target_entropy=-3.0, autotune_alpha=True))]
+    assert sac.compiled_update._cache_size() == programs + 1  # the autotuned ones: one other program for both
+    for other in others:  # and each number took effect
+        assert any(not np.array_equal(a, b) for a, b in zip(first, other, strict=True))
+    trained(base.replace(hidden_sizes=[11]))
+    assert sac.compiled_update._cache_size() == programs + 2
+
+
 @pytest.mark.numerics
 def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     rng = np.random.default_rng(0)

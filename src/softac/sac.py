@@ -11,8 +11,8 @@ nothing here branches on the algorithm but whether there are target critics and 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import partial
+from dataclasses import dataclass, replace
+from functools import lru_cache, partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -56,7 +56,10 @@ class SACState(NamedTuple):
 
 @dataclass(frozen=True)
 class UpdateSettings:
-    """Everything the update needs besides the state and the batch: fixed for a config and space sizes."""
+    """Everything the update needs besides the state and the batch: fixed for a config and space sizes. The
+    fields in NUMBERS are arguments of the compiled update, the rest shape its program (`Program`): configs
+    that differ only in their learning rates, gamma, tau, alpha or entropy target share one program (issue 64:
+    a sweep over them compiles once). The optimisers run at rate 1; `scaled` applies the learning rates."""
     policy: Policy
     critics: Critics
     actor_tx: optax.GradientTransformation
@@ -81,17 +84,26 @@ class UpdateSettings:
     encoder_chunk: int = 0  # image observations: the update's batches go through the encoder in pieces of this many
     actor_head_tx: optax.GradientTransformation | None = None  # actor_encoder_head: the actor's head's optimiser
     pixel_offset: float = 0.0  # image observations: subtracted from pixels scaled to [0, 1] (config pixel_range)
+    actor_lr: float = 1.0  # the actor's rate (and an actor head's)
+    critic_lr: float = 1.0  # the critics' rate (and the encoder's)
+    alpha_lr: float = 1.0
+    # 1 - tau, computed in float64 as the constant (1.0 - tau) was before tau became an argument: the same bits
+    tau_keep: float = 0.0
 
     @property
     def has_targets(self) -> bool:
         return self.critics.has_targets
 
 
+NUMBERS = ("target_entropy", "gamma", "tau", "tau_keep", "alpha", "actor_lr", "critic_lr", "alpha_lr")
+
+
 # ---- one gradient step ---------------------------------------------------------------------------
 
-def polyak(target: Any, online: Any, tau: float) -> Any:
-    """target <- tau * online + (1 - tau) * target."""
-    return jax.tree_util.tree_map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+def polyak(target: Any, online: Any, tau: float, keep: float | None = None) -> Any:
+    """target <- tau * online + (1 - tau) * target; `keep`: 1 - tau where tau is traced (UpdateSettings.tau_keep)."""
+    keep = 1.0 - tau if keep is None else keep
+    return jax.tree_util.tree_map(lambda t, o: keep * t + tau * o, target, online)
 
 
 def alpha_of(state: SACState, s: UpdateSettings) -> jax.Array:
@@ -103,10 +115,16 @@ def renorm_active(state: SACState, s: UpdateSettings) -> jax.Array:
     return state.n_updates >= s.batch_renorm_warmup
 
 
-def scaled(updates: Any, lr_scale: jax.Array | None) -> Any:
-    """A learning-rate schedule's factor on one step's updates (lr_schedule; None: constant rates). Adam's and
-    AdamW's update is -lr times a direction that does not depend on lr, so scaling the update scales lr."""
-    return updates if lr_scale is None else jax.tree_util.tree_map(lambda u: u * lr_scale, updates)
+def scaled(updates: Any, lr: float, lr_scale: jax.Array | None) -> Any:
+    """One step's updates at learning rate `lr`, times a schedule's factor (lr_schedule; None: constant rates).
+    Adam's and AdamW's update is -lr times a direction that does not depend on lr, and the optimisers here run
+    at rate 1 (their updates are -1 times it), so scaling their updates by lr is the update at lr: -lr * u
+    and lr * (-u) are the same floats."""
+    # lr * lr_scale first: the order XLA gave the product when lr was a constant (the same bits on today's JAX).
+    # Where it kept the other order (JAX 0.4.30; image updates, unrolled) a scheduled run rounds apart in the
+    # last bits from softac before issue 64's change; runs at constant rates are the same everywhere
+    rate = lr if lr_scale is None else lr * lr_scale
+    return jax.tree_util.tree_map(lambda u: u * rate, updates)
 
 
 def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings,
@@ -121,7 +139,7 @@ def critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSettings
 def apply_critic_grads(state: SACState, grads: Any, s: UpdateSettings, lr_scale: jax.Array | None) -> tuple[Any, Any]:
     """The critics' optimiser step (and CrossQ+WN's projection back to unit-norm hidden units)."""
     updates, critic_opt = s.critic_tx.update(grads, state.critic_opt, state.critic)
-    critic = optax.apply_updates(state.critic, scaled(updates, lr_scale))
+    critic = optax.apply_updates(state.critic, scaled(updates, s.critic_lr, lr_scale))
     if s.weight_norm:
         critic = unit_norm_hidden_units(critic)
     return critic, critic_opt
@@ -216,7 +234,7 @@ def image_critic_step(state: SACState, batch: Batch, key: jax.Array, s: UpdateSe
         state.critic, state.encoder)
     critic, critic_opt = apply_critic_grads(state, critic_grads, s, lr_scale)
     updates, encoder_opt = s.encoder_tx.update(encoder_grads, state.encoder_opt, state.encoder)
-    encoder = optax.apply_updates(state.encoder, scaled(updates, lr_scale))
+    encoder = optax.apply_updates(state.encoder, scaled(updates, s.critic_lr, lr_scale))
     state = state._replace(critic=critic, critic_opt=critic_opt, critic_stats=critic_stats, encoder=encoder,
                            encoder_opt=encoder_opt)
     return state, metrics, jax.lax.stop_gradient(features)
@@ -241,10 +259,11 @@ def actor_and_alpha_step(state: SACState, obs: Any, key: jax.Array, s: UpdateSet
         (loss, (log_prob, actor_stats)), (grads, head_grads) = jax.value_and_grad(
             head_loss, argnums=(0, 1), has_aux=True)(state.actor, state.actor_head)
         head_updates, head_opt = s.actor_head_tx.update(head_grads, state.actor_head_opt, state.actor_head)
-        state = state._replace(actor_head=optax.apply_updates(state.actor_head, scaled(head_updates, lr_scale)),
+        state = state._replace(actor_head=optax.apply_updates(state.actor_head,
+                                                              scaled(head_updates, s.actor_lr, lr_scale)),
                                actor_head_opt=head_opt)
     updates, actor_opt = s.actor_tx.update(grads, state.actor_opt, state.actor)
-    actor = optax.apply_updates(state.actor, scaled(updates, lr_scale))
+    actor = optax.apply_updates(state.actor, scaled(updates, s.actor_lr, lr_scale))
     if s.weight_norm:
         actor = unit_norm_hidden_units(actor)
     state = state._replace(actor=actor, actor_opt=actor_opt, actor_stats=actor_stats)
@@ -254,7 +273,7 @@ def actor_and_alpha_step(state: SACState, obs: Any, key: jax.Array, s: UpdateSet
         a_loss, grad = jax.value_and_grad(alpha_loss)(state.log_alpha, log_prob, s.target_entropy)
         updates, alpha_opt = s.alpha_tx.update(grad, state.alpha_opt, state.log_alpha)
         # the schedule scales alpha's rate too, as SB3 sets its lr schedule on the entropy coefficient's optimiser
-        state = state._replace(log_alpha=optax.apply_updates(state.log_alpha, scaled(updates, lr_scale)),
+        state = state._replace(log_alpha=optax.apply_updates(state.log_alpha, scaled(updates, s.alpha_lr, lr_scale)),
                                alpha_opt=alpha_opt)
     else:
         a_loss = alpha_loss(state.log_alpha, log_prob, s.target_entropy)
@@ -328,7 +347,8 @@ def update_targets(state: SACState, n_updates: jax.Array, s: UpdateSettings) -> 
     due = (n_updates % s.target_update_interval) == 0
 
     def averaged(target: Any, online: Any) -> Any:
-        return jax.tree_util.tree_map(lambda new, old: jnp.where(due, new, old), polyak(target, online, s.tau), target)
+        return jax.tree_util.tree_map(lambda new, old: jnp.where(due, new, old),
+                                      polyak(target, online, s.tau, s.tau_keep), target)
 
     target_encoder = averaged(state.target_encoder, state.encoder) if jax.tree_util.tree_leaves(
         state.target_encoder) else state.target_encoder
@@ -489,10 +509,22 @@ def resolve_matmul_dtype(setting: str) -> str:
 def optimizer(config: SACConfig, lr: float) -> optax.GradientTransformation:
     """Adam, or AdamW (Loshchilov & Hutter 2019) with weight_decay: on every parameter (SimBa) or on the
     output layers only (CrossQ+WN, whose hidden units weight_norm keeps on the unit sphere)."""
-    if config.weight_decay == 0:
-        return optax.adam(lr, b1=config.adam_b1)
-    mask = output_layer_mask if config.weight_decay_layers == "output" else None
-    return optax.adamw(lr, b1=config.adam_b1, weight_decay=config.weight_decay, mask=mask)
+    return _adam(lr, config.adam_b1, config.weight_decay, config.weight_decay_layers)
+
+
+def direction(config: SACConfig) -> optax.GradientTransformation:
+    """`optimizer(config, 1.0)`: Adam's (AdamW's) direction, which `scaled` multiplies by the learning rate
+    (AdamW's decay is lr * weight_decay * p, so at rate 1 weight_decay * p, scaled with the rest)."""
+    return optimizer(config, 1.0)
+
+
+@lru_cache(maxsize=None)
+def _adam(lr: float, b1: float, weight_decay: float = 0.0, layers: str = "all") -> optax.GradientTransformation:
+    # one object per setting, so that two builds of one config have equal UpdateSettings and share the compiled
+    # update within a process, not only through the compile cache
+    if weight_decay == 0:
+        return optax.adam(lr, b1=b1)
+    return optax.adamw(lr, b1=b1, weight_decay=weight_decay, mask=output_layer_mask if layers == "output" else None)
 
 
 def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
@@ -514,20 +546,51 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
                         drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics),
-        actor_tx=optimizer(c, c.actor_lr), critic_tx=optimizer(c, c.critic_lr),
-        alpha_tx=optax.adam(c.alpha_lr, b1=c.adam_b1),
+        actor_tx=direction(c), critic_tx=direction(c), alpha_tx=_adam(1.0, c.adam_b1),
+        actor_lr=c.actor_lr, critic_lr=c.critic_lr, alpha_lr=c.alpha_lr, tau_keep=1.0 - c.tau,
         target_entropy=resolve_target_entropy(c, act_dim),
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
         alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm,
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
-        encoder_tx=optax.adam(c.critic_lr, b1=c.adam_b1) if images else None, augment_pad=c.augment_pad,
+        encoder_tx=_adam(1.0, c.adam_b1) if images else None, augment_pad=c.augment_pad,
         image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau,
         target_encoder=images and c.target_encoder,
         # on a CPU the convolutions run faster in pieces of 8 images (encoder.chunked_encode); a GPU wants the batch
         encoder_chunk=8 if images and jax.default_backend() == "cpu" else 0,
-        actor_head_tx=optax.adam(c.actor_lr, b1=c.adam_b1) if images and c.actor_encoder_head else None,
+        actor_head_tx=_adam(1.0, c.adam_b1) if images and c.actor_encoder_head else None,
         pixel_offset=c.pixel_offset)
+
+
+class Program:
+    """What shapes the compiled update: UpdateSettings without its NUMBERS. Hashed once (JAX hashes a static
+    argument at every call), equal to another of equal settings, so that equal configs share the program."""
+
+    def __init__(self, s: UpdateSettings) -> None:
+        self.settings = replace(s, **{name: 0.0 for name in NUMBERS})
+        self.hash = hash(self.settings)
+
+    def __hash__(self) -> int:
+        return self.hash
+
+    def __eq__(self, other: object) -> bool:
+        return self is other or (isinstance(other, Program) and self.settings == other.settings)
+
+
+def numbers_of(s: UpdateSettings) -> tuple[jax.Array, ...]:
+    """`s`'s NUMBERS as JAX scalars, made once (Python floats would be converted at every call); weakly typed,
+    as the Python floats were, so rounded to float32 once, the same."""
+    return tuple(jnp.asarray(getattr(s, name)) for name in NUMBERS)
+
+
+def update_program(program: Program, numbers: tuple[jax.Array, ...], state: SACState, batches: Batch,
+                   totals: dict | None = None, lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
+    return update(replace(program.settings, **dict(zip(NUMBERS, numbers))), state, batches, totals, lr_scale)
+
+
+# One jitted update for every build (issue 64): the program's settings static, their numbers traced; the state
+# and the totals donated (updated in place).
+compiled_update = jax.jit(update_program, static_argnums=0, donate_argnums=(2, 4))
 
 
 class SACFunctions(NamedTuple):
@@ -580,7 +643,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     return SACFunctions(
         init=init,
         reset=reset,
-        update=jax.jit(partial(update, s), donate_argnums=(0, 2)),
+        update=partial(compiled_update, Program(s), numbers_of(s)),
         act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, pixel_offset=s.pixel_offset)),
         act_deterministic=jax.jit(partial(act_deterministic, s.policy, state_dim=image_state_dim,
                                           pixel_offset=s.pixel_offset)),
