@@ -58,7 +58,7 @@ def _test_seconds(out: Path) -> dict[str, float]:
 
 def _events(out: Path) -> tuple[dict[str, collections.Counter], dict[str, list[str]], dict[str, collections.Counter]]:
     """Per test, the events' seconds and counts; each test's markers; per compiled function (JAX's name for it,
-    `jit(update)`), its XLA backend seconds and compiles."""
+    `jit(update_program)`), its XLA backend seconds and compiles."""
     per_test: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     per_function: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     markers: dict[str, list[str]] = {}
@@ -117,7 +117,8 @@ def _table(title: str, groups: dict[str, collections.Counter], top: int | None =
 
 def _function_table(per_function: dict[str, collections.Counter], top: int = 12) -> list[str]:
     """The compiled functions that took XLA's backend the longest (a cache hit counts too, at its reading's
-    seconds): one program per distinct config and shapes, so `jit(update)` leads."""
+    seconds): one program per distinct config and shapes, so `jit(update_program)` (`jit(update)` before
+    9b7a060) leads."""
     columns = ["backend", "compiles", "over 1 s", "over 1 s seconds"]
     lines = ["| compiled function | " + " | ".join(columns) + " |", "| --- " * (len(columns) + 1) + "|"]
     for name, f in sorted(per_function.items(), key=lambda kv: -kv[1]["backend"])[:top]:

@@ -252,7 +252,8 @@ def test_runs_started_together_share_one_bounded_locked_compile_cache(tmp_path):
         assert "compilation cache" not in stderr and "Warning" not in stderr, stderr
     entries = sorted(p.name for p in (tmp_path / "cache").iterdir())
     assert ".lockfile" in entries and "jit_old-0-atime" in entries  # dated, so JAX's eviction can read it
-    [update] = [name[:-len("-cache")] for name in entries if name.startswith("jit_update-") and name.endswith("-cache")]
+    [update] = [name[:-len("-cache")] for name in entries
+                if name.startswith("jit_update_program-") and name.endswith("-cache")]
     third = subprocess.run([sys.executable, "-c", (
         "import jax; from softac.device import COMPILE_CACHE_MAX_BYTES, select_device; select_device('cpu'); "
         "assert jax.config.jax_compilation_cache_max_size == COMPILE_CACHE_MAX_BYTES")], env=env,
