@@ -87,8 +87,13 @@ class UpdateSettings:
     actor_lr: float = 1.0  # the actor's rate (and an actor head's)
     critic_lr: float = 1.0  # the critics' rate (and the encoder's)
     alpha_lr: float = 1.0
-    # 1 - tau, computed in float64 as the constant (1.0 - tau) was before tau became an argument: the same bits
-    tau_keep: float = 0.0
+    # 1 - tau, computed in float64 as the constant (1.0 - tau) was before tau became an argument (the same bits);
+    # None: from tau, when made
+    tau_keep: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.tau_keep is None:
+            object.__setattr__(self, "tau_keep", 1.0 - self.tau)
 
     @property
     def has_targets(self) -> bool:
@@ -512,12 +517,6 @@ def optimizer(config: SACConfig, lr: float) -> optax.GradientTransformation:
     return _adam(lr, config.adam_b1, config.weight_decay, config.weight_decay_layers)
 
 
-def direction(config: SACConfig) -> optax.GradientTransformation:
-    """`optimizer(config, 1.0)`: Adam's (AdamW's) direction, which `scaled` multiplies by the learning rate
-    (AdamW's decay is lr * weight_decay * p, so at rate 1 weight_decay * p, scaled with the rest)."""
-    return optimizer(config, 1.0)
-
-
 @lru_cache(maxsize=None)
 def _adam(lr: float, b1: float, weight_decay: float = 0.0, layers: str = "all") -> optax.GradientTransformation:
     # one object per setting, so that two builds of one config have equal UpdateSettings and share the compiled
@@ -546,8 +545,9 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
                         drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics),
-        actor_tx=direction(c), critic_tx=direction(c), alpha_tx=_adam(1.0, c.adam_b1),
-        actor_lr=c.actor_lr, critic_lr=c.critic_lr, alpha_lr=c.alpha_lr, tau_keep=1.0 - c.tau,
+        # the optimisers at rate 1, `scaled` applying each rate (AdamW's decay lr * weight_decay * p with the rest)
+        actor_tx=optimizer(c, 1.0), critic_tx=optimizer(c, 1.0), alpha_tx=_adam(1.0, c.adam_b1),
+        actor_lr=c.actor_lr, critic_lr=c.critic_lr, alpha_lr=c.alpha_lr,
         target_entropy=resolve_target_entropy(c, act_dim),
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
