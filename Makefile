@@ -100,9 +100,10 @@ test-fast: $(TEST_STAMP)
 # compiled the same object files with it as without (issue 64), so test-isa runs them without it, and says so.
 ISA ?= AVX2
 NUMERICS_TESTS = $(BIN)/python -m pytest -q $(XDIST) $(STOP_EARLY) -m "numerics and not ray"
+ISA_TESTS = XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(NUMERICS_TESTS)
 test-isa: $(TEST_STAMP)
 	@if $(BIN)/python -c "import sys; from softac.cpus import xla_limit_changes_code; sys.exit(not xla_limit_changes_code('$(ISA)'))"; then \
-	  echo 'XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(NUMERICS_TESTS)'; XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(NUMERICS_TESTS); \
+	  echo '$(ISA_TESTS)'; $(ISA_TESTS); \
 	else \
 	  echo "test-isa: this CPU has no instruction set newer than $(ISA) ($$($(BIN)/python -c 'from softac.cpus import machine_description; print(machine_description())')): XLA compiles the same code with the limit as without, so the numerics tests run here without it, at XLA's default optimisation level"; \
 	  echo '$(NUMERICS_TESTS)'; $(NUMERICS_TESTS); \

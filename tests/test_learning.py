@@ -9,9 +9,9 @@ from conftest import run_cli
 
 
 def xla_flags_of_users() -> str:
-    """XLA_FLAGS without make test's --xla_backend_optimization_level (the Makefile's FAST_COMPILE): the learning
-    test trains at XLA's default level, as the command a user types compiles, its thousands of updates at full
-    speed."""
+    """XLA_FLAGS without any --xla_backend_optimization_level (make test's, the Makefile's FAST_COMPILE, and one
+    of your own alike): the learning test trains at XLA's default level, as the command a user types compiles,
+    its thousands of updates at full speed."""
     flags = os.environ.get("XLA_FLAGS", "").split()
     return " ".join(f for f in flags if not f.lstrip("-").startswith("xla_backend_optimization_level="))
 
