@@ -217,6 +217,32 @@ def assert_same_learner(a, b, skip: tuple[str, ...] = ()) -> None:
                                       err_msg="state" + jax.tree_util.keystr(path))
 
 
+def assert_same_run_state(a, b) -> None:
+    """The two agents' run states are equal: counters, keys, NumPy RNG, best and last evaluation and their
+    steps, recent returns, exploration noise; only the fields a resumed run has of its own may differ."""
+    import dataclasses
+
+    import numpy as np
+
+    from softac.runstate import RunState
+
+    for f in dataclasses.fields(RunState):
+        if f.name in RUN_STATE_NOT_COMPARED:
+            continue
+        x, y = getattr(a.run_state, f.name), getattr(b.run_state, f.name)
+        if f.name == "rng":
+            assert x.bit_generator.state == y.bit_generator.state, f.name
+        elif f.name.endswith("_key"):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=f.name)
+        elif f.name == "noise" and x is not None and y is not None:  # exploration_noise pink
+            (meta_x, arrays_x), (meta_y, arrays_y) = x.checkpoint_parts(), y.checkpoint_parts()
+            assert meta_x == meta_y, f.name
+            for name in arrays_x:
+                np.testing.assert_array_equal(arrays_x[name], arrays_y[name], err_msg=f"noise {name}")
+        else:
+            assert x == y, (f.name, x, y)
+
+
 def assert_same_last_checkpoint(a: Path, b: Path) -> tuple[dict, dict]:
     """Two run directories whose last checkpoints are bit-identical: the same arrays (weights, optimisers,
     buffer, keys), each equal, the same NumPy RNG state and the same saved training envs. Any difference would
@@ -258,29 +284,10 @@ def assert_same_training(a, b, skip: tuple[str, ...] = ()) -> None:
     leaves (but the SACState fields in `skip`), the run state (counters, keys, NumPy RNG, best and last
     evaluation and their steps, recent returns), every array of the replay buffer, the observation statistics
     (obs_norm) and the training envs' saved state. Any difference would make their next steps differ."""
-    import dataclasses
-
     import numpy as np
 
-    from softac.runstate import RunState
-
     assert_same_learner(a, b, skip)
-
-    for f in dataclasses.fields(RunState):
-        if f.name in RUN_STATE_NOT_COMPARED:
-            continue
-        x, y = getattr(a.run_state, f.name), getattr(b.run_state, f.name)
-        if f.name == "rng":
-            assert x.bit_generator.state == y.bit_generator.state, f.name
-        elif f.name.endswith("_key"):
-            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=f.name)
-        elif f.name == "noise" and x is not None and y is not None:  # exploration_noise pink
-            (meta_x, arrays_x), (meta_y, arrays_y) = x.checkpoint_parts(), y.checkpoint_parts()
-            assert meta_x == meta_y, f.name
-            for name in arrays_x:
-                np.testing.assert_array_equal(arrays_x[name], arrays_y[name], err_msg=f"noise {name}")
-        else:
-            assert x == y, (f.name, x, y)
+    assert_same_run_state(a, b)
 
     assert type(a.collector.buffer) is type(b.collector.buffer)
     if a.collector.buffer is not None:
