@@ -102,10 +102,10 @@ ISA ?= AVX2
 NUMERICS_TESTS = $(BIN)/python -m pytest -q $(XDIST) $(STOP_EARLY) -m "numerics and not ray"
 ISA_TESTS = XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(ISA)" $(NUMERICS_TESTS)
 test-isa: $(TEST_STAMP)
-	@if $(BIN)/python -c "import sys; from softac.cpus import xla_limit_changes_code; sys.exit(not xla_limit_changes_code('$(ISA)'))"; then \
+	@if $(BIN)/python -c "import sys; from softac.base.cpus import xla_limit_changes_code; sys.exit(not xla_limit_changes_code('$(ISA)'))"; then \
 	  echo '$(ISA_TESTS)'; $(ISA_TESTS); \
 	else \
-	  echo "test-isa: this CPU has no instruction set newer than $(ISA) ($$($(BIN)/python -c 'from softac.cpus import machine_description; print(machine_description())')): XLA compiles the same code with the limit as without, so the numerics tests run here without it, at XLA's default optimisation level"; \
+	  echo "test-isa: this CPU has no instruction set newer than $(ISA) ($$($(BIN)/python -c 'from softac.base.cpus import machine_description; print(machine_description())')): XLA compiles the same code with the limit as without, so the numerics tests run here without it, at XLA's default optimisation level"; \
 	  echo '$(NUMERICS_TESTS)'; $(NUMERICS_TESTS); \
 	fi
 

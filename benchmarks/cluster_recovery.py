@@ -96,7 +96,7 @@ def main() -> None:
     os.environ["RAY_kill_child_processes_on_worker_exit"] = "false"
     from ray.cluster_utils import Cluster
 
-    from softac.cpus import machine_description
+    from softac.base.cpus import machine_description
 
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False,
                                                             "_system_config": FAST if args.fast else {}})

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softac.encoder import CONV_STRIDES, init_encoder
+from softac.learner.encoder import CONV_STRIDES, init_encoder
 
 
 def conv_loss(convs, images, dtype):

@@ -25,7 +25,7 @@ import numpy as np
 
 def movement_by_episode(buffer: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Episode ids (ascending) and, for each, the farthest its achieved goal got from its position at the episode's
-    first step: from a HER buffer's state (softac.collector.buffer_state of a checkpoint's arrays)."""
+    first step: from a HER buffer's state (softac.replay.collector.buffer_state of a checkpoint's arrays)."""
     size = int(buffer["pos_size"][1])
     episode, t, done = buffer["episode"][:size], buffer["t"][:size], buffer["done"][:size]
     start, moved_to = buffer["obs.achieved_goal"][:size], buffer["next_obs.achieved_goal"][:size]
@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.block < 1 or any(th < 0 for th in a.thresholds):
         p.error("--block must be at least 1 and --thresholds at least 0")
 
-    from softac import checkpoint
-    from softac.collector import buffer_state
+    from softac.run import checkpoint
+    from softac.replay.collector import buffer_state
     from softac.errors import SoftacError
 
     try:

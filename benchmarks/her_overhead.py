@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
 
     from softac import SAC, SACConfig
-    from softac.buffer import ReplayBuffer
+    from softac.replay.buffer import ReplayBuffer
 
     base = SACConfig.preset(a.preset, env_id=a.env) if a.preset else SACConfig.for_env(a.env)
     config = base.with_overrides(a.set).replace(her="on", eval_interval=0, buffer_size=max(a.fill, 1000))

@@ -44,7 +44,7 @@ def digest(preset: str, env_id: str, steps: int) -> dict[str, str]:
     import numpy as np
 
     from softac import SAC, SACConfig
-    from softac.logs import read_csv
+    from softac.run.csv_logs import read_csv
 
     config = SACConfig.preset(preset, env_id=env_id)
     config = config.replace(total_steps=config.learning_starts + steps, eval_interval=0, loggers="none",

@@ -101,7 +101,7 @@ front() {
 dmc() {
   $SOFTAC sweep --env dmc:$1 --seeds 5 --steps 50000 --preset crossq --set action_repeat=2 --out $SWEEPS/dmc-$1-softac-crossq-ar2
   # a task with a preset of its own (dmc-TASK, chosen on seeds 100-102: benchmarks/screens) runs it on seeds 0-4 too
-  if [ -f src/softac/presets/dmc-$1.yaml ]; then
+  if [ -f src/softac/config/presets/dmc-$1.yaml ]; then
     $SOFTAC sweep --env dmc:$1 --seeds 5 --steps 50000 --preset dmc-$1 --out $SWEEPS/dmc-$1-softac-dmc-$1
   fi
 }

@@ -108,7 +108,7 @@ def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dic
         segments = config.get("segments") or [{}]
         row["day"] = str(segments[0].get("started") or "")[:10] or None
         row["frames"] = int(config.get("total_steps", 0)) * int(config.get("action_repeat") or 1)  # env frames
-        # a trial pinned to CPUs another pinned softac process held (softac.cpus.cpus_shared) ran disturbed too
+        # a trial pinned to CPUs another pinned softac process held (softac.base.cpus.cpus_shared) ran disturbed too
         row["timed"] = (f"{d.name}/{row['trial']}" not in (excluded or {})
                         and not any(s.get("cpus_shared") for s in segments))
     return rows
@@ -139,7 +139,7 @@ def random_returns(envs: list[str], sweeps: Path | None = None) -> dict[str, flo
     SWEEPS/random-returns.yaml where it is there, else measured now with the installed MuJoCo and added to it."""
     import yaml
 
-    from softac.baselines import run_baselines
+    from softac.outputs.reference import run_baselines
 
     path = sweeps / RANDOM_RETURNS if sweeps is not None else None
     kept = (yaml.safe_load(path.read_text()) or {}) if path is not None and path.exists() else {}
@@ -160,11 +160,11 @@ def departures(record: dict, today: Any) -> dict[str, Any]:
     """The settings a trial's config.yaml (`record`) holds that differ from the SACConfig `today`, seed and budget
     aside: {key: the value the trial ran with}. The record, not the sweep's preset name: a preset's file can change
     after its runs. A key the record lacks predates it, so the trial ran at that key's default (what the code did
-    then), save pixel_range: pixels were at [-0.5, 0.5] before it (`centered`, as softac.snapshot reads old
+    then), save pixel_range: pixels were at [-0.5, 0.5] before it (`centered`, as softac.run.checkpoint_contents reads old
     checkpoints)."""
     import dataclasses
 
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     names = {f.name for f in dataclasses.fields(SACConfig)}
     before = {"pixel_range": "centered"} if record.get("pixels") else {}

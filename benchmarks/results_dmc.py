@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softac.plots import plot_aggregate
-from softac.stats import stratified_bootstrap_iqm
+from softac.outputs.plots import plot_aggregate
+from softac.outputs.seed_stats import stratified_bootstrap_iqm
 from softac.sweep import load_spec
 
 from results_common import (departures, DMC, DMC_500K, DMC_SHOWN, DMC_TASKS, env_sweeps, finished_trials, machines_of,
@@ -150,7 +150,7 @@ def trained_as_today(sweep: Path, env_id: str) -> bool:
     budget aside (the frames filter is the caller's), as its config.yaml records it (`departures`)."""
     import yaml
 
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     today = SACConfig.for_env(env_id)
     trials = [t for t in sorted(sweep.glob("*/config.yaml")) if (t.parent / "summary.json").exists()]

@@ -18,7 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-from softac.cpus import machine_description
+from softac.base.cpus import machine_description
 
 # the page sections' modules sit beside this script (also when a test loads it by its path); AGAINST_BEST,
 # machines_of, short_machines, wall_ratio and published_means are imported for the tests, which read them here

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softac.plots import plot_aggregate, plot_comparison, plot_front
-from softac.stats import stratified_bootstrap_iqm
+from softac.outputs.plots import plot_aggregate, plot_comparison, plot_front
+from softac.outputs.seed_stats import stratified_bootstrap_iqm
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
 from results_common import (AGAINST_BEST, AGGREGATE, env_sweeps, finished_trials, FRONT, machines_of, OURS, PUBLISHED,

@@ -38,8 +38,8 @@ class ChannelStack(gym.ObservationWrapper):
 
 
 def make_pixel_env(env_id: str, pixel_size: int, frames: int, action_repeat: int) -> gym.Env:
-    from softac.config import SACConfig
-    from softac.envs import make_env, training_env_source
+    from softac.config.sac_config import SACConfig
+    from softac.envs.make import make_env, training_env_source
 
     config = SACConfig(pixels=True, pixel_size=pixel_size, frame_stack=frames, action_repeat=action_repeat)
     source, probe = training_env_source(env_id, config)
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"step {done}: eval {mean:.1f} +- {std:.1f} ({rows[-1][3]:.0f} s)", flush=True)
             if a.target_return is not None and mean >= a.target_return:
                 break
-    from softac.cpus import machine_description
+    from softac.base.cpus import machine_description
 
     summary = {"framework": "sb3-cnn", "env": a.env, "seed": a.seed, "steps": a.steps, "pixel_size": a.pixel_size,
                "frames": a.frames, "action_repeat": a.action_repeat, "buffer": a.buffer, "learning_starts": a.learning_starts,

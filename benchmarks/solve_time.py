@@ -3,7 +3,7 @@
     python benchmarks/solve_time.py --seeds 0 1 2 3 4 [--env ID] [--target 1000] [-- extra softac train args]
 
 Prints one line per seed (wall seconds, steps, solved?) and the median. The run itself is
-`softac.bench.solve_softac`, the same measurement `softac bench --solve` makes.
+`softac.peers.bench.solve_softac`, the same measurement `softac bench --solve` makes.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import argparse
 import json
 import statistics
 
-from softac.bench import solve_softac
+from softac.peers.bench import solve_softac
 
 
 def main() -> None:

@@ -40,8 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import numpy as np
 
-    from softac import sac
-    from softac.config import SACConfig
+    from softac.learner import sac
+    from softac.config.sac_config import SACConfig
 
     config = SACConfig.preset(a.preset).with_overrides(a.set)
     image = tuple(int(n) for n in a.image.lower().split("x")) if a.image else None

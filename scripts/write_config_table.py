@@ -3,7 +3,7 @@
 import re
 from pathlib import Path
 
-from softac.config import SACConfig
+from softac.config.sac_config import SACConfig
 
 readme = Path(__file__).resolve().parent.parent / "docs" / "reference" / "config.md"
 text = readme.read_text()

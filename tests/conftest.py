@@ -21,7 +21,7 @@ sys.path.insert(0, str(TESTS))
 
 import softac_test_envs  # noqa: E402,F401  (registers the test envs)
 
-from softac.config import SACConfig  # noqa: E402
+from softac.config.sac_config import SACConfig  # noqa: E402
 
 TINY = dict(hidden_sizes=[32, 32], batch_size=32, learning_starts=200, buffer_size=5000,
             eval_interval=0, log_interval=100, checkpoint_interval=0, eval_episodes=2)
@@ -89,14 +89,14 @@ def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra
 
 
 def run_cli_in_process(*args: str) -> subprocess.CompletedProcess:
-    """`softac ARGS` as softac.cli.main runs it in this process (a notebook's or a script's call), its exit code
+    """`softac ARGS` as softac.cli.main.main runs it in this process (a notebook's or a script's call), its exit code
     and its stdout and stderr captured: for tests of what a command does with many configurations (every preset
     trains), which would otherwise pay a process, its `import jax` and its compile-cache reads each (issue 64:
     about 3 s of CPU a run). The tests of how a command behaves as a process of its own (exit codes as a shell
     sees them, signals, one-line errors) run it through run_cli."""
     import io
 
-    from softac.cli import main
+    from softac.cli.main import main
 
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -155,11 +155,11 @@ def tiny():
 
 @pytest.fixture(scope="session", autouse=True)
 def own_compile_cache(tmp_path_factory):
-    """The JAX compile cache (softac.device.compile_cache_dir) of this test session alone, under pytest's
+    """The JAX compile cache (softac.base.device.compile_cache_dir) of this test session alone, under pytest's
     basetemp: the suite neither reads the user's ~/.cache/softac/jax (it runs as on a fresh machine,
     whatever earlier runs left there) nor fills it with the tests' tiny networks. pytest-xdist's workers share
     one (under the session's base directory, the parent of each worker's): a program one compiled, the other
-    loads, as runs beside each other do (softac.device locks each entry's read and write). A session-scoped
+    loads, as runs beside each other do (softac.base.device locks each entry's read and write). A session-scoped
     autouse fixture runs before every other fixture and test; the CLI subprocesses inherit os.environ."""
     previous = os.environ.get("SOFTAC_COMPILE_CACHE")
     if os.environ.get("PYTEST_XDIST_WORKER"):
@@ -224,7 +224,7 @@ def assert_same_run_state(a, b) -> None:
 
     import numpy as np
 
-    from softac.runstate import RunState
+    from softac.run.run_state import RunState
 
     for f in dataclasses.fields(RunState):
         if f.name in RUN_STATE_NOT_COMPARED:
@@ -249,7 +249,7 @@ def assert_same_last_checkpoint(a: Path, b: Path) -> tuple[dict, dict]:
     make their next steps differ. Returns a's (meta, arrays), for a test's further checks."""
     import numpy as np
 
-    from softac import checkpoint as ckpt
+    from softac.run import checkpoint as ckpt
 
     (meta_a, arrays_a), (meta_b, arrays_b) = (ckpt.load(Path(run) / "checkpoints" / "last") for run in (a, b))
     assert sorted(arrays_a) == sorted(arrays_b) and any(k.startswith("state") for k in arrays_a)

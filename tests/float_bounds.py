@@ -159,7 +159,7 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
                   out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of an MLP's outputs (networks.mlp, or networks.batch_renorm_mlp in evaluation mode with
     `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only."""
-    from softac.networks import multiplies_in_bf16
+    from softac.learner.networks import multiplies_in_bf16
 
     stats = stats if stats is not None else [None] * len(layers)
     for i, (layer, layer_stats) in enumerate(zip(layers, stats)):
@@ -199,7 +199,7 @@ def simba_bound(actor: dict, x: np.ndarray, e: np.ndarray, activation: str, matm
     """(reference, bound) of a SimBa network's outputs (networks.simba) for inputs within `e` of the float64 `x`:
     the embedding; per block the LayerNorm, two dense layers with the activation between, and the residual sum
     (one rounding of the sum); the final LayerNorm and the output layer (`out_columns`: its first ones only)."""
-    from softac.networks import SIMBA_LN_EPS, multiplies_in_bf16
+    from softac.learner.networks import SIMBA_LN_EPS, multiplies_in_bf16
 
     def dense(x, e, w, b, columns=None):
         w, b = np.asarray(w, np.float64), np.asarray(b, np.float64)
@@ -259,11 +259,11 @@ def _layer_norm(h: np.ndarray, e: np.ndarray, scale: np.ndarray, bias: np.ndarra
 
 def image_input_bound(agent, stacks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of what an image agent's actor reads for uint8 frame stacks [batch, k, h, w, c]: the
-    encoder's features (softac.encoder.encode: pixels / 255 - the pixel offset, the convolutions, each output a sum of 9 c_in
+    encoder's features (softac.learner.encoder.encode: pixels / 255 - the pixel offset, the convolutions, each output a sum of 9 c_in
     products as a dense layer's, the linear layer, LayerNorm, tanh), then the state values packed beside the
     images (exact: their float32 bytes)."""
-    from softac.encoder import CONV_STRIDES, LN_EPS, image_only_shape, stack_channels
-    from softac.pixels import state_rows
+    from softac.learner.encoder import CONV_STRIDES, LN_EPS, image_only_shape, stack_channels
+    from softac.envs.pixels import state_rows
 
     state_dim = agent.spaces.image_state_dim
     k, height, width, channels = image_only_shape(agent.spaces.image_shape, state_dim)
@@ -301,7 +301,7 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
 
     `matmul_dtype`: how the program multiplies, if not as the agent's config says (agent.learner.functions.matmul_dtype):
     "float32" for a program that skips the bf16 roundings, as JAX 0.4.30's jitted bf16 layers do."""
-    from softac.normalization import EPSILON
+    from softac.learner.normalization import EPSILON
 
     if agent.spaces.image_shape is not None:
         x, e = image_input_bound(agent, obs)
@@ -328,7 +328,7 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
                              actor_stats if norm is not None else None,
                              out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
     if agent.learner.functions.policy.sde:  # gSDE's mean clip: monotone and 1-Lipschitz, as the obs clip above
-        from softac.policy import SDE_CLIP_MEAN
+        from softac.learner.policy import SDE_CLIP_MEAN
 
         clipped = np.clip(x, -SDE_CLIP_MEAN, SDE_CLIP_MEAN)
         e = np.maximum(np.clip(x + e, -SDE_CLIP_MEAN, SDE_CLIP_MEAN) - clipped,

@@ -96,7 +96,7 @@ class SlowEnv(DriftEnv):
 
     SOFTAC_TEST_ENV_LOG=FILE: each reset and step appends a line to FILE, "reset SEED" or "step SEED", SEED
     being the seed the episode started from (-1 without one). In a run with seed 0, evaluation episodes
-    start from seeds >= softac.evaluation.EVAL_SEED_OFFSET and training episodes below it (env i, reset k
+    start from seeds >= softac.run.evaluation.EVAL_SEED_OFFSET and training episodes below it (env i, reset k
     from i * 7919 + k, for a few envs); with another seed the training reset seeds reach that range too.
     SOFTAC_TEST_STOP_IN_EVAL=1: the first step of an episode seeded >= EVAL_SEED_OFFSET (in a seed-0 run,
     the first evaluation step), once logged, stops the process (SIGSTOP), so a test can act on it at that
@@ -132,7 +132,7 @@ class SlowEnv(DriftEnv):
         import os
         import time
 
-        from softac.evaluation import EVAL_SEED_OFFSET
+        from softac.run.evaluation import EVAL_SEED_OFFSET
 
         time.sleep(0.002)
         self.stepped = True

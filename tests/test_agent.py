@@ -9,8 +9,8 @@ import pytest
 from conftest import assert_same_training
 from softac import SAC, evaluate
 from softac.errors import SoftacError
-from softac.checkpoint import load as load_checkpoint
-from softac.logs import read_csv
+from softac.run.checkpoint import load as load_checkpoint
+from softac.run.csv_logs import read_csv
 from softac_test_envs import DriftEnv
 
 
@@ -85,7 +85,7 @@ def test_evaluate_reports_per_episode_results(tiny):
     summary statistics are theirs."""
     import gymnasium as gym
 
-    from softac.evaluation import EVAL_SEED_OFFSET
+    from softac.run.evaluation import EVAL_SEED_OFFSET
 
     agent = SAC(tiny())
     calls = []  # (observations, actions) of each policy call the evaluation made
@@ -233,7 +233,7 @@ def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
     import jax.numpy as jnp
 
     from conftest import RUN_STATE_NOT_COMPARED
-    from softac.runstate import RunState
+    from softac.run.run_state import RunState
 
     cfg = tiny(n_envs=2, obs_norm=True, eval_interval=100, buffer_obs_once=obs_once)
     a, b = SAC(cfg), SAC(cfg)
@@ -320,7 +320,7 @@ def test_assert_same_training_compares_the_whole_training_state(tiny, obs_once):
 
 def test_loading_into_an_env_with_other_action_bounds_is_refused_unless_asked(tiny, tmp_path):
     """Sizes alone used to be checked: a policy trained on [-1, 3] silently acted on [-2, 0.5]."""
-    from softac.checkpoint import CheckpointError
+    from softac.run.checkpoint import CheckpointError
 
     agent = SAC(tiny())
     agent.learn(300, progress=False)
@@ -378,12 +378,13 @@ def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):
 def test_the_parts_train_without_the_agent_as_the_agent_trains_them(tiny, tmp_path):
     """Data flows one way: a learner, a collector and a run state, made and trained by hand with the loop,
     end where SAC.learn ends, bit for bit, and their checkpoint loads as an agent."""
-    from softac import checkpoint, snapshot
-    from softac.collector import Collector
-    from softac.envs import check_spaces, make_env
-    from softac.learner import Learner
-    from softac.loop import train
-    from softac.runstate import RunState
+    from softac.run import checkpoint
+    from softac.run import checkpoint_contents as snapshot
+    from softac.replay.collector import Collector
+    from softac.envs.make import check_spaces, make_env
+    from softac.learner.learner import Learner
+    from softac.run.loop import train
+    from softac.run.run_state import RunState
 
     cfg = tiny(obs_norm=True, n_envs=2)
     agent = SAC(cfg)
@@ -426,7 +427,7 @@ def test_load_replaces_only_the_settings_that_do_not_change_what_is_computed(tin
 def test_random_action_prob_replaces_that_share_of_actions_by_uniform_ones():
     """mix_in_random_actions: about PROB of the rows become uniform in [-1, 1], the others stay as they were
     (bounds: 5 binomial standard deviations), and the generator advances the same whichever rows it picks."""
-    from softac.loop import mix_in_random_actions
+    from softac.run.loop import mix_in_random_actions
 
     n, prob = 20000, 0.3
     policy = np.full((n, 3), 0.25, np.float32)

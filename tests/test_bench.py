@@ -104,10 +104,10 @@ def test_bench_refuses_a_warmup_too_short_for_any_framework():
         assert_clean_error(run_cli("bench", "--frameworks", frameworks, "--warmup", "0"), "--warmup must be >= 300")
 
 
-@pytest.mark.parametrize("module", ["softac.peers", "softac.bench"])  # the peers' entry point, and the older form
+@pytest.mark.parametrize("module", ["softac.peers", "softac.peers.bench"])  # the peers' entry point, and the older form
 def test_a_peer_process_is_started_through_the_peers_entry_point(module):
     """`python -m softac.peers` runs a peer (the sweep's peer trials and softac bench start it); the older
-    `python -m softac.bench run|throughput|solve sb3|sbx` goes to the same parser."""
+    `python -m softac.peers.bench run|throughput|solve sb3|sbx` goes to the same parser."""
     import subprocess
     import sys
 

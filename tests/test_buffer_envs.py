@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from softac.buffer import BufferMemoryError, ReplayBuffer
-from softac.envs import EnvError, EnvPool, check_spaces, make_env, resolve_env_id
+from softac.replay.buffer import BufferMemoryError, ReplayBuffer
+from softac.envs.make import EnvError, EnvPool, check_spaces, make_env, resolve_env_id
 
 
 def test_buffer_wraps_and_roundtrips():
@@ -119,7 +119,7 @@ def test_mujoco_state_restores_exactly():
 @pytest.mark.parametrize("n_envs,capacity", [(1, 40), (3, 50), (4, 64)])
 def test_obs_once_buffer_rebuilds_the_same_transitions(n_envs, capacity):
     """Fed the same transitions, the compact buffer reconstructs exactly what the full one stores."""
-    from softac.buffer import ObsOnceReplayBuffer
+    from softac.replay.buffer import ObsOnceReplayBuffer
 
     pool = EnvPool(lambda i: make_env("softac_test_envs:Drift-v0"), n_envs, seed=1, name="Drift-v0")
     pool.reset()
@@ -144,8 +144,8 @@ def test_obs_once_buffer_rebuilds_the_same_transitions(n_envs, capacity):
     restored.load_state_dict(compact.state_dict())
     rows = np.flatnonzero(restored.valid[: restored.size])
     np.testing.assert_array_equal(restored.next_obs_of(rows), full.next_obs[rows])
-    from softac.buffer import buffer_bytes_per_transition
-    from softac.config import SACConfig
+    from softac.replay.buffer import buffer_bytes_per_transition
+    from softac.config.sac_config import SACConfig
 
     pusher = SACConfig.preset("Pusher-v5")
     full_bytes = buffer_bytes_per_transition(pusher, 23, 7)
@@ -170,7 +170,7 @@ def test_n_step_returns_match_a_walk_over_every_transition(n_envs, capacity, n_s
     """Sampled n-step rows of both buffers equal a plain walk over the transitions: rewards discounted and
     summed per env (vector envs interleave), stopped after an episode end (termination or truncation),
     never past the newest row, across the ring's wrap; the last row's next obs and terminated flag."""
-    from softac.buffer import ObsOnceReplayBuffer
+    from softac.replay.buffer import ObsOnceReplayBuffer
 
     gamma = 0.9
     pool = EnvPool(lambda i: make_env("softac_test_envs:Drift-v0"), n_envs, seed=2, name="Drift-v0")

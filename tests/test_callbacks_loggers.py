@@ -9,9 +9,9 @@ import pytest
 
 from conftest import assert_clean_error, run_cli
 from softac import SAC
-from softac.callbacks import Callback, StopOnPlateau
+from softac.run.callbacks import Callback, StopOnPlateau
 from softac.errors import SoftacError
-from softac.logs import read_csv
+from softac.run.csv_logs import read_csv
 
 
 class Recorder(Callback):
@@ -177,7 +177,7 @@ def test_logger_none_writes_csv_only_and_unknown_names_are_refused(tmp_path):
 
 
 def test_a_missing_backend_package_is_bad_input_naming_the_extra(tiny, tmp_path, monkeypatch):
-    from softac import loggers
+    from softac.run import loggers
 
     monkeypatch.setattr(loggers.importlib.util, "find_spec", lambda name: None)
     with pytest.raises(SoftacError, match=r"pip install 'softac\[wandb\]'"):

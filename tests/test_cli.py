@@ -157,7 +157,7 @@ def test_main_called_in_process_leaves_the_callers_sigterm_handling_as_it_was_af
     (seen: a test worker that had run a stopped training in-process started processes that ignored SIGTERM)."""
     script = textwrap.dedent(f"""
         import os, signal, sys, threading, time
-        from softac.cli import main
+        from softac.cli.main import main
 
         def stop_once_training():
             progress = os.path.join(sys.argv[1], "progress.csv")
@@ -208,8 +208,8 @@ def test_bad_input_exits_2_with_one_line(args, fragments, tmp_path):
 
 
 def test_a_flag_and_a_set_of_its_key_may_say_the_same():
-    from softac.cli import build_parser
-    from softac.commands import FLAG_OF_KEY, _resolve_train_config
+    from softac.cli.main import build_parser
+    from softac.cli.commands import FLAG_OF_KEY, _resolve_train_config
 
     args = build_parser().parse_args(["train", "--env", "Pendulum-v1", "--steps", "600", "--seed", "3", "--logger",
                                       "tensorboard,mlflow", "--set", "total_steps=600", "seed=3",
@@ -225,7 +225,7 @@ def test_a_flag_and_a_set_of_its_key_may_say_the_same():
 
 def test_concurrent_processes_claim_different_cpus(tmp_path, monkeypatch):
     """What `--cpus` and each sweep trial claim: CPUs no other pinned softac process holds, while it lives."""
-    from softac import cpus
+    from softac.base import cpus
 
     monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
     allowed = sorted(os.sched_getaffinity(0))
@@ -249,7 +249,7 @@ def test_concurrent_processes_claim_different_cpus(tmp_path, monkeypatch):
 def test_a_claim_passes_over_a_cpu_that_a_sharing_process_still_uses(tmp_path, monkeypatch):
     """A process that had to share a CPU (none free when it started) keeps running there after the CPUs free
     up; the next claim takes another CPU, not the one that looks free but is in use."""
-    from softac import cpus
+    from softac.base import cpus
 
     monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
     allowed = sorted(os.sched_getaffinity(0))
@@ -272,7 +272,7 @@ def test_a_claim_passes_over_a_cpu_that_a_sharing_process_still_uses(tmp_path, m
 def test_processes_that_must_share_go_to_different_cpus(tmp_path, monkeypatch):
     """Every CPU held (by runs running or stopped): two more processes share, one per CPU, whatever their pids
     (measured before: both on CPU 0, by their pids' parity, while CPU 1 had one process)."""
-    from softac import cpus
+    from softac.base import cpus
 
     monkeypatch.setattr(cpus, "CPU_LOCKS", tmp_path)
     monkeypatch.setattr(cpus.os, "getpid", lambda: 4242)  # the same pid parity for both
@@ -325,7 +325,7 @@ def test_a_run_pinned_beside_runs_holding_every_cpu_records_that_it_shared(tmp_p
 
 def test_a_sweep_trials_shared_cpus_reach_its_process(monkeypatch):
     """A sweep trial that had to share its CPUs tells its process (trial_process_env), which records it."""
-    from softac import cpus
+    from softac.base import cpus
     from softac.sweep import trial_process_env
 
     allowed = sorted(os.sched_getaffinity(0))
@@ -367,7 +367,7 @@ def test_checkpoint_problems_are_clean_errors(tmp_path):
 
 
 def test_presets_lists_every_preset_a_line_each_and_shows_one_whole():
-    from softac.config import load_preset, preset_names
+    from softac.config.sac_config import load_preset, preset_names
 
     r = run_cli("presets")
     assert r.returncode == 0
@@ -401,7 +401,7 @@ def test_gpu_without_a_gpu_is_a_clean_error(tmp_path):
 def test_help_for_the_root_and_every_command():
     """`softac`, `softac --help` and `softac CMD --help` print usage, never an internal error (argparse formats
     help with %, so a literal % in a help text once broke all of them)."""
-    from softac.cli import build_parser
+    from softac.cli.main import build_parser
 
     r = run_cli("--help")
     assert r.returncode == 0 and "usage: softac" in r.stdout and not r.stderr, r.stderr
@@ -421,8 +421,8 @@ def test_help_for_the_root_and_every_command():
 
 def test_the_policy_choices_of_eval_and_video_are_the_learners():
     """cli spells learner.POLICIES out (importing the learner would slow `softac --help`): they must not drift."""
-    from softac.cli import build_parser
-    from softac.learner import POLICIES
+    from softac.cli.main import build_parser
+    from softac.learner.learner import POLICIES
 
     for command in ("eval", "video"):
         [policy] = [a for a in build_parser().commands[command]._actions if a.dest == "policy"]

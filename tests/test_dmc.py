@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed, tiny_config
-from softac.envs import ActionRepeat, EnvPool, get_env_state, make_env, set_env_state, with_action_repeat
-from softac.logs import read_csv
+from softac.envs.make import ActionRepeat, EnvPool, get_env_state, make_env, set_env_state, with_action_repeat
+from softac.run.csv_logs import read_csv
 
 pytest.importorskip("dm_control")
 pytest.importorskip("shimmy")
@@ -20,7 +20,7 @@ TASKS = ("cheetah-run", "walker-walk", "walker-run", "hopper-hop", "finger-spin"
 
 
 def dm_control_env(task: str, seed: int):
-    from softac import dmc
+    from softac.envs import dmc
 
     domain, name = task.split("-", 1)
     return dmc.suite().load(domain, name, task_kwargs={"random": seed})
@@ -96,7 +96,7 @@ def test_a_dmc_agent_with_action_repeat_resumes_exactly_mid_episode(tmp_path):
 
 def test_dmc_envs_in_env_workers_are_the_in_process_envs():
     pool = EnvPool(lambda i: make_env(with_action_repeat("dmc:cheetah-run", 2)), 2, seed=4, name="cheetah")
-    from softac.env_workers import WorkerEnvPool
+    from softac.envs.workers import WorkerEnvPool
 
     workers = WorkerEnvPool(with_action_repeat("dmc:cheetah-run", 2), 2, 4, "cheetah", 1)
     try:
@@ -135,8 +135,8 @@ def test_unknown_tasks_and_a_missing_extra_are_one_line_errors(tmp_path, monkeyp
     assert_clean_error(result, "dm_control/cheetah-fly-v0", "cheetah-run")
     import importlib.util
 
-    from softac import dmc
-    from softac.envs import EnvError
+    from softac.envs import dmc
+    from softac.envs.make import EnvError
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "shimmy" else real(name, *a))

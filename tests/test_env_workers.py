@@ -13,10 +13,10 @@ import pytest
 
 from conftest import assert_clean_error, assert_same_training, assert_training_error, child_env, run_cli
 from softac import SAC
-from softac.callbacks import Callback
-from softac.config import ConfigError
-from softac.env_workers import WorkerEnvPool, split_evenly
-from softac.envs import EnvError, EnvFailed, EnvPool, copy_env
+from softac.run.callbacks import Callback
+from softac.config.sac_config import ConfigError
+from softac.envs.workers import WorkerEnvPool, split_evenly
+from softac.envs.make import EnvError, EnvFailed, EnvPool, copy_env
 from softac_test_envs import DriftEnv
 
 TINY_SETS = ["--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "buffer_size=5000",
@@ -63,8 +63,8 @@ def test_env_workers_must_be_between_0_and_n_envs(tiny):
 @pytest.mark.parametrize("argv", [["--set", "env_workers=4", "--n-envs", "4"], ["--env-workers", "4", "--set", "n_envs=4"],
                                   ["--set", "env_workers=4", "n_envs=4"]])
 def test_env_workers_and_n_envs_are_checked_together_whichever_option_sets_them(argv):
-    from softac.cli import build_parser
-    from softac.commands import _resolve_train_config
+    from softac.cli.main import build_parser
+    from softac.cli.commands import _resolve_train_config
 
     config = _resolve_train_config(build_parser().parse_args(["train", "--env", "InvertedPendulum-v5", *argv]))
     assert (config.n_envs, config.env_workers) == (4, 4)
@@ -177,7 +177,7 @@ def test_a_killed_worker_fails_the_run_naming_the_env_and_the_next_learn_starts_
 
 def test_workers_exit_when_their_parent_is_killed_outright():
     code = ("import time\n"
-            "from softac.env_workers import WorkerEnvPool\n"
+            "from softac.envs.workers import WorkerEnvPool\n"
             "pool = WorkerEnvPool('softac_test_envs:Drift-v0', 2, seed=0, name='Drift-v0', workers=2)\n"
             "print(*pool.pids, flush=True)\n"
             "time.sleep(600)\n")

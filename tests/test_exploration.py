@@ -8,7 +8,7 @@ import pytest
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from softac import SAC
-from softac.exploration import ColoredNoise, colored_noise
+from softac.replay.exploration import ColoredNoise, colored_noise
 
 
 @pytest.mark.parametrize("length", [1000, 999])

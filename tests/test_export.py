@@ -20,10 +20,10 @@ import softac
 from conftest import TESTS, assert_clean_error, child_env, run_cli, tiny_config
 from float_bounds import action_bound, assert_within_bound
 from softac import SAC, SoftacError
-from softac.export import export_policy
-from softac.networks import jit_keeps_bf16_rounding
+from softac.outputs.export import export_policy
+from softac.learner.networks import jit_keeps_bf16_rounding
 
-EXPORT_NUMPY = Path(softac.__file__).parent / "export_numpy.py"
+EXPORT_NUMPY = Path(softac.__file__).parent / "learner" / "numpy_forward.py"
 DRIFT = "softac_test_envs:Drift-v0"  # actions in [-1, 3]
 TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and batch statistics have moved
     "sac": lambda: tiny_config(DRIFT, learning_starts=100),
@@ -48,7 +48,7 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
 
 
 def copied_policy_forward():
-    """policy_forward loaded from export_numpy.py's file alone, as a user who copied the file would use it."""
+    """policy_forward loaded from numpy_forward.py's file alone, as a user who copied the file would use it."""
     spec = importlib.util.spec_from_file_location("copied_export_numpy", EXPORT_NUMPY)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -285,7 +285,7 @@ def test_the_export_guides_forward_pass_is_the_modules(tmp_path):
     code = next(block for block in section.split("```python\n") if "def policy_forward" in block).split("```")[0]
     readme_module = {}
     exec(code, readme_module)
-    from softac.export_numpy import ACTIVATIONS
+    from softac.learner.numpy_forward import ACTIVATIONS
 
     x = np.linspace(-6.0, 6.0, 1001, dtype=np.float32)
     assert set(readme_module["ACTIVATIONS"]) == set(ACTIVATIONS)
@@ -302,7 +302,7 @@ def test_the_export_guides_forward_pass_is_the_modules(tmp_path):
     assert_predict_acts_as_the_network(agent, obs)
 
     # bf16 layers and CrossQ's kept-apart normalisation: the guide's pass is the module's to the bit
-    from softac.export_numpy import policy_forward
+    from softac.learner.numpy_forward import policy_forward
 
     agent = SAC(tiny_config("Pusher-v5", crossq=True, obs_norm=True, matmul_dtype="bfloat16"))
     obs = rng.normal(scale=2.0, size=(100, agent.spaces.obs_dim)).astype(np.float32)

@@ -126,7 +126,7 @@ def test_sigterm_during_evaluation_stops_it_within_the_step_under_way_and_exits_
     recorded, and the run checkpoints the step it was at and exits 130. Where the process was and what it did
     after the signal come from the process itself, not from the clock: Slow-v0 logs every reset and step and
     stops the process at its first evaluation step, where the test sends the signal."""
-    from softac.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL
+    from softac.run.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL
 
     run, log = tmp_path / "run", tmp_path / "env.log"
     proc = _popen_train("--env", "softac_test_envs:Slow-v0", "--steps", "100000", "--out", str(run),
@@ -190,7 +190,7 @@ def test_a_stopped_sweep_trial_stuck_after_its_checkpoint_ends_itself_and_resume
 
 @pytest.mark.faults
 def test_sigterm_during_a_checkpoint_write_finishes_it_then_exits(tmp_path, monkeypatch):
-    from softac import checkpoint as ckpt
+    from softac.run import checkpoint as ckpt
     from softac.agent import SAC
     from softac.errors import TrainingInterrupted
 
@@ -213,7 +213,7 @@ def test_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     from softac.agent import SAC
     from softac.errors import SoftacError
 
-    from softac import checkpoint
+    from softac.run import checkpoint
 
     real_write, calls = checkpoint._write_npz, []
 
@@ -315,7 +315,7 @@ def test_same_seed_is_identical_across_processes(tmp_path):
 
 # ---- fuzzing: any value runs or is refused with a ConfigError / exit 2, never a traceback ----
 
-from softac.config import ConfigError, SACConfig  # noqa: E402
+from softac.config.sac_config import ConfigError, SACConfig  # noqa: E402
 
 values = st.one_of(st.integers(-10**12, 10**12), st.floats(allow_nan=True, allow_infinity=True),
                    st.booleans(), st.none(), st.text(max_size=12),
@@ -349,7 +349,7 @@ def test_set_fuzz_parses_or_refuses(key, text):
                                                  "true", "bfloat16", "orthogonal", "tanh", "auto", "1e-3"])),
                       min_size=1, max_size=3))
 def test_cli_fuzz_runs_or_exits_2(tmp_path, pairs):
-    from softac.cli import main
+    from softac.cli.main import main
 
     out = tmp_path / f"run{random.random()}"
     code = main(["train", "--env", "softac_test_envs:Drift-v0", "--steps", "40", "--out", str(out), "--no-progress",

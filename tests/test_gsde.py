@@ -13,9 +13,9 @@ import pytest
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from softac import SAC
-from softac.exploration import SdeNoise
-from softac.networks import init_actor, output_layer_mask
-from softac.policy import SDE_CLIP_MEAN, SDE_EPSILON, Policy
+from softac.replay.exploration import SdeNoise
+from softac.learner.networks import init_actor, output_layer_mask
+from softac.learner.policy import SDE_CLIP_MEAN, SDE_EPSILON, Policy
 
 OBS, ACT, HIDDEN = 3, 2, 5
 POLICY = Policy("relu", -20.0, 2.0, "clamp", sde=True)
@@ -142,7 +142,7 @@ def test_one_kind_of_noise_state_is_refused_to_the_other_in_one_line():
     """A checkpoint's noise state restored into a run with the other kind names the mismatch (SoftacError),
     whichever way round."""
     from softac import SoftacError
-    from softac.exploration import ColoredNoise
+    from softac.replay.exploration import ColoredNoise
 
     pink, sde = ColoredNoise(1.0, 2, 1, 50, 0), SdeNoise(8, 2, 4, 1, 0)
     for into, source, words in ((pink, sde, "is not pink noise"), (sde, pink, "not this run's gSDE")):
@@ -186,8 +186,8 @@ def test_an_exported_gsde_policy_clips_its_mean_as_predict_does(tiny, tmp_path):
     """test_export runs a trained gSDE agent through the ONNX and NumPy checks; here its means are pushed past
     the clip, where an export without it would act differently."""
     from float_bounds import action_bound, assert_within_bound
-    from softac.export import export_policy
-    from softac.export_numpy import policy_forward
+    from softac.outputs.export import export_policy
+    from softac.learner.numpy_forward import policy_forward
 
     agent = SAC(tiny("Pendulum-v1", exploration_noise="gsde", learning_starts=50))
     agent.learn(100, progress=False)

@@ -11,11 +11,12 @@ import pytest
 from conftest import assert_clean_error, assert_same_training, load_benchmark_script, run_cli, straight_and_resumed
 
 from softac import SAC
-from softac.buffer import ReplayBuffer
-from softac.config import ConfigError
+from softac.replay.buffer import ReplayBuffer
+from softac.config.sac_config import ConfigError
 from softac.errors import SoftacError
-from softac.her import DictLayout, HerReplayBuffer
-from softac.logs import read_csv
+from softac.envs.goals import DictLayout
+from softac.replay.her_buffer import HerReplayBuffer
+from softac.run.csv_logs import read_csv
 
 GOAL_ENV = "softac_test_envs:PointGoal-v0"
 
@@ -266,8 +267,8 @@ def test_exported_policies_of_a_goal_env_take_the_dict(tiny, tmp_path):
     """policy.npz's forward pass takes the dict (one, or a dict of batches); the ONNX graph one input per key."""
     import onnxruntime
 
-    from softac.export import export_policy
-    from softac.export_numpy import policy_forward
+    from softac.outputs.export import export_policy
+    from softac.learner.numpy_forward import policy_forward
 
     agent = SAC(tiny(GOAL_ENV))
     agent.learn(250, progress=False)
@@ -310,8 +311,8 @@ def test_sweep_summaries_give_success_rates_and_the_steps_to_reach_one(tmp_path)
 
 
 def test_plots_and_the_report_of_a_goal_env_run_show_its_success_rate(tiny, tmp_path):
-    from softac.plots import plot_runs
-    from softac.report import build_report
+    from softac.outputs.plots import plot_runs
+    from softac.outputs.report import build_report
 
     runs = []
     for seed in (0, 1):

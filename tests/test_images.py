@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from softac.buffer import ReplayBuffer
-from softac.encoder import (CONV_STRIDES, conv_features, conv_output_size, encode, encoder_parameters, init_encoder,
+from softac.replay.buffer import ReplayBuffer
+from softac.learner.encoder import (CONV_STRIDES, conv_features, conv_output_size, encode, encoder_parameters, init_encoder,
                             random_shift, smallest_image, stack_channels)
 from softac.errors import SoftacError
-from softac.image_buffer import FrameReplayBuffer
+from softac.replay.image_buffer import FrameReplayBuffer
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
@@ -110,8 +110,8 @@ def test_checkpoints_and_numpy_exports_from_before_pixel_range_keep_the_centered
     import json
 
     from softac import SAC
-    from softac.export import export_policy
-    from softac.export_numpy import policy_forward
+    from softac.outputs.export import export_policy
+    from softac.learner.numpy_forward import policy_forward
 
     agent = SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, learning_starts=100, pixel_range="centered"))
     agent.learn(150, progress=False)
@@ -292,7 +292,7 @@ def test_frame_buffer_refuses_what_does_not_fit_or_match():
 # ---- the wrappers ----------------------------------------------------------------------------------------------
 
 def test_resize_averages_areas_when_shrinking_and_repeats_pixels_when_growing():
-    from softac.pixels import resize
+    from softac.envs.pixels import resize
 
     image = np.arange(4 * 6 * 1, dtype=np.uint8).reshape(4, 6, 1) * 10
     small = resize(image, 2)
@@ -304,7 +304,7 @@ def test_resize_averages_areas_when_shrinking_and_repeats_pixels_when_growing():
 
 
 def test_frame_stack_pads_with_the_first_frame_moves_on_and_restores_its_frames():
-    from softac.pixels import FrameStack
+    from softac.envs.pixels import FrameStack
     from softac_test_envs import DotImageEnv
 
     env = FrameStack(DotImageEnv(), 3)
@@ -350,7 +350,7 @@ def test_an_agent_learns_from_images_what_the_image_shows(tiny):
 
 def test_channels_first_images_and_rendered_frames_become_channels_last_stacks(tiny):
     from softac import SAC
-    from softac.pixels import resize
+    from softac.envs.pixels import resize
     from softac_test_envs import DotImageEnv
 
     first = SAC(tiny("DotImage", **{**IMAGE, "frame_stack": 3}), env=DotImageEnv(channels_first=True))
@@ -398,8 +398,8 @@ def test_state_values_packed_beside_an_image_come_back_bit_for_bit():
     agree exactly, whatever the values: the state's float32 bytes travel as uint8 pixels."""
     import gymnasium as gym
 
-    from softac.encoder import image_only_shape, split_image_and_state
-    from softac.pixels import ImageStateLayout, state_rows
+    from softac.learner.encoder import image_only_shape, split_image_and_state
+    from softac.envs.pixels import ImageStateLayout, state_rows
 
     space = gym.spaces.Dict({"joints": gym.spaces.Box(-np.inf, np.inf, (2, 3), np.float32),
                              "camera": gym.spaces.Box(0, 255, (3, 5, 4), np.uint8),  # channels-first
@@ -452,7 +452,7 @@ def test_an_agent_learns_from_an_image_and_state_values_together(tiny):
 
 def test_image_settings_that_cannot_work_are_refused(tiny):
     from softac import SAC, SACConfig
-    from softac.config import ConfigError
+    from softac.config.sac_config import ConfigError
     from softac_test_envs import DriftEnv
 
     with pytest.raises(ConfigError, match="obs_norm"):
@@ -465,7 +465,7 @@ def test_image_settings_that_cannot_work_are_refused(tiny):
         SACConfig().replace(pixel_range="0,1")
     with pytest.raises(SoftacError, match="obs_norm normalises vector observations"):
         SAC(tiny("softac_test_envs:DotImage-v0", **IMAGE, obs_norm=True))
-    from softac.learner import check_model_memory
+    from softac.learner.learner import check_model_memory
 
     with pytest.raises(SoftacError, match="smaller than the encoder's smallest input, 15x15"):
         check_model_memory(tiny(), 12 * 12 * 3, 1, image_shape=(1, 12, 12, 3))
@@ -505,8 +505,8 @@ def test_the_cli_trains_evaluates_films_reports_and_exports_a_pixel_run(tmp_path
     """InvertedPendulum-v5 from its rendered frames, as a new user would type it; the video shows the agent's
     own view, enlarged."""
     from conftest import assert_clean_error, run_cli
-    from softac.gl import working_gl_backend
-    from softac.logs import read_csv
+    from softac.base.opengl import working_gl_backend
+    from softac.run.csv_logs import read_csv
 
     if working_gl_backend() is None:
         pytest.skip("no EGL or OSMesa here (make system-deps installs libosmesa6)")
@@ -534,8 +534,8 @@ def test_the_cli_trains_evaluates_films_reports_and_exports_a_pixel_run(tmp_path
 def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_before_it_moved(tiny):
     """DrQ-v2's order: the critic loss's gradient moves the encoder; the actor's features are the step's augmented
     observations through the encoder as it was, stopped (the actor's loss never reaches the encoder)."""
-    from softac import sac
-    from softac.encoder import random_shift, stack_channels
+    from softac.learner import sac
+    from softac.learner.encoder import random_shift, stack_channels
 
     config = tiny("softac_test_envs:DotImage-v0", **IMAGE)
     image = (2, 16, 16, 3)
@@ -565,7 +565,7 @@ def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_be
 
 
 def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0, act_dim: int = 1):
-    from softac import sac
+    from softac.learner import sac
 
     rng = np.random.default_rng(seed)
     return sac.Batch(obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
@@ -578,7 +578,7 @@ def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0, act_dim: int
 def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at_tau(tiny):
     """DrQ's target critic carries its own encoder: a copy at the start, Polyak-averaged with the online encoder
     at tau on the targets' schedule, and what the next-state value is read through."""
-    from softac import sac
+    from softac.learner import sac
 
     config = tiny("softac_test_envs:DotImage-v0", **IMAGE, target_encoder=True, tau=0.25, target_update_interval=2)
     image = (2, 16, 16, 3)
@@ -628,7 +628,8 @@ def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_a
     """DrQ's actor: its own Linear-LayerNorm-tanh head on the encoder's convolutions (stopped). The critic step
     leaves the head alone; the actor step moves the head and the actor and leaves the encoder alone; acting and
     the deployed policy read the shared convolutions through the actor's head."""
-    from softac import SAC, sac
+    from softac import SAC
+    from softac.learner import sac
 
     config = tiny("softac_test_envs:DotStateImage-v0", **IMAGE, actor_encoder_head=True)
     agent = SAC(config)
@@ -675,8 +676,8 @@ def test_exported_image_policies_act_as_predict(tiny, tmp_path, with_state, acto
     onnxruntime = pytest.importorskip("onnxruntime")
     from float_bounds import action_bound, assert_within_bound
     from softac import SAC
-    from softac.export import export_policy
-    from softac.export_numpy import policy_forward
+    from softac.outputs.export import export_policy
+    from softac.learner.numpy_forward import policy_forward
     from softac_test_envs import DotImageEnv, DotStateImageEnv
 
     # 20x20 frames: the convolutions end at 3x3 (at 16x16, 1x1, where any flattening order is the same)

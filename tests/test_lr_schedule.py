@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from conftest import assert_same_training, straight_and_resumed, tiny_config
-from softac import sac
-from softac.config import ConfigError, SACConfig
-from softac.learner import Learner
+from softac.learner import sac
+from softac.config.sac_config import ConfigError, SACConfig
+from softac.learner.learner import Learner
 
 U = 2.0**-24  # float32's unit roundoff
 

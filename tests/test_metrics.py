@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from softac import SAC, sac
-from softac.config import SACConfig
-from softac.logs import read_csv
+from softac import SAC
+from softac.learner import sac
+from softac.config.sac_config import SACConfig
+from softac.run.csv_logs import read_csv
 
 from conftest import straight_and_resumed
 from test_sac_math import _batch

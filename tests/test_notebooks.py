@@ -48,7 +48,7 @@ def test_there_is_a_notebook_per_seed_document_and_one_on_a_custom_env():
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_the_notebook_runs(path, tmp_path):
-    from softac.gl import working_gl_backend
+    from softac.base.opengl import working_gl_backend
 
     book = execute(path, tmp_path)
     kinds = output_types(book)
@@ -72,8 +72,8 @@ def test_show_outside_jupyter_writes_the_figures_and_says_where(tiny, tmp_path, 
     run path asked for a video it lacks, is a one-line SoftacError."""
     import softac
     from softac import SAC, SoftacError
-    from softac.logs import read_csv
-    from softac.report import evaluation_table
+    from softac.run.csv_logs import read_csv
+    from softac.outputs.report import evaluation_table
 
     agent = SAC(tiny(eval_interval=100, eval_episodes=1))
     with pytest.raises(SoftacError, match="no run directory to show: train it with learn"):

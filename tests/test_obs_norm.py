@@ -7,9 +7,9 @@ import pytest
 
 from conftest import assert_clean_error, run_cli
 from softac import SAC, evaluate
-from softac import checkpoint as ckpt
-from softac.checkpoint import CheckpointError
-from softac.normalization import EPSILON, RunningObsNorm
+from softac.run import checkpoint as ckpt
+from softac.run.checkpoint import CheckpointError
+from softac.learner.normalization import EPSILON, RunningObsNorm
 
 
 @pytest.mark.numerics

@@ -18,7 +18,7 @@ import pytest
 
 from conftest import assert_same_learner, assert_same_run_state
 from softac import SAC
-from softac.checkpoint import load as load_checkpoint
+from softac.run.checkpoint import load as load_checkpoint
 
 FIXTURES = Path(__file__).parent / "data" / "old_checkpoints"
 sys.path.insert(0, str(FIXTURES))

@@ -60,8 +60,8 @@ def test_plot_several_runs_groups_configs(tmp_path):
 
 
 def test_confidence_band_maths():
-    from softac.plots import aligned_eval_curves, moving_average
-    from softac.stats import interquartile_mean, mean_and_ci, summarize_seeds, t_critical_95
+    from softac.outputs.plots import aligned_eval_curves, moving_average
+    from softac.outputs.seed_stats import interquartile_mean, mean_and_ci, summarize_seeds, t_critical_95
 
     values = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])
     mean, half, n = mean_and_ci(values)
@@ -84,7 +84,7 @@ def test_confidence_band_maths():
 
 
 def test_stratified_bootstrap_of_the_iqm_resamples_runs_within_each_env():
-    from softac.stats import interquartile_mean, iqm_band, stratified_bootstrap_iqm
+    from softac.outputs.seed_stats import interquartile_mean, iqm_band, stratified_bootstrap_iqm
 
     # enumerable: env A's runs {0, 1} resampled give (0,0), (0,1), (1,0), (1,1) with probability 1/4 each,
     # env B's one run is always 10; the IQM of 3 values trims none, so the resampled IQMs are 10/3, 11/3
@@ -149,7 +149,7 @@ def test_video_of_the_actor_of_an_averaging_run_and_a_clean_error_without_one(pe
     """`softac video --policy` films the policy it names (SAC.predict gets it), in a file that says which; a run
     without weight averaging has no average to film."""
     from softac.agent import SAC
-    from softac.video import record
+    from softac.outputs.video import record
 
     class Recording:  # the agent, with the policies its predict is asked for written down
         def __init__(self, agent):
@@ -218,7 +218,7 @@ def test_report_and_plot_errors(tmp_path):
 
 
 def test_gl_backend_choice(monkeypatch):
-    import softac.gl as gl
+    import softac.base.opengl as gl
 
     # the choice below sets both variables: restored after the test, also where they were unset (delenv alone
     # records nothing then, and the osmesa chosen here leaked into every later test's MuJoCo processes)
@@ -257,7 +257,7 @@ def test_make_demo_installs_the_base_package_only(tmp_path):
 
 def test_comparison_labels_name_what_varies_shortly():
     """Legend labels name only the keys that vary, with searched floats cut to 4 significant digits."""
-    from softac.plots import _describe_differences
+    from softac.outputs.plots import _describe_differences
 
     base = {"env_id": "Pusher-v5", "seed": 0, "gamma": 0.95, "hidden_sizes": [256, 256], "actor_lr": 0.001}
     other = {**base, "seed": 1, "actor_lr": 0.00036875529945204906, "hidden_sizes": [128, 128]}
@@ -274,8 +274,8 @@ def test_a_run_made_before_a_config_key_existed_groups_with_new_runs_at_its_defa
     defaults, so its seeds belong with new runs of the same settings; a changed value still splits them."""
     import yaml
 
-    from softac.config import SACConfig
-    from softac.plots import group_runs
+    from softac.config.sac_config import SACConfig
+    from softac.outputs.plots import group_runs
 
     new = SACConfig().to_dict()
     old = {k: v for k, v in new.items() if k not in ("reset_interval", "obs_norm", "obs_norm_clip")}
@@ -298,7 +298,7 @@ def test_a_run_made_before_a_config_key_existed_groups_with_new_runs_at_its_defa
 
 
 def test_the_aggregate_figure_draws_one_bar_per_configuration(tmp_path):
-    from softac.plots import plot_aggregate
+    from softac.outputs.plots import plot_aggregate
 
     out = plot_aggregate({"softac crossq preset": (0.8, 0.6, 0.9), "SBX CrossQ, same settings": (0.5, 0.2, 0.7)},
                          tmp_path / "aggregate.png", "IQM of normalised scores", "normalised score")

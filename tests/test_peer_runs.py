@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import TESTS, child_env, run_cli, signal_when
-from softac.logs import RECENT_EPISODES, read_csv
+from softac.run.csv_logs import RECENT_EPISODES, read_csv
 
 DRIFT = "softac_test_envs:Drift-v0"  # 25-step episodes
 FAKE_PEERS = TESTS / "fake_peers"
@@ -85,7 +85,7 @@ def test_a_softac_run_writes_the_same_columns(tmp_path):
 def test_sbx_crossq_runs_at_its_defaults_or_at_the_crossq_presets_settings(tmp_path, framework):
     import yaml
 
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     run = tmp_path / framework
     r = subprocess.run([sys.executable, "-m", "softac.peers", "run", framework, "--env", DRIFT, "--seed", "1",
@@ -110,7 +110,7 @@ def test_sbx_crossq_runs_at_its_defaults_or_at_the_crossq_presets_settings(tmp_p
 
 
 def test_the_crossq_settings_carry_every_setting_or_refuse():
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
     from softac.peers import crossq_settings
 
     preset = SACConfig.preset("crossq")
@@ -153,7 +153,7 @@ def test_sbx_simba_normalises_observations_as_softac_and_keeps_the_statistics_ac
 
     import yaml
 
-    from softac import checkpoint as ckpt
+    from softac.run import checkpoint as ckpt
 
     run = tmp_path / "simba"
     cmd = [sys.executable, "-m", "softac.peers", "run", "sbx-simba-softac", "--env", DRIFT, "--seed", "0", "--steps",
@@ -187,8 +187,8 @@ def test_sbx_simba_normalises_observations_as_softac_and_keeps_the_statistics_ac
 def test_the_tqc_settings_carry_every_setting_or_refuse():
     import optax
 
-    from softac.config import SACConfig
-    from softac.peer_settings import tqc_settings
+    from softac.config.sac_config import SACConfig
+    from softac.peers.settings import tqc_settings
 
     preset = SACConfig.preset("tqc").replace(n_critics=2)
     settings = tqc_settings(preset, act_dim=6)
@@ -325,7 +325,7 @@ def test_a_peer_repeats_each_action_as_softac_does(tmp_path, how):
 
 def test_sb3_zoo_takes_rl_zoos_tuned_settings_for_the_classic_set():
     """`sb3-zoo`: SB3's SAC at RL Zoo's hyperparams/sac.yml for each env of issue 43's classic set."""
-    from softac.peer_settings import LinearSchedule, rl_zoo_sac_settings
+    from softac.peers.settings import LinearSchedule, rl_zoo_sac_settings
 
     car = rl_zoo_sac_settings("MountainCarContinuous-v0")
     assert (car["use_sde"], car["policy_kwargs"], car["train_freq"], car["ent_coef"]) == (

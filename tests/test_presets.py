@@ -8,9 +8,9 @@ import pytest
 import yaml
 
 from conftest import run_cli_in_process
-from softac.config import DMC_PRESET, GENERIC_PRESETS, SACConfig, load_preset, preset_names
-from softac.dmc import is_dmc_id
-from softac.envs import ROBOTICS_PREFIXES
+from softac.config.sac_config import DMC_PRESET, GENERIC_PRESETS, SACConfig, load_preset, preset_names
+from softac.config.names import is_dmc_id
+from softac.envs.make import ROBOTICS_PREFIXES
 
 # a preset of an older env version trains on it as written (InvertedPendulum-v4), which Gymnasium says is out of date
 pytestmark = pytest.mark.filterwarnings("ignore:.*is out of date. You should consider upgrading:DeprecationWarning")

@@ -68,7 +68,7 @@ def test_results_doc_tables_presets_options_other_presets_and_peers_and_keeps_ot
 def test_the_suite_aggregate_is_an_iqm_of_normalised_scores_with_a_bootstrap_interval(tmp_path):
     """One row and one bar per configuration; a configuration on fewer envs is shown beside softac's preset on
     the same envs; normalised between the random policy (0) and the best final eval shown (1)."""
-    from softac.stats import stratified_bootstrap_iqm
+    from softac.outputs.seed_stats import stratified_bootstrap_iqm
     from softac.sweep import load_spec, trial_rows
 
     results_doc = load_benchmark_script("results_doc")
@@ -116,7 +116,7 @@ def test_wall_time_ratios_compare_trials_that_ran_on_the_same_days():
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
 def test_plotting_several_sweeps_names_each_by_framework_and_preset(tmp_path):
     from conftest import run_cli
-    from softac.commands import _trial_configuration
+    from softac.cli.commands import _trial_configuration
     from softac.sweep import SweepSpec, load_spec
 
     sweep = load_spec(KEPT / "Hopper-v5-softac").describe()
@@ -381,7 +381,7 @@ def test_the_pixels_section_sets_softacs_pixel_runs_beside_sb3s_cnn_policy_runs(
     spec = json.loads((softac / "sweep.json").read_text())
     spec["overrides"] = ["pixels=true", "pixel_size=48", "batch_size=32"]
     (softac / "sweep.json").write_text(json.dumps(spec))
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     config = dict(vars(SACConfig.for_env("Pendulum-v1").with_overrides(spec["overrides"])))
     config.update(hidden_sizes=list(config["hidden_sizes"]), seed=0)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from softac import SAC
-from softac.config import SACConfig, load_preset, preset_names
-from softac.envs import EnvError, ROBOTICS_PREFIXES, get_env_state, make_env, set_env_state
+from softac.config.sac_config import SACConfig, load_preset, preset_names
+from softac.envs.make import EnvError, ROBOTICS_PREFIXES, get_env_state, make_env, set_env_state
 
 pytestmark = pytest.mark.robotics
 
@@ -60,7 +60,7 @@ def test_sac_with_her_trains_and_evaluates_a_robotics_env(env_id, tmp_path):
 
 
 def test_a_robotics_id_without_the_extra_names_the_extra(monkeypatch):
-    import softac.envs as envs
+    import softac.envs.make as envs
 
     monkeypatch.setattr(envs.gym, "registry", {k: v for k, v in envs.gym.registry.items() if not k.startswith("Fetch")})
     real_find_spec = importlib.util.find_spec
@@ -74,7 +74,7 @@ def test_a_robotics_id_without_the_extra_names_the_extra(monkeypatch):
 def test_a_mujoco_the_fetch_envs_do_not_work_with_is_named_in_the_error(monkeypatch):
     import mujoco
 
-    import softac.envs as envs
+    import softac.envs.make as envs
 
     def failing_make(*args, **kwargs):
         raise AssertionError  # what gymnasium-robotics 1.4.2 raises in set_joint_qpos with MuJoCo >= 3.12

@@ -16,9 +16,9 @@ import yaml
 
 from conftest import assert_clean_error, child_env, run_cli
 from softac import SAC
-from softac import checkpoint as ckpt
+from softac.run import checkpoint as ckpt
 from softac.errors import SoftacError
-from softac.rundir import LOCK, RunLocked, run_lock
+from softac.run.run_dir import LOCK, RunLocked, run_lock
 
 DRIFT = "softac_test_envs:Drift-v0"
 TINY_SET = ["--set", "hidden_sizes=16,16", "batch_size=16", "learning_starts=100", "eval_interval=200",
@@ -104,7 +104,7 @@ def test_the_api_is_refused_too_and_a_lock_is_reentrant_within_a_process(tmp_pat
     run = tmp_path / "run"
     holder = subprocess.Popen([sys.executable, "-c", """
 import sys, time
-from softac.rundir import run_lock
+from softac.run.run_dir import run_lock
 with run_lock(sys.argv[1]):
     print("locked", flush=True)
     time.sleep(600)
@@ -159,7 +159,7 @@ def test_resume_keeps_each_segments_record_in_config_yaml(tmp_path):
     # the top level keeps the run's start; the config keys are the run's current ones
     assert config["cpus"] == first["cpus"] and config["versions"] == first["versions"]
     assert config["loggers"] == "none"
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     assert SACConfig.from_yaml(run / "config.yaml").seed == 0  # the record-only keys are ignored when read back
 
@@ -174,7 +174,7 @@ def test_training_again_in_the_same_process_extends_its_segment(tmp_path, tiny):
 def test_two_writers_of_one_checkpoint_take_turns(tmp_path, monkeypatch):
     """Writer A is held between its arrays file and its meta.json while B saves into the same directory.
     Without turns, B removed A's new arrays file and A's meta.json then named a missing file."""
-    from softac import rundir
+    from softac.run import run_dir as rundir
 
     directory = tmp_path / "ckpt"
     ckpt.save(directory, {"who": "first"}, {"x": np.zeros(3)})
@@ -236,7 +236,7 @@ def test_a_second_sweep_driver_of_one_directory_exits_2(tmp_path):
 
 
 def test_runs_started_together_share_one_bounded_locked_compile_cache(tmp_path):
-    """Two runs of one config at once, one compile cache (softac.device) that an unbounded cache wrote into
+    """Two runs of one config at once, one compile cache (softac.base.device) that an unbounded cache wrote into
     before: both train, neither warns of an entry read while the other wrote it (nor of the old entry), the
     cache holds their programs with JAX's lock file (the size limit turns on its eviction and locking), and a
     third run loads its update from there (a hit stamps the entry's access time) and writes no new program."""
@@ -255,7 +255,7 @@ def test_runs_started_together_share_one_bounded_locked_compile_cache(tmp_path):
     [update] = [name[:-len("-cache")] for name in entries
                 if name.startswith("jit_update_program-") and name.endswith("-cache")]
     third = subprocess.run([sys.executable, "-c", (
-        "import jax; from softac.device import COMPILE_CACHE_MAX_BYTES, select_device; select_device('cpu'); "
+        "import jax; from softac.base.device import COMPILE_CACHE_MAX_BYTES, select_device; select_device('cpu'); "
         "assert jax.config.jax_compilation_cache_max_size == COMPILE_CACHE_MAX_BYTES")], env=env,
         capture_output=True, text=True, timeout=120)
     assert third.returncode == 0, third.stderr

@@ -1,10 +1,10 @@
-"""The run state as one unit: saved and restored whole, older checkpoints still load, and the modules that
-make up training import one way (config -> ... -> loop; the agent composes them)."""
+"""The run state as one unit: saved and restored whole, older checkpoints still load, a run stopped during an
+evaluation evaluates first when resumed."""
 
 import numpy as np
 import pytest
 
-from softac.runstate import RunState
+from softac.run.run_state import RunState
 
 
 def test_run_state_round_trips_through_its_checkpoint_parts(tmp_path):
@@ -41,57 +41,6 @@ def test_a_checkpoint_from_before_the_run_state_loads():
     restored.restore(meta, arrays)
     assert (restored.best_step, restored.last_eval_step, restored.recent_returns, restored.train_time_s) == \
         (None, None, [], 0.0)
-
-
-def _softac_imports(path) -> set[str]:
-    """The softac modules a file imports, anywhere in it: inside functions and under TYPE_CHECKING too."""
-    import ast
-
-    found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if not isinstance(node, ast.ImportFrom) or not node.module:
-            continue
-        if node.module == "softac":
-            found |= {f"softac.{alias.name}" for alias in node.names}
-        elif node.module.startswith("softac."):
-            found.add(node.module)
-    return found
-
-
-def test_no_module_below_the_agent_imports_it():
-    """The agent composes the parts (learner, collector, run state, loop); none of them imports it, not even
-    for a type or inside a function: only the entry points above it (the package, the CLI and its commands, bench) do."""
-    from pathlib import Path
-
-    import softac
-
-    package = Path(softac.__file__).parent
-    above = {"__init__.py", "__main__.py", "agent.py", "cli.py", "commands.py", "bench.py"}
-    importers = sorted(name for path in [*package.glob("*.py"), *package.glob("sweep/*.py"), *package.glob("peers/*.py")]
-                       if (name := str(path.relative_to(package))) not in above
-                       and "softac.agent" in _softac_imports(path))
-    assert importers == []
-
-
-def test_the_package_has_no_import_cycle():
-    """No module of softac imports one that imports it back: not at run time, not inside a function, not for
-    type hints (a reader need not hold a circle in mind)."""
-    from pathlib import Path
-
-    import softac
-
-    package = Path(softac.__file__).parent
-    imports = {".".join(["softac", *path.relative_to(package).with_suffix("").parts]).removesuffix(".__init__"):
-               _softac_imports(path) for path in [*package.glob("*.py"), *package.glob("sweep/*.py"), *package.glob("peers/*.py")]}
-    imports = {name: found - {name} for name, found in imports.items()}
-
-    def reaches(start: str, goal: str, seen: set[str]) -> bool:
-        for module in imports.get(start, ()):
-            if module == goal or (module not in seen and reaches(module, goal, seen | {module})):
-                return True
-        return False
-
-    assert [m for m in sorted(imports) if reaches(m, m, {m})] == []
 
 
 @pytest.mark.parametrize("steps", [200, 400], ids=["final", "mid-run"])

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softac import sac
-from softac.networks import init_actor, init_critics
+from softac.learner import sac
+from softac.learner.networks import init_actor, init_critics
 
 pytestmark = pytest.mark.numerics
 

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from float_bounds import assert_within_bound, mlp_bound
-from softac import cpus, networks, sac
-from softac.config import SACConfig
+from softac.base import cpus
+from softac.learner import networks
+from softac.learner import sac
+from softac.config.sac_config import SACConfig
 
 
 def squashed_probability(lo, hi, mean, std):
@@ -261,7 +263,7 @@ def test_bfloat16_matmuls_stay_close_to_float32():
 
 @pytest.mark.numerics
 def test_bfloat16_matmul_gradients_match_float32():
-    from softac.networks import bf16_matmul
+    from softac.learner.networks import bf16_matmul
 
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(size=(32, 48)), jnp.float32)
@@ -277,7 +279,7 @@ def test_bfloat16_matmul_gradients_match_float32():
 
 @pytest.mark.numerics
 def test_critic_layer_norm_normalises_hidden_features():
-    from softac.networks import critics_apply, init_critics, layer_norm
+    from softac.learner.networks import critics_apply, init_critics, layer_norm
 
     x = np.random.default_rng(0).normal(3.0, 5.0, (4, 64)).astype(np.float32)
     h = layer_norm(jnp.asarray(x))
@@ -295,7 +297,7 @@ def test_critic_layer_norm_normalises_hidden_features():
 
 @pytest.mark.numerics
 def test_unrolled_and_vmapped_critics_agree():
-    from softac.networks import critics_apply, init_critics
+    from softac.learner.networks import critics_apply, init_critics
 
     params = init_critics(np.random.default_rng(0), 3, 2, [32, 32], "default", 3)
     rng = np.random.default_rng(1)

@@ -123,8 +123,8 @@ def test_the_check_command_of_a_search_keeps_its_preset_and_overrides():
     --preset and --set, with the sampled values in place of an override of the same key."""
     import shlex
 
-    from softac.cli import build_parser
-    from softac.commands import sweep_spec_from_args
+    from softac.cli.main import build_parser
+    from softac.cli.commands import sweep_spec_from_args
 
     search = sweep.SweepSpec(env_id="InvertedPendulum-v5", steps=3000, seeds=[0], preset="sb3",
                              overrides=["tau=0.01", "hidden_sizes=[64,64]", "gamma=0.98"], search="random",
@@ -662,7 +662,7 @@ def test_a_trial_process_runs_on_its_claimed_cpus_and_ends_with_its_parent(tmp_p
     """The trial's process pins itself to the trial's CPUs when it starts, and gets SIGTERM when the process that
     started it (the trial's Ray worker) dies, also where that process ignored SIGTERM (inherited through exec)."""
     cpu = sorted(os.sched_getaffinity(0))[-1]
-    script = ("from softac.cpus import adopt_trial_settings; adopt_trial_settings(); import os, sys, time; "
+    script = ("from softac.base.cpus import adopt_trial_settings; adopt_trial_settings(); import os, sys, time; "
               "print(sorted(os.sched_getaffinity(0)), flush=True); sys.stdin.read(); time.sleep(60)")
     # a parent that starts the child with the trial's environment, prints the child's pid, then is killed
     parent = subprocess.Popen([sys.executable, "-c", (

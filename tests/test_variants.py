@@ -13,9 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softac import SAC, losses, sac
-from softac.config import ConfigError, SACConfig
-from softac.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
+from softac import SAC
+from softac.learner import losses
+from softac.learner import sac
+from softac.config.sac_config import ConfigError, SACConfig
+from softac.learner.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
                              init_simba, output_layer_mask, simba, unit_norm_hidden_units)
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
@@ -393,7 +395,7 @@ def test_an_averaging_runs_last_checkpoint_gives_its_final_evaluation_again_and_
     row of eval.csv; with averaging one training holds two policies and `policy` (SAC.predict, evaluate,
     `softac eval --policy`) picks one. Without averaging "average" is a one-line error, "actor" the deployed."""
     from softac.errors import SoftacError
-    from softac.evaluation import evaluate
+    from softac.run.evaluation import evaluate
 
     run = tmp_path / "run"
     # the resume test's averaging config (VARIANTS below): their update program is compiled once (issue 64)

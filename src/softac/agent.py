@@ -5,10 +5,10 @@
     agent.save("pendulum"); agent = SAC.load("pendulum")
     action = agent.predict(obs, deterministic=True)
 
-An agent is a learner (networks, optimisers, obs statistics: what it knows; softac.learner), a collector
-(training envs and replay buffer; softac.collector) and a run state (counters, random streams,
-evaluations; softac.runstate). `learn()` hands the three to a training loop (softac.loop); `save()`
-and `load()` go through softac.snapshot. No module below this one imports it.
+An agent is a learner (networks, optimisers, obs statistics: what it knows; softac.learner.learner), a collector
+(training envs and replay buffer; softac.replay.collector) and a run state (counters, random streams,
+evaluations; softac.run.run_state). `learn()` hands the three to a training loop (softac.run.loop); `save()`
+and `load()` go through softac.run.checkpoint_contents. No module below this one imports it.
 """
 
 from __future__ import annotations
@@ -19,16 +19,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from softac import checkpoint as ckpt
-from softac import snapshot
-from softac.collector import Collector
-from softac.config import SACConfig
-from softac.device import select_device
-from softac.envs import EnvSource, check_spaces, copy_env, env_name, training_env_source
-from softac.exploration import exploration_noise
-from softac.her import her_setup
-from softac.learner import Learner
-from softac.runstate import RunState
+from softac.run import checkpoint as ckpt
+from softac.run import checkpoint_contents as snapshot
+from softac.replay.collector import Collector
+from softac.config.sac_config import SACConfig
+from softac.base.device import select_device
+from softac.envs.make import EnvSource, check_spaces, copy_env, env_name, training_env_source
+from softac.replay.exploration import exploration_noise
+from softac.replay.her_buffer import her_setup
+from softac.learner.learner import Learner
+from softac.run.run_state import RunState
 
 if TYPE_CHECKING:
     import gymnasium as gym
@@ -83,8 +83,8 @@ class SAC:
 
     def show(self, plots: bool = True, evaluations: bool = True, video: bool | None = None) -> list[Path]:
         """In Jupyter, show the run this agent trained into: learning curve, metric grid, evaluations and a
-        video (softac.notebook.show); elsewhere, write them and print where."""
-        from softac.notebook import show
+        video (softac.outputs.notebook.show); elsewhere, write them and print where."""
+        from softac.outputs.notebook import show
 
         return show(self, plots=plots, evaluations=evaluations, video=video)
 
@@ -104,11 +104,11 @@ class SAC:
               progress: bool | None = None, callbacks: list | None = None,
               loggers: list | None = None, target_success: float | None = None) -> dict[str, Any]:
         """Train for `steps` more environment steps; returns a summary dict (its stop_reason: steps,
-        target_return, target_success, or "callback: ..."). `callbacks`: softac.callbacks.Callback objects; `loggers`: extra
-        softac.loggers.Logger objects that get every metrics record (softac does not close them). Training past
+        target_return, target_success, or "callback: ..."). `callbacks`: softac.run.callbacks.Callback objects; `loggers`: extra
+        softac.run.loggers.Logger objects that get every metrics record (softac does not close them). Training past
         config.total_steps raises it to where this call ends, as `softac train --resume --steps` does."""
-        from softac.rundir import run_lock
-        from softac.loop import TrainingLoop
+        from softac.run.run_dir import run_lock
+        from softac.run.loop import TrainingLoop
 
         # one writer per run: a second process training into run_dir is refused (RunLocked, exit 2)
         with run_lock(run_dir) if run_dir is not None else contextlib.nullcontext():

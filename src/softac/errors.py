@@ -19,6 +19,10 @@ class EnvFailed(EnvError, RunFailed):
     """An env that raised or returned non-finite values once the run had started (exit 3)."""
 
 
+class CheckpointError(SoftacError):
+    """A checkpoint that cannot be read, or does not fit the config and env it is loaded for (exit 2)."""
+
+
 class TrainingInterrupted(Exception):
     """Ctrl-C or SIGTERM stopped training after a checkpoint was written (exit 130)."""
 

@@ -5,7 +5,7 @@ this module's entry point:
 
     python -m softac.peers run|throughput|solve PEER --env ENV [...]
 
-which prints one JSON line (`python -m softac.bench ...`, the older form, still works). PEER is one of
+which prints one JSON line (`python -m softac.peers.bench ...`, the older form, still works). PEER is one of
 `PEERS`: Stable-Baselines3's SAC and SBX's SAC at their defaults, SBX's CrossQ at its defaults, SBX's
 CrossQ at the settings of softac's `crossq` preset (like for like with the suite's presets), and for goal envs
 SB3's and SBX's SAC with SB3's HerReplayBuffer. Needs the `[bench]` extra."""

@@ -48,7 +48,7 @@ def save_peer_checkpoint(model: Any, directory: Path, meta: dict[str, Any]) -> N
 
     import numpy as np
 
-    from softac import checkpoint as ckpt
+    from softac.run import checkpoint as ckpt
 
     zipped = io.BytesIO()
     model.save(zipped)
@@ -71,7 +71,7 @@ def load_peer_checkpoint(framework: str, env_id: str, directory: Path,
     another run (`identity`: framework, env, seed, steps) is refused."""
     import io
 
-    from softac import checkpoint as ckpt
+    from softac.run import checkpoint as ckpt
     from softac.errors import SoftacError
 
     meta, arrays = ckpt.load(directory)

@@ -7,10 +7,10 @@ import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from softac.peer_settings import SWEEP_TRANSLATORS, crossq_settings, rl_zoo_sac_settings
+from softac.peers.settings import SWEEP_TRANSLATORS, crossq_settings, rl_zoo_sac_settings
 
 if TYPE_CHECKING:
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ PEERS = {
                              "SBX SAC + SimBa, same settings", policy="SimbaPolicy"),
     "sb3-zoo": Peer("stable_baselines3", "stable-baselines3", "SAC", "zoo",
                     "Stable-Baselines3's SAC at RL Zoo's tuned settings for the env (Pendulum-v1, "
-                    "MountainCarContinuous-v0, LunarLanderContinuous-v3, BipedalWalker-v3; softac.peer_settings)",
+                    "MountainCarContinuous-v0, LunarLanderContinuous-v3, BipedalWalker-v3; softac.peers.settings)",
                     "SB3 SAC, RL Zoo's tuned settings"),
     "sb3-her": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults",
                     "Stable-Baselines3's SAC at its defaults with its HerReplayBuffer (future, 4 goals) and "
@@ -87,7 +87,7 @@ def check_her_env(framework: str, env: Any, env_id: str, named: str | None = Non
     """A HER peer on an env that is no goal env is refused in one line (naming the peer as `named`, e.g. the
     command-line option that chose it)."""
     from softac.errors import SoftacError
-    from softac.her import is_goal_env
+    from softac.envs.goals import is_goal_env
 
     if PEERS[framework].her and not is_goal_env(env):
         raise SoftacError(f"{named or framework} needs a goal env (a dict observation with observation, achieved_goal, "
@@ -100,7 +100,7 @@ def peer_env(framework: str, env_id: str, action_repeat: int = 1):
     by check_her_env."""
     import gymnasium as gym
 
-    from softac.envs import resolve_env_id, with_action_repeat
+    from softac.envs.make import resolve_env_id, with_action_repeat
 
     # resolve_env_id imports Gymnasium-Robotics for its ids (and registers the DeepMind Control Suite's)
     env = gym.make(with_action_repeat(resolve_env_id(env_id), action_repeat))
@@ -111,7 +111,7 @@ def peer_env(framework: str, env_id: str, action_repeat: int = 1):
 def sweep_config(env_id: str, preset: str | None, overrides: list[str] | None) -> SACConfig:
     """The softac config a sweep's --preset and --set make (default: the env's own preset): what a peer whose
     settings are "sweep" runs at."""
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     config = SACConfig.preset(preset, env_id=env_id) if preset else SACConfig.for_env(env_id)
     return config.with_overrides(list(overrides or []))
@@ -120,7 +120,7 @@ def sweep_config(env_id: str, preset: str | None, overrides: list[str] | None) -
 def peer_settings(framework: str, config: SACConfig | None, act_dim: int, env_id: str = "") -> dict[str, Any]:
     """The keywords a peer is made with besides its library's defaults (ValueError for settings it cannot take;
     a "zoo" peer's are RL Zoo's for `env_id`)."""
-    from softac.config import SACConfig
+    from softac.config.sac_config import SACConfig
 
     peer = PEERS[framework]
     if peer.settings == "defaults":
@@ -169,7 +169,7 @@ def normalized_env(env: Any, config: SACConfig) -> Any:
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from softac.normalization import EPSILON
+    from softac.learner.normalization import EPSILON
 
     return VecNormalize(DummyVecEnv([lambda: Monitor(env)]), norm_obs=True, norm_reward=False,
                         clip_obs=config.obs_norm_clip, gamma=config.gamma, epsilon=EPSILON)

@@ -67,7 +67,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     """Train a peer and write a softac-style run directory (config.yaml, progress.csv, episodes.csv,
     eval.csv, summary.json), evaluated exactly like softac evaluates: deterministic actions, episode i of
     every evaluation seeded `seed + EVAL_SEED_OFFSET + i`; progress.csv's columns mean what softac's mean
-    (softac.logs.TrainRows). The run directory is locked as softac's are (one writer). Every
+    (softac.run.csv_logs.TrainRows). The run directory is locked as softac's are (one writer). Every
     `checkpoint_interval` steps, and when Ctrl-C or SIGTERM stops it (TrainingInterrupted, exit 130), the run
     saves checkpoints/last; the same call on the same directory continues from there, so a peer's run that
     takes longer than one sitting (SBX's CrossQ at its defaults: hours on one CPU) still finishes. A peer
@@ -77,7 +77,7 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     after the first evaluation whose mean reaches it (softac train's --target-return); with `target_success`,
     a goal env's, after the first whose success rate reaches it (--target-success)."""
     from softac.errors import TrainingInterrupted
-    from softac.rundir import run_lock
+    from softac.run.run_dir import run_lock
 
     sweep = {"preset": preset, "overrides": list(overrides or [])}
     with run_lock(out):
@@ -114,9 +114,9 @@ class PeerRun:
                  eval_episodes: int, log_interval: int, checkpoint_interval: int,
                  sweep: dict[str, Any] | None = None, action_repeat: int = 1, target_return: float | None = None,
                  target_success: float | None = None):
-        from softac import checkpoint as ckpt
+        from softac.run import checkpoint as ckpt
         from softac.errors import SoftacError
-        from softac.rundir import checkpoint_path
+        from softac.run.run_dir import checkpoint_path
 
         self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
         self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
@@ -150,12 +150,12 @@ class PeerRun:
         from stable_baselines3.common.callbacks import BaseCallback
 
         from softac.errors import TrainingInterrupted
-        from softac.evaluation import MAX_PARALLEL
-        from softac.her import dict_layout, dict_observation_space
-        from softac.loggers import CsvLogger
-        from softac.logs import TrainRows
-        from softac.rundir import write_config, write_summary
-        from softac.stopsignal import StopSignal
+        from softac.run.evaluation import MAX_PARALLEL
+        from softac.envs.goals import dict_layout, dict_observation_space
+        from softac.run.loggers import CsvLogger
+        from softac.run.csv_logs import TrainRows
+        from softac.run.run_dir import write_config, write_summary
+        from softac.base.stop_signal import StopSignal
 
         peer, start = PEERS[self.framework], self.record["step"]
         config = {**self.identity, "algorithm": peer.algorithm, "settings": peer.settings, "about": peer.about,
@@ -208,7 +208,7 @@ class PeerRun:
     def on_step(self, step: int, infos: list[dict[str, Any]]) -> bool:
         """Episodes, log rows, evaluations and checkpoints due at this step; False stops training (a signal,
         after the checkpoint is written)."""
-        from softac.envs import success_of
+        from softac.envs.make import success_of
 
         for info in infos:
             if "episode" in info:
@@ -223,7 +223,7 @@ class PeerRun:
             row = self.rows.row(step, time.perf_counter() - self.t0, self.record["episodes"])
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
         if self.eval_interval > 0 and step % self.eval_interval == 0:
-            from softac.loop import target_reached
+            from softac.run.loop import target_reached
 
             self.evaluate(step)
             self.reached = target_reached(self.record["last"], self.record.get("last_success"), self.target_return,
@@ -234,7 +234,7 @@ class PeerRun:
 
     def make_env(self) -> Any:
         """An evaluation env: softac's, each action repeated as in training."""
-        from softac.envs import make_env, with_action_repeat
+        from softac.envs.make import make_env, with_action_repeat
 
         return make_env(with_action_repeat(self.env_id, self.action_repeat))
 
@@ -249,7 +249,7 @@ class PeerRun:
         return self.model.predict(obs, deterministic=True)[0]
 
     def evaluate(self, step: int) -> None:
-        from softac.evaluation import EVAL_SEED_OFFSET, run_episodes
+        from softac.run.evaluation import EVAL_SEED_OFFSET, run_episodes
 
         stats = run_episodes(self.policy, self.make_env, self.eval_episodes,
                              self.seed + EVAL_SEED_OFFSET, envs=self.eval_envs)
@@ -302,7 +302,7 @@ def arguments() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str]) -> None:
-    from softac.cpus import adopt_trial_settings
+    from softac.base.cpus import adopt_trial_settings
     from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 
     adopt_trial_settings()  # a sweep trial's process: its CPUs and parent, before the peer's library starts

@@ -12,7 +12,7 @@ configuration) and DIR/plots/ are written from the run directories; while they r
 
 The package, one module per job: `spec` (what a sweep is, parsing and checking it), `trial` (the process
 one Ray trial runs and watches), `driver` (Ray and Tune), `results` (rows, tables and summary files).
-The statistics over seeds live in `softac.stats`, the peers' adapters in `softac.peers`.
+The statistics over seeds live in `softac.outputs.seed_stats`, the peers' adapters in `softac.peers`.
 """
 
 from softac.sweep.spec import (DEFAULT_SPACE, FRAMEWORKS, INSTALL_RAY, LOG_DIR, METRIC, PLOT_DIR, RAY_DIR, SEARCHES,

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from softac.errors import SoftacError
-from softac.rundir import run_lock, wait_released
+from softac.run.run_dir import run_lock, wait_released
 from softac.sweep.results import SUCCESS_THRESHOLD, ended_trials, unfinished_trials, write_summaries
 from softac.sweep.spec import (INSTALL_RAY, METRIC, RAY_DIR, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, grid_trials,
                                planned_trials, prepare_out_dir, search_trial_name, validate)
@@ -82,7 +82,7 @@ def local_cpus() -> int:
     """The CPUs a local Ray offers trials: those this process may run on, so a sweep started under `taskset -c 0`
     runs one 1-CPU trial at a time on that CPU instead of several side by side on it (the machine's count where
     the OS has no affinity API)."""
-    from softac.cpus import usable_cpus
+    from softac.base.cpus import usable_cpus
 
     return len(usable_cpus()) or os.cpu_count() or 1
 

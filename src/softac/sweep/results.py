@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from softac.config import override_key
+from softac.config.sac_config import override_key
 from softac.errors import RunFailed, SoftacError
-from softac.stats import summarize_seeds
+from softac.outputs.seed_stats import summarize_seeds
 from softac.sweep.spec import PLOT_DIR, SPEC_FILE, SweepSpec, grid_trials, planned_trials, value_text
 from softac.sweep.trial import read_evals, trial_state
 
@@ -43,7 +43,7 @@ SUCCESS_THRESHOLD = 0.9  # steps to a success rate of at least this, for envs th
 
 def trial_rows(out: Path, spec: SweepSpec, threshold: float | None = None,
                success_threshold: float = SUCCESS_THRESHOLD) -> list[dict[str, Any]]:
-    from softac.logs import read_csv
+    from softac.run.csv_logs import read_csv
 
     rows = []
     for run in trial_dirs(out):
@@ -177,7 +177,7 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None,
     or moved while its sweep ran (its SPEC_FILE gone) is a failed sweep (RunFailed, exit 3), not a crash."""
     import csv
 
-    from softac.rundir import write_atomic
+    from softac.run.run_dir import write_atomic
 
     if not (out / SPEC_FILE).exists():
         raise RunFailed(f"the sweep directory {out} was removed or moved while the sweep ran (no {SPEC_FILE} "
@@ -217,7 +217,7 @@ def write_summaries(out: Path, spec: SweepSpec, threshold: float | None = None,
     write_atomic(md_path, "\n".join(text).encode())
     written = [csv_path, md_path]
     with contextlib.suppress(SoftacError):
-        from softac.plots import plot_comparison, plot_final_returns
+        from softac.outputs.plots import plot_comparison, plot_final_returns
 
         (out / PLOT_DIR).mkdir(exist_ok=True)
         runs = trial_dirs(out)

@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from softac.config import ConfigError, SACConfig, override_key
+from softac.config.sac_config import ConfigError, SACConfig, override_key
 from softac.errors import SoftacError
 from softac.peers import PEERS
 
@@ -259,7 +259,7 @@ def default_threshold(env_id: str) -> float | None:
 def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
     """A peer's sweep: softac's settings only where the peer runs at them (a "sweep" peer: --preset and --set,
     each one it cannot take refused here), the goal env a HER peer needs, its package installed."""
-    from softac.envs import make_env
+    from softac.envs.make import make_env
     from softac.peers import check_her_env, missing_peers, peer_settings
 
     peer = PEERS[spec.framework]
@@ -310,13 +310,13 @@ def _refuse_keys_the_sweep_sets(spec: SweepSpec) -> None:
 
 def validate(spec: SweepSpec) -> SACConfig:
     """Every trial's config, checked before Ray starts (bad input fails in a second, with one line)."""
-    from softac.envs import resolve_env_id
+    from softac.envs.make import resolve_env_id
 
     if spec.framework not in FRAMEWORKS:
         raise SoftacError(f"--framework must be one of {', '.join(FRAMEWORKS)}")
     resolve_env_id(spec.env_id)
     if spec.target_success is not None:
-        from softac.loop import check_success_rate
+        from softac.run.loop import check_success_rate
 
         check_success_rate(spec.target_success, "--target-success")
     _refuse_keys_the_sweep_sets(spec)
@@ -346,7 +346,7 @@ def prepare_out_dir(out: Path, spec: SweepSpec) -> None:
     """A new sweep takes an empty or missing DIR; an existing sweep continues only with the same spec, or,
     for a grid, with more seeds (the finished trials are kept: `--seeds 5` after `--seeds 3` runs seeds 3
     and 4) or, for softac's grid, more steps (finished trials continue from their last checkpoint)."""
-    from softac.rundir import LOCK, write_atomic
+    from softac.run.run_dir import LOCK, write_atomic
 
     spec_path = out / SPEC_FILE
     if spec_path.exists():

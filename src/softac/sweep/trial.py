@@ -14,10 +14,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from softac.config import SACConfig
-from softac.cpus import claim_cpus, trial_settings_env
+from softac.config.sac_config import SACConfig
+from softac.base.cpus import claim_cpus, trial_settings_env
 from softac.peers import PEERS
-from softac.rundir import holder, wait_released
+from softac.run.run_dir import holder, wait_released
 from softac.sweep.spec import (LOG_DIR, METRIC, SHARED_DIR_HINT, SPEC_FILE, SweepSpec, search_trial_name,
                                value_text)
 
@@ -82,7 +82,7 @@ def trial_command(spec: SweepSpec, base: SACConfig, trial: dict[str, Any], run: 
 def trial_process_env(threads: int, cpus: list[int], shared: bool = False) -> dict[str, str]:
     """The environment of a trial's process: thread counts for the libraries that read them (PyTorch for the
     peers, OpenMP, MKL; XLA takes its own from the CPU affinity), and its CPUs and parent, which the process
-    applies itself when it starts (softac.cpus.adopt_trial_settings)."""
+    applies itself when it starts (softac.base.cpus.adopt_trial_settings)."""
     env = dict(os.environ)
     env["SOFTAC_THREADS"] = env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
     env.update(trial_settings_env(cpus, os.getpid(), shared))
@@ -91,7 +91,7 @@ def trial_process_env(threads: int, cpus: list[int], shared: bool = False) -> di
 
 def read_evals(run: Path, column: str = "mean_return") -> list[tuple[int, float]]:
     """(step, value) of each evaluation in eval.csv that has `column` (mean_return, or success_rate)."""
-    from softac.logs import read_csv
+    from softac.run.csv_logs import read_csv
 
     out = []
     for row in read_csv(run / "eval.csv"):

@@ -1,0 +1,1 @@
+"""Machine leaves: CPUs and pinning, the JAX device, memory, headless OpenGL, stop signals."""

@@ -1,0 +1,134 @@
+"""Temporally correlated exploration noise: coloured (pink) noise for the policy's Gaussian, and gSDE's
+exploration matrices.
+
+SAC explores with a = tanh(mean + std * eps), eps white (independent at each step). Eberhard et al. 2023
+("Pink Noise Is All You Need", ICLR) draw eps from a sequence whose power spectrum falls as 1/f^beta along
+the episode: beta 1 (pink) sits between white noise (0, SAC's) and a random walk (2, red), and explores
+further in sparse-reward and long-horizon tasks (MountainCar, ...) while the policy's loss, its entropy and
+the critics stay SAC's. Each env draws one sequence per episode (its length the config's
+`noise_sequence_length`, the envs' episode length), a fresh one when its episode ends; each value has unit
+variance, as white noise's.
+
+gSDE (Raffin et al. 2022; softac.learner.policy has the maths) draws instead, for each env, the standard-normal weights
+of an exploration matrix, kept for `sde_sample_freq` steps; the policy scales them by its current std.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def colored_noise(rng: np.random.Generator, beta: float, shape: tuple[int, ...], length: int) -> np.ndarray:
+    """Gaussian sequences along a last axis of `length` steps whose power spectral density is proportional to
+    1/f^beta (Timmer & Koenig 1995: random Fourier amplitudes with the spectrum's scale, inverse FFT),
+    scaled so that each value has unit variance. The lowest frequency is 1/length (the sequence's period)."""
+    freqs = np.fft.rfftfreq(length)
+    freqs[0] = freqs[1] if length > 1 else 1.0  # the mean's component scaled as the lowest frequency's
+    amplitude = freqs ** (-beta / 2.0)
+    real = rng.normal(size=(*shape, len(freqs))) * amplitude
+    imag = rng.normal(size=(*shape, len(freqs))) * amplitude
+    # a real sequence: the zero-frequency term (and, for an even length, the Nyquist term) has no imaginary
+    # part; its real part carries that variance (sqrt 2)
+    imag[..., 0] = 0.0
+    real[..., 0] *= np.sqrt(2.0)
+    if length % 2 == 0:
+        imag[..., -1] = 0.0
+        real[..., -1] *= np.sqrt(2.0)
+    sequence = np.fft.irfft(real + 1j * imag, n=length)
+    # each value's variance (the same at every step): irfft adds each interior term and its conjugate,
+    # 2 Re(X_k e^(i w t)) of variance 4 a_k^2, and the end terms once, of variance 2 a^2; all over length^2
+    interior = amplitude[1:-1] if length % 2 == 0 else amplitude[1:]
+    ends = amplitude[0] ** 2 + (amplitude[-1] ** 2 if length % 2 == 0 else 0.0)
+    variance = (2.0 * ends + 4.0 * np.sum(interior**2)) / length**2
+    return sequence / np.sqrt(variance)
+
+
+class ColoredNoise:
+    """One coloured sequence per env and action dimension, consumed a step at a time; an env whose episode
+    ended starts a fresh sequence. Its state (random stream, sequences, positions) goes into checkpoints."""
+
+    def __init__(self, beta: float, n_envs: int, act_dim: int, length: int, seed: int):
+        self.beta, self.length = float(beta), int(length)
+        self.rng = np.random.default_rng([seed, 0xC0105])
+        self.sequences = colored_noise(self.rng, self.beta, (n_envs, act_dim), self.length)
+        self.position = np.zeros(n_envs, np.int64)
+
+    def next(self) -> np.ndarray:
+        """(n_envs, act_dim) float32: each env's next values; a sequence used up is followed by a fresh one."""
+        for i in np.flatnonzero(self.position >= self.length):
+            self.restart(int(i))
+        values = self.sequences[np.arange(len(self.position)), :, self.position]
+        self.position += 1
+        return values.astype(np.float32)
+
+    def restart(self, env: int) -> None:
+        self.sequences[env] = colored_noise(self.rng, self.beta, self.sequences.shape[1:2], self.length)
+        self.position[env] = 0
+
+    def episode_ended(self, env: int) -> None:
+        self.restart(env)
+
+    def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        return ({"rng": self.rng.bit_generator.state, "beta": self.beta, "length": self.length},
+                {"sequences": self.sequences.copy(), "position": self.position.copy()})
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        saved = arrays["sequences"].shape if "sequences" in arrays else None
+        if saved != self.sequences.shape:
+            from softac.errors import SoftacError
+
+            what = f"has shape {saved}" if saved else "is not pink noise (gSDE's exploration matrices)"
+            raise SoftacError(f"the checkpoint's exploration noise {what}, this run's pink noise has shape "
+                              f"{self.sequences.shape} (n_envs, action dims, noise_sequence_length)")
+        self.rng.bit_generator.state = meta["rng"]
+        self.sequences = np.array(arrays["sequences"], np.float64)
+        self.position = np.array(arrays["position"], np.int64)
+
+
+class SdeNoise:
+    """gSDE's exploration: for each env the standard-normal weights (features x act) of its exploration
+    matrix, drawn afresh every `sample_freq` steps (SB3's sde_sample_freq) and kept across episode ends, as
+    SB3 keeps them. Its state (random stream, weights, steps since the draw) goes into checkpoints."""
+
+    def __init__(self, sample_freq: int, n_envs: int, n_features: int, act_dim: int, seed: int):
+        self.sample_freq = int(sample_freq)
+        self.rng = np.random.default_rng([seed, 0x65DE])
+        self.weights = np.zeros((n_envs, n_features, act_dim), np.float32)
+        self.since_draw = self.sample_freq  # a draw before the first step
+
+    def next(self) -> np.ndarray:
+        """(n_envs, features, act_dim) float32: each env's current weights."""
+        if self.since_draw >= self.sample_freq:
+            self.weights = self.rng.standard_normal(self.weights.shape, dtype=np.float32)
+            self.since_draw = 0
+        self.since_draw += 1
+        return self.weights
+
+    def episode_ended(self, env: int) -> None:
+        pass
+
+    def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        return ({"rng": self.rng.bit_generator.state, "sample_freq": self.sample_freq},
+                {"weights": self.weights.copy(), "since_draw": np.asarray(self.since_draw, np.int64)})
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        if "weights" not in arrays or arrays["weights"].shape != self.weights.shape:
+            from softac.errors import SoftacError
+
+            raise SoftacError("the checkpoint's exploration noise is not this run's gSDE exploration matrices "
+                              f"(n_envs, features, action dims) {self.weights.shape}")
+        self.rng.bit_generator.state = meta["rng"]
+        self.weights = np.array(arrays["weights"], np.float32)
+        self.since_draw = int(arrays["since_draw"])
+
+
+def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | None:
+    """The noise source the config's `exploration_noise` names (None: white noise from the act key)."""
+    if config.exploration_noise == "pink":
+        return ColoredNoise(config.noise_beta, config.n_envs, act_dim, config.noise_sequence_length, config.seed)
+    if config.exploration_noise == "gsde":
+        n_features = list(config.actor_hidden_sizes or config.hidden_sizes)[-1]
+        return SdeNoise(config.sde_sample_freq, config.n_envs, n_features, act_dim, config.seed)
+    return None
