@@ -40,12 +40,12 @@ def main(argv: list[str] | None = None) -> int:
     import jax
     import numpy as np
 
-    from softac.learner import sac
+    from softac.learner import build, losses
     from softac.config.sac_config import SACConfig
 
     config = SACConfig.preset(a.preset).with_overrides(a.set)
     image = tuple(int(n) for n in a.image.lower().split("x")) if a.image else None
-    fns = sac.build(config, a.obs, a.act, image_shape=image)
+    fns = build.build(config, a.obs, a.act, image_shape=image)
     state = fns.init(0)
     rng = np.random.default_rng(0)
     size = (config.gradient_steps, config.batch_size)
@@ -55,8 +55,8 @@ def main(argv: list[str] | None = None) -> int:
             return rng.integers(0, 256, (*size, *image), dtype=np.uint8)
         return rng.standard_normal((*size, a.obs), dtype=np.float32)
 
-    def batch() -> sac.Batch:
-        return sac.Batch(obs=observations(), actions=rng.uniform(-1, 1, (*size, a.act)).astype(np.float32),
+    def batch() -> losses.Batch:
+        return losses.Batch(obs=observations(), actions=rng.uniform(-1, 1, (*size, a.act)).astype(np.float32),
                          rewards=rng.standard_normal(size, dtype=np.float32), next_obs=observations(),
                          terminated=np.zeros(size, np.float32), steps=np.ones(size, np.float32))
 

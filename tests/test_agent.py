@@ -356,11 +356,26 @@ def test_learning_past_total_steps_raises_the_runs_budget_as_one_longer_run(tiny
     assert_same_training(straight, resumed)
     steps = lambda run: [int(row["step"]) for row in read_csv(run / "eval.csv")]  # noqa: E731
     assert steps(tmp_path / "split") == steps(tmp_path / "straight") == [100, 200, 300, 400, 500]
+    given = split.config
     split.learn(100, progress=False)
     assert split.config.total_steps == 400  # without a run directory, too
+    assert given.total_steps == 300 and split.learner.config is split.collector.config is split.config
     with pytest.raises(SoftacError):  # another run's directory: refused before training, the budget as it was
         split.learn(1000, run_dir=tmp_path / "straight", progress=False)
     assert split.config.total_steps == 400
+
+
+def test_the_config_is_never_changed_in_place():
+    """SACConfig is frozen (issue 65): a run that raises its budget gets a new config; the one a user holds,
+    shares between agents or reuses in a sweep stays what it was."""
+    import dataclasses
+
+    from softac import SACConfig
+
+    config = SACConfig()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.total_steps = 5
+    assert config.replace(total_steps=5).total_steps == 5 and config.total_steps == SACConfig().total_steps
 
 
 def test_learning_in_two_calls_keeps_the_recent_returns_between_them(tiny):

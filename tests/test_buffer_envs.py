@@ -144,12 +144,13 @@ def test_obs_once_buffer_rebuilds_the_same_transitions(n_envs, capacity):
     restored.load_state_dict(compact.state_dict())
     rows = np.flatnonzero(restored.valid[: restored.size])
     np.testing.assert_array_equal(restored.next_obs_of(rows), full.next_obs[rows])
-    from softac.replay.buffer import buffer_bytes_per_transition
     from softac.config.sac_config import SACConfig
+    from softac.envs.make import SpaceInfo
+    from softac.replay.collector import replay_buffer_for
 
-    pusher = SACConfig.preset("Pusher-v5")
-    full_bytes = buffer_bytes_per_transition(pusher, 23, 7)
-    compact_bytes = buffer_bytes_per_transition(pusher.replace(buffer_obs_once=True), 23, 7)
+    pusher, spaces = SACConfig.preset("Pusher-v5"), SpaceInfo(23, 7, -np.ones(7), np.ones(7))
+    full_bytes = replay_buffer_for(pusher, spaces, None)[1]
+    compact_bytes = replay_buffer_for(pusher.replace(buffer_obs_once=True), spaces, None)[1]
     assert full_bytes == 221 and compact_bytes == pytest.approx(133 + 92 / 8)  # one obs saved, a small side ring
 
 

@@ -367,7 +367,7 @@ def test_checkpoint_problems_are_clean_errors(tmp_path):
 
 
 def test_presets_lists_every_preset_a_line_each_and_shows_one_whole():
-    from softac.config.sac_config import load_preset, preset_names
+    from softac.config.presets import load_preset, preset_names
 
     r = run_cli("presets")
     assert r.returncode == 0

@@ -2,7 +2,8 @@
 
 import pytest
 
-from softac.config.sac_config import ConfigError, SACConfig, preset_names
+from softac.config.sac_config import ConfigError, SACConfig
+from softac.config.presets import preset_names
 
 
 def test_presets_exist_and_load():
@@ -34,7 +35,7 @@ def test_a_dmc_task_gets_its_own_preset_in_either_id_form_and_the_others_get_dmc
 def test_every_preset_has_a_description_and_a_row_in_the_readme_and_the_presets_guide():
     from pathlib import Path
 
-    from softac.config.sac_config import preset_description, preset_summary
+    from softac.config.presets import preset_description, preset_summary
 
     root = Path(__file__).resolve().parent.parent
     readme = (root / "README.md").read_text()
@@ -167,7 +168,7 @@ def test_dmc_quadruped_run_deploys_its_actor_where_the_dmc_preset_deploys_an_ave
 
 
 def test_a_preset_that_extends_itself_is_refused(monkeypatch, tmp_path):
-    import softac.config.sac_config as config
+    import softac.config.presets as config
 
     (tmp_path / "a.yaml").write_text("extends: b\n")
     (tmp_path / "b.yaml").write_text("extends: a\n")

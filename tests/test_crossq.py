@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from softac import SAC
-from softac.learner import sac
+from softac.learner import build, losses, policy
 from softac.config.sac_config import SACConfig
 from softac.learner.networks import BatchRenorm, init_norm_stats
 
@@ -15,8 +15,8 @@ from conftest import assert_clean_error, run_cli
 from test_sac_losses import ACT, BATCH, OBS, batch, constant_actor, constant_critics
 
 NORM = BatchRenorm(momentum=0.9)
-POLICY = sac.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=NORM)
-CRITICS = sac.Critics("relu", unroll=True, batch_renorm=NORM)
+POLICY = policy.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=NORM)
+CRITICS = losses.Critics("relu", unroll=True, batch_renorm=NORM)
 
 
 def _layer(n, scale=1.0, bias=0.0):
@@ -80,7 +80,7 @@ def test_crossq_critic_loss_bootstraps_from_the_online_critics():
                "norm_bias": np.zeros((2, layer["w"].shape[1]), np.float32)} for layer in critic]
     critic_stats = jax.tree_util.tree_map(lambda *x: np.stack(x), *[init_norm_stats([OBS + ACT, 4, 1])] * 2)
     key = jax.random.PRNGKey(3)
-    loss, (metrics, new_stats) = sac.soft_q_loss(critic, critic_stats, (), actor, actor_stats, jnp.float32(alpha),
+    loss, (metrics, new_stats) = losses.soft_q_loss(critic, critic_stats, (), actor, actor_stats, jnp.float32(alpha),
                                                  b, key, POLICY, CRITICS, gamma)
     _, log_prob = POLICY.sample(actor, actor_stats, b.next_obs, key)
     target = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (1.0 - alpha * np.asarray(log_prob))
@@ -95,7 +95,7 @@ def test_crossq_critic_loss_bootstraps_from_the_online_critics():
     np.testing.assert_array_less(np.abs(np.asarray(new_stats[0]["mean"])[:, :OBS] - 0.1 * rows.mean(0)),
                                  np.tile(0.1 * (2 * BATCH + 4) * 2**-24 * sizes, (2, 1)))
     # the gradient lowers Q_2 (above every target) and keeps the target fixed (stop_gradient)
-    grads = jax.grad(lambda c: sac.soft_q_loss(c, critic_stats, (), actor, actor_stats, jnp.float32(alpha), b, key,
+    grads = jax.grad(lambda c: losses.soft_q_loss(c, critic_stats, (), actor, actor_stats, jnp.float32(alpha), b, key,
                                                POLICY, CRITICS, gamma)[0])(critic)
     assert float(grads[-1]["b"][1, 0]) == pytest.approx(np.mean(2.0 - target), rel=1e-5)
 
@@ -105,14 +105,14 @@ def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_a
     actor = constant_actor([0.1, 0.1], [-1.0, -1.0])
     actor = [{**layer, **_layer(layer["w"].shape[0])} for layer in actor]
     actor_stats = init_norm_stats([OBS, 4, 2 * ACT])
-    fns = sac.build(SACConfig().replace(crossq=True, hidden_sizes=[8], batch_size=BATCH), OBS, ACT)
+    fns = build.build(SACConfig().replace(crossq=True, hidden_sizes=[8], batch_size=BATCH), OBS, ACT)
     state = fns.init(0)
     obs = jnp.asarray(np.random.default_rng(2).normal(2.0, 1.0, size=(BATCH, OBS)), jnp.float32)
     key = jax.random.PRNGKey(0)
-    critics = sac.Critics("relu", unroll=True, batch_renorm=BatchRenorm())
+    critics = losses.Critics("relu", unroll=True, batch_renorm=BatchRenorm())
 
     def loss(critic_stats):
-        return sac.policy_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,
+        return losses.policy_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,
                                critics)
 
     value, (log_prob, new_actor_stats) = loss(state.critic_stats)
@@ -123,7 +123,7 @@ def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_a
 
 
 def _batches(rng, steps, size, obs_dim=3, act_dim=2):
-    return sac.Batch(obs=rng.standard_normal((steps, size, obs_dim), dtype=np.float32),
+    return losses.Batch(obs=rng.standard_normal((steps, size, obs_dim), dtype=np.float32),
                      actions=rng.uniform(-1, 1, (steps, size, act_dim)).astype(np.float32),
                      rewards=rng.standard_normal((steps, size), dtype=np.float32),
                      next_obs=rng.standard_normal((steps, size, obs_dim), dtype=np.float32),
@@ -133,7 +133,7 @@ def _batches(rng, steps, size, obs_dim=3, act_dim=2):
 @pytest.mark.numerics
 def test_crossq_update_keeps_no_targets_and_moves_both_networks_statistics():
     cfg = SACConfig().replace(crossq=True, hidden_sizes=[16, 16], batch_size=8, policy_delay=3)
-    fns = sac.build(cfg, 3, 2)
+    fns = build.build(cfg, 3, 2)
     state = fns.init(0)
     assert state.target_critic == () and len(state.actor_stats) == 3 and len(state.critic_stats) == 3
     state, metrics = fns.update(state, _batches(np.random.default_rng(0), 2, 8))
@@ -149,7 +149,7 @@ def test_adam_b1_sets_the_first_moment_decay():
     """After one step Adam's first moment is (1 - b1) * gradient: b1 0.5 keeps 5x what b1 0.9 keeps."""
     moments = {}
     for b1 in (0.5, 0.9):
-        fns = sac.build(SACConfig().replace(hidden_sizes=[16], batch_size=8, adam_b1=b1), 3, 2)
+        fns = build.build(SACConfig().replace(hidden_sizes=[16], batch_size=8, adam_b1=b1), 3, 2)
         state, _ = fns.update(fns.init(0), _batches(np.random.default_rng(0), 1, 8))
         moments[b1] = np.asarray(state.critic_opt[0].mu[0]["w"])
     np.testing.assert_allclose(moments[0.5], 5.0 * moments[0.9], rtol=1e-4, atol=1e-9)
@@ -202,9 +202,9 @@ def test_weight_norm_keeps_every_hidden_unit_on_the_unit_sphere_and_the_output_l
     """CrossQ+WN (Palenicek et al. 2025): after init and after every optimiser step of the critics and of the
     actor, each hidden unit's incoming (weights, bias) has length 1; the output layers are left as they are."""
     cfg = SACConfig().replace(crossq=True, weight_norm=True, hidden_sizes=[16, 16], batch_size=8, policy_delay=1)
-    fns = sac.build(cfg, 3, 2)
+    fns = build.build(cfg, 3, 2)
     state = fns.init(0)
-    plain = sac.build(cfg.replace(weight_norm=False), 3, 2).init(0)
+    plain = build.build(cfg.replace(weight_norm=False), 3, 2).init(0)
     for before in (state.actor, state.critic):
         for norms in _hidden_unit_norms(before):
             np.testing.assert_allclose(norms, 1.0, rtol=1e-6)  # float32 division: a few ulps

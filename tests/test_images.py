@@ -534,16 +534,16 @@ def test_the_cli_trains_evaluates_films_reports_and_exports_a_pixel_run(tmp_path
 def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_before_it_moved(tiny):
     """DrQ-v2's order: the critic loss's gradient moves the encoder; the actor's features are the step's augmented
     observations through the encoder as it was, stopped (the actor's loss never reaches the encoder)."""
-    from softac.learner import sac
+    from softac.learner import build, losses, sac
     from softac.learner.encoder import random_shift, stack_channels
 
     config = tiny("softac_test_envs:DotImage-v0", **IMAGE)
     image = (2, 16, 16, 3)
-    fns = sac.build(config, 0, 1, image_shape=image)
+    fns = build.build(config, 0, 1, image_shape=image)
     state = fns.init(0)
-    s = sac.update_settings(config, 1, fns.matmul_dtype, images=True)
+    s = build.update_settings(config, 1, fns.matmul_dtype, images=True)
     rng = np.random.default_rng(0)
-    batch = sac.Batch(obs=rng.integers(0, 256, (8, *image), dtype=np.uint8),
+    batch = losses.Batch(obs=rng.integers(0, 256, (8, *image), dtype=np.uint8),
                       actions=rng.uniform(-1, 1, (8, 1)).astype(np.float32),
                       rewards=rng.normal(size=8).astype(np.float32),
                       next_obs=rng.integers(0, 256, (8, *image), dtype=np.uint8),
@@ -565,10 +565,10 @@ def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_be
 
 
 def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0, act_dim: int = 1):
-    from softac.learner import sac
+    from softac.learner import losses
 
     rng = np.random.default_rng(seed)
-    return sac.Batch(obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
+    return losses.Batch(obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
                      actions=rng.uniform(-1, 1, (n, act_dim)).astype(np.float32),
                      rewards=rng.normal(size=n).astype(np.float32),
                      next_obs=rng.integers(0, 256, (n, *image), dtype=np.uint8),
@@ -578,26 +578,26 @@ def _image_batch(image: tuple[int, ...], n: int = 8, seed: int = 0, act_dim: int
 def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at_tau(tiny):
     """DrQ's target critic carries its own encoder: a copy at the start, Polyak-averaged with the online encoder
     at tau on the targets' schedule, and what the next-state value is read through."""
-    from softac.learner import sac
+    from softac.learner import build, sac
 
     config = tiny("softac_test_envs:DotImage-v0", **IMAGE, target_encoder=True, tau=0.25, target_update_interval=2)
     image = (2, 16, 16, 3)
-    fns = sac.build(config, 0, 1, image_shape=image)
+    fns = build.build(config, 0, 1, image_shape=image)
     state = fns.init(0)
     leaves = jax.tree_util.tree_leaves
     for online, target in zip(leaves(state.encoder), leaves(state.target_encoder)):
         np.testing.assert_array_equal(np.asarray(online), np.asarray(target))
-    without = sac.build(config.replace(target_encoder=False), 0, 1, image_shape=image).init(0)
+    without = build.build(config.replace(target_encoder=False), 0, 1, image_shape=image).init(0)
     assert without.target_encoder == ()  # and the same networks otherwise
     for a, b in zip(leaves(without.encoder), leaves(state.encoder)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
-    s = sac.update_settings(config, 1, fns.matmul_dtype, images=True)
+    s = build.update_settings(config, 1, fns.matmul_dtype, images=True)
     batch, key = _image_batch(image), jax.random.PRNGKey(3)
     step = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s)[1]["critic_loss"])
     # with the target encoder equal to the online one, the loss is the online-features one (two graphs of the
     # same float32 arithmetic: a relative 1e-5 leaves room for their rounding)
-    s_online = sac.update_settings(config.replace(target_encoder=False), 1, fns.matmul_dtype, images=True)
+    s_online = build.update_settings(config.replace(target_encoder=False), 1, fns.matmul_dtype, images=True)
     online_loss = float(jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s_online)[1]["critic_loss"])(
         without, batch, key))
     assert abs(float(step(state, batch, key)) - online_loss) <= 1e-5 * abs(online_loss)
@@ -629,7 +629,7 @@ def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_a
     leaves the head alone; the actor step moves the head and the actor and leaves the encoder alone; acting and
     the deployed policy read the shared convolutions through the actor's head."""
     from softac import SAC
-    from softac.learner import sac
+    from softac.learner import build, sac
 
     config = tiny("softac_test_envs:DotStateImage-v0", **IMAGE, actor_encoder_head=True)
     agent = SAC(config)
@@ -642,7 +642,7 @@ def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_a
     actor, stats, encoder = agent.learner.deployed_policy()
     assert encoder["convs"] is state.encoder["convs"] and encoder["head"] is state.actor_head
 
-    s = sac.update_settings(config, 1, agent.learner.functions.matmul_dtype, images=True,
+    s = build.update_settings(config, 1, agent.learner.functions.matmul_dtype, images=True,
                             image_state_dim=agent.spaces.image_state_dim)
     batch = _image_batch(agent.spaces.image_shape, act_dim=agent.spaces.act_dim)
     after_critic, _, (critic_obs, conv) = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s))(

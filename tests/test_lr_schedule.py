@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_same_training, straight_and_resumed, tiny_config
-from softac.learner import sac
+from softac.learner import build, losses
 from softac.config.sac_config import ConfigError, SACConfig
 from softac.learner.learner import Learner
 
@@ -14,13 +14,13 @@ U = 2.0**-24  # float32's unit roundoff
 
 def _batch(rng, obs_dim=3, act_dim=2, batch=16):
     f = lambda *shape: np.asarray(rng.normal(size=shape), np.float32)
-    return sac.Batch(obs=f(1, batch, obs_dim), actions=np.tanh(f(1, batch, act_dim)), rewards=f(1, batch),
+    return losses.Batch(obs=f(1, batch, obs_dim), actions=np.tanh(f(1, batch, act_dim)), rewards=f(1, batch),
                      next_obs=f(1, batch, obs_dim), terminated=np.zeros((1, batch), np.float32),
                      steps=np.ones((1, batch), np.float32))
 
 
 def _one_update(config: SACConfig, scale):
-    functions = sac.build(config, 3, 2)
+    functions = build.build(config, 3, 2)
     start = functions.init(0)
     before = [np.array(x, copy=True) for x in jax.tree_util.tree_leaves((start.actor, start.critic, start.log_alpha))]
     args = () if scale is None else (np.float32(scale),)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from softac import SAC
-from softac.learner import sac
+from softac.learner import build, sac
 from softac.config.sac_config import SACConfig
 from softac.run.csv_logs import read_csv
 
@@ -24,7 +24,7 @@ def test_totals_over_several_calls_are_the_mean_of_each_calls_steps():
     actor's come from the one step that updated it (the third), and a call without an actor step adds none."""
     # alpha 0.5: at alpha 1 (log alpha 0) the alpha loss is 0 itself
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, policy_delay=3, alpha=0.5)
-    fns = sac.build(cfg, 3, 2)
+    fns = build.build(cfg, 3, 2)
     batches = [_batch(np.random.default_rng(seed), 1, 8, 3, 2) for seed in range(3)]
 
     state, per_call = fns.init(0), []

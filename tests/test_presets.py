@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from conftest import run_cli_in_process
-from softac.config.sac_config import DMC_PRESET, GENERIC_PRESETS, SACConfig, load_preset, preset_names
+from softac.config.sac_config import SACConfig
+from softac.config.presets import DMC_PRESET, GENERIC_PRESETS, load_preset, preset_names
 from softac.config.names import is_dmc_id
 from softac.envs.make import ROBOTICS_PREFIXES
 

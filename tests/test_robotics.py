@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from softac import SAC
-from softac.config.sac_config import SACConfig, load_preset, preset_names
+from softac.config.sac_config import SACConfig
+from softac.config.presets import load_preset, preset_names
 from softac.envs.make import EnvError, ROBOTICS_PREFIXES, get_env_state, make_env, set_env_state
 
 pytestmark = pytest.mark.robotics

@@ -10,14 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softac.learner import sac
+from softac.learner import losses, policy
 from softac.learner.networks import init_actor, init_critics
 
 pytestmark = pytest.mark.numerics
 
 OBS, ACT, BATCH = 3, 2, 4
-POLICY = sac.Policy("relu", -20.0, 2.0, "clamp")
-CRITICS = sac.Critics("relu", unroll=True)
+POLICY = policy.Policy("relu", -20.0, 2.0, "clamp")
+CRITICS = losses.Critics("relu", unroll=True)
 
 
 def constant_actor(mean, log_std):
@@ -57,7 +57,7 @@ def hand_sample(key, mean, log_std):
 
 def batch(rewards, terminated, steps=None):
     rng = np.random.default_rng(1)
-    return sac.Batch(obs=jnp.asarray(rng.standard_normal((BATCH, OBS)), jnp.float32),
+    return losses.Batch(obs=jnp.asarray(rng.standard_normal((BATCH, OBS)), jnp.float32),
                      actions=jnp.asarray(np.tanh(rng.standard_normal((BATCH, ACT))), jnp.float32),
                      rewards=jnp.asarray(rewards, jnp.float32), next_obs=jnp.asarray(rng.standard_normal((BATCH, OBS)),
                                                                                        jnp.float32),
@@ -72,7 +72,7 @@ def test_critic_loss_is_the_soft_bellman_error_to_the_smaller_target(n_step, ste
     rewards, terminated, alpha, gamma = [1.0, -2.0, 0.5, 3.0], [0.0, 1.0, 0.0, 0.0], 0.5, 0.9
     critic, target_critic = constant_critics(1.0, 2.0), constant_critics(3.0, 5.0)
 
-    loss, metrics = sac.critic_loss(critic, target_critic, constant_actor(mean, log_std), jnp.float32(alpha),
+    loss, metrics = losses.critic_loss(critic, target_critic, constant_actor(mean, log_std), jnp.float32(alpha),
                                     batch(rewards, terminated, steps), key, POLICY, CRITICS, gamma, n_step)
 
     _, next_log_prob = hand_sample(key, mean, log_std)
@@ -83,7 +83,7 @@ def test_critic_loss_is_the_soft_bellman_error_to_the_smaller_target(n_step, ste
     assert (float(metrics["q1_mean"]), float(metrics["q2_mean"])) == (1.0, 2.0)
 
     # the gradient moves each critic towards the target (and the target critics not at all)
-    grads = jax.grad(lambda c: sac.critic_loss(c, target_critic, constant_actor(mean, log_std), jnp.float32(alpha),
+    grads = jax.grad(lambda c: losses.critic_loss(c, target_critic, constant_actor(mean, log_std), jnp.float32(alpha),
                                                batch(rewards, terminated, steps), key, POLICY, CRITICS, gamma,
                                                n_step)[0])(critic)
     np.testing.assert_allclose(np.asarray(grads[-1]["b"])[:, 0], [np.mean(1.0 - target), np.mean(2.0 - target)],
@@ -95,7 +95,7 @@ def test_actor_loss_trades_entropy_against_the_smaller_q():
     mean, log_std, alpha = [0.3, -0.2], [-0.5, 0.1], 0.2
     obs = batch([0.0] * BATCH, [0.0] * BATCH).obs
 
-    loss, log_prob = sac.actor_loss(constant_actor(mean, log_std), constant_critics(2.0, -1.0), jnp.float32(alpha),
+    loss, log_prob = losses.actor_loss(constant_actor(mean, log_std), constant_critics(2.0, -1.0), jnp.float32(alpha),
                                     obs, key, POLICY, CRITICS)
 
     u, want_log_prob = hand_sample(key, mean, log_std)
@@ -110,7 +110,7 @@ def test_actor_gradient_moves_the_mean_towards_higher_q():
     key = jax.random.PRNGKey(5)
     mean, log_std = [0.3, -0.2], [-0.5, 0.1]
     obs = batch([0.0] * BATCH, [0.0] * BATCH).obs
-    grads = jax.grad(lambda a: sac.actor_loss(a, critics_rising_in_first_action(), jnp.float32(0.0), obs, key,
+    grads = jax.grad(lambda a: losses.actor_loss(a, critics_rising_in_first_action(), jnp.float32(0.0), obs, key,
                                               POLICY, CRITICS)[0])(constant_actor(mean, log_std))
     u, _ = hand_sample(key, mean, log_std)
     d_mean = np.asarray(grads[-1]["b"])[:ACT]
@@ -122,9 +122,9 @@ def test_alpha_loss_value_and_direction():
     log_prob = jnp.asarray([1.0, 2.0])  # entropy -log_prob: -1 and -2
     log_alpha = jnp.float32(np.log(0.5))
     # target entropy -1: log_prob + target = [0, 1], mean 0.5
-    assert float(sac.alpha_loss(log_alpha, log_prob, -1.0)) == pytest.approx(-np.log(0.5) * 0.5, rel=1e-6)
+    assert float(losses.alpha_loss(log_alpha, log_prob, -1.0)) == pytest.approx(-np.log(0.5) * 0.5, rel=1e-6)
     # entropy below the target (-1.5 < -1): descent raises alpha; above it (-1.5 > -3): lowers it
-    assert float(jax.grad(sac.alpha_loss)(log_alpha, log_prob, -1.0)) == pytest.approx(-0.5)
-    assert float(jax.grad(sac.alpha_loss)(log_alpha, log_prob, -3.0)) == pytest.approx(1.5)
+    assert float(jax.grad(losses.alpha_loss)(log_alpha, log_prob, -1.0)) == pytest.approx(-0.5)
+    assert float(jax.grad(losses.alpha_loss)(log_alpha, log_prob, -3.0)) == pytest.approx(1.5)
     # the policy's log-probabilities get no gradient from the alpha loss
-    assert float(jnp.abs(jax.grad(sac.alpha_loss, argnums=1)(log_alpha, log_prob, -1.0)).sum()) == 0.0
+    assert float(jnp.abs(jax.grad(losses.alpha_loss, argnums=1)(log_alpha, log_prob, -1.0)).sum()) == 0.0

@@ -10,7 +10,7 @@ import pytest
 from float_bounds import assert_within_bound, mlp_bound
 from softac.base import cpus
 from softac.learner import networks
-from softac.learner import sac
+from softac.learner import build, losses, policy, sac
 from softac.config.sac_config import SACConfig
 
 
@@ -36,7 +36,7 @@ def test_log_prob_matches_numerical_density(mean, log_std):
         if numerical < 1e-8:
             continue
         u = jnp.array([[math.atanh(a)]], jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-        ours = float(sac.squashed_gaussian_log_prob(u, jnp.array([[mean]]), jnp.array([[log_std]]))[0])
+        ours = float(policy.squashed_gaussian_log_prob(u, jnp.array([[mean]]), jnp.array([[log_std]]))[0])
         # float32: a dozen roundings (2^-24) of terms whose sizes add up to `size` (1.7 of them at most, seen);
         # the central difference is within (h / (1 - |a|))^2 ~ 4e-8 of the density
         z = (math.atanh(a) - mean) / std
@@ -48,7 +48,7 @@ def test_log_prob_matches_numerical_density(mean, log_std):
 def test_log_prob_density_integrates_to_one():
     a = np.linspace(-1 + 1e-7, 1 - 1e-7, 400_001)
     u = jnp.asarray(np.arctanh(a)[:, None], jnp.float32)
-    logp = np.asarray(sac.squashed_gaussian_log_prob(u, jnp.full_like(u, 0.4), jnp.full_like(u, -0.3)))
+    logp = np.asarray(policy.squashed_gaussian_log_prob(u, jnp.full_like(u, 0.4), jnp.full_like(u, -0.3)))
     integrate = getattr(np, "trapezoid", None) or np.trapz  # (NumPy < 2 names it trapz)
     # the quadrature is exact to ~1e-15 here (in float64); the float32 log-density is off by a dozen roundings
     # of its terms, of sizes ~5 where the mass is: 32 * 2^-24 * 5 ~ 1e-5
@@ -58,18 +58,18 @@ def test_log_prob_density_integrates_to_one():
 @pytest.mark.numerics
 def test_log_prob_is_finite_where_tanh_saturates():
     u = jnp.array([[-40.0], [-12.0], [12.0], [40.0]])
-    logp = sac.squashed_gaussian_log_prob(u, jnp.zeros_like(u), jnp.zeros_like(u))
+    logp = policy.squashed_gaussian_log_prob(u, jnp.zeros_like(u), jnp.zeros_like(u))
     assert np.all(np.isfinite(np.asarray(logp)))
     # the exact form keeps growing like 2|u| where the naive log(1 - tanh^2 + 1e-6) is stuck at log(1e-6)
-    assert float(sac.log_one_minus_tanh_sq(jnp.array(40.0))) == pytest.approx(2 * (math.log(2) - 40), rel=1e-5)
+    assert float(policy.log_one_minus_tanh_sq(jnp.array(40.0))) == pytest.approx(2 * (math.log(2) - 40), rel=1e-5)
 
 
 @pytest.mark.numerics
 def test_log_prob_sums_over_action_dims():
     u = jnp.array([[0.3, -0.2]])
     mean, log_std = jnp.array([[0.1, 0.0]]), jnp.array([[-0.2, 0.4]])
-    both = float(sac.squashed_gaussian_log_prob(u, mean, log_std)[0])
-    each = sum(float(sac.squashed_gaussian_log_prob(u[:, i:i + 1], mean[:, i:i + 1], log_std[:, i:i + 1])[0])
+    both = float(policy.squashed_gaussian_log_prob(u, mean, log_std)[0])
+    each = sum(float(policy.squashed_gaussian_log_prob(u[:, i:i + 1], mean[:, i:i + 1], log_std[:, i:i + 1])[0])
                for i in range(2))
     assert both == pytest.approx(each, rel=1e-5)
 
@@ -77,17 +77,17 @@ def test_log_prob_sums_over_action_dims():
 @pytest.mark.numerics
 def test_log_std_bounds():
     raw = jnp.linspace(-50, 50, 101)
-    clamped = sac.bound_log_std(raw, -5.0, 2.0, "clamp")
-    squashed = sac.bound_log_std(raw, -5.0, 2.0, "tanh")
+    clamped = policy.bound_log_std(raw, -5.0, 2.0, "clamp")
+    squashed = policy.bound_log_std(raw, -5.0, 2.0, "tanh")
     for bounded in (clamped, squashed):
         assert float(bounded.min()) >= -5.0 and float(bounded.max()) <= 2.0
-    assert float(sac.bound_log_std(jnp.array(0.0), -5.0, 2.0, "tanh")) == pytest.approx(-1.5)
-    assert float(sac.bound_log_std(jnp.array(1.0), -5.0, 2.0, "clamp")) == 1.0
+    assert float(policy.bound_log_std(jnp.array(0.0), -5.0, 2.0, "tanh")) == pytest.approx(-1.5)
+    assert float(policy.bound_log_std(jnp.array(1.0), -5.0, 2.0, "clamp")) == 1.0
 
 
 @pytest.mark.numerics
 def test_action_rescaling_with_asymmetric_bounds():
-    scaler = sac.ActionScaler(np.array([-1.0, 0.0, -10.0]), np.array([3.0, 10.0, -2.0]))
+    scaler = policy.ActionScaler(np.array([-1.0, 0.0, -10.0]), np.array([3.0, 10.0, -2.0]))
     np.testing.assert_allclose(scaler.to_env(-np.ones(3)), [-1.0, 0.0, -10.0])
     np.testing.assert_allclose(scaler.to_env(np.ones(3)), [3.0, 10.0, -2.0])
     np.testing.assert_allclose(scaler.to_env(np.zeros(3)), [1.0, 5.0, -6.0])
@@ -105,7 +105,7 @@ def test_polyak_update():
 
 
 def _batch(rng, n_steps, batch, obs_dim, act_dim, terminated=0.0):
-    return sac.Batch(
+    return losses.Batch(
         obs=jnp.asarray(rng.normal(size=(n_steps, batch, obs_dim)), jnp.float32),
         actions=jnp.asarray(rng.uniform(-1, 1, (n_steps, batch, act_dim)), jnp.float32),
         rewards=jnp.asarray(rng.normal(size=(n_steps, batch)), jnp.float32),
@@ -122,7 +122,7 @@ def _leaves(tree):
 @pytest.mark.numerics
 def test_update_moves_targets_by_tau_every_interval():
     cfg = SACConfig().replace(hidden_sizes=[16], tau=0.5, target_update_interval=2, batch_size=8)
-    functions = sac.build(cfg, 3, 2)
+    functions = build.build(cfg, 3, 2)
     state = functions.init(0)
     before = _leaves(state.target_critic)
     rng = np.random.default_rng(0)
@@ -141,7 +141,7 @@ def test_update_moves_targets_by_tau_every_interval():
 
 def test_gradient_steps_fuse_in_one_call():
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, gradient_steps=5)
-    functions = sac.build(cfg, 3, 2)
+    functions = build.build(cfg, 3, 2)
     state = functions.init(0)
     state, totals = functions.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
     assert int(state.n_updates) == 5
@@ -158,7 +158,7 @@ def test_configs_differing_only_in_the_updates_numbers_share_one_compiled_update
     batch = _batch(np.random.default_rng(0), 2, 8, 5, 3)
 
     def trained(cfg):
-        functions = sac.build(cfg, 5, 3)
+        functions = build.build(cfg, 5, 3)
         return _leaves(functions.update(functions.init(0), batch)[0])
 
     first = trained(base)
@@ -176,11 +176,11 @@ def test_configs_differing_only_in_the_updates_numbers_share_one_compiled_update
 @pytest.mark.numerics
 def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     rng = np.random.default_rng(0)
-    fixed = sac.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
+    fixed = build.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
     state, totals = fixed.update(fixed.init(0), _batch(rng, 3, 8, 3, 2))
     assert sac.metric_means(totals)["alpha"] == pytest.approx(0.2)
     assert float(jnp.exp(state.log_alpha)) == pytest.approx(0.2)
-    tuned = sac.build(SACConfig().replace(hidden_sizes=[16], alpha=0.5), 3, 2)
+    tuned = build.build(SACConfig().replace(hidden_sizes=[16], alpha=0.5), 3, 2)
     state, totals = tuned.update(tuned.init(0), _batch(rng, 3, 8, 3, 2))
     assert float(jnp.exp(state.log_alpha)) != pytest.approx(0.5)
     assert tuned.target_entropy == -2.0
@@ -190,12 +190,12 @@ def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
 def test_terminated_transitions_do_not_bootstrap():
     """With gamma=1 and terminated=1 the critic's target is the reward alone."""
     cfg = SACConfig().replace(hidden_sizes=[16], gamma=1.0, critic_lr=0.05, batch_size=16)
-    functions = sac.build(cfg, 2, 1)
+    functions = build.build(cfg, 2, 1)
     state = functions.init(1)
     rng = np.random.default_rng(1)
     batch = _batch(rng, 1, 16, 2, 1, terminated=1.0)
     batch = batch._replace(rewards=jnp.full((1, 16), 3.0), next_obs=batch.next_obs * 100.0)
-    batches = sac.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
+    batches = losses.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
     state, totals = functions.update(state, batches)
     assert sac.metric_means(totals)["q1_mean"] == pytest.approx(3.0, abs=0.15)
 
@@ -205,10 +205,10 @@ def test_n_step_target_bootstraps_with_gamma_to_the_steps():
     """An n-step batch row that summed `steps` rewards bootstraps with gamma^steps: the update equals
     one-step SAC with gamma^steps in place of gamma, on the same state, batch and keys."""
     base = SACConfig().replace(hidden_sizes=[16], batch_size=8, gamma=0.9)
-    n_step = sac.build(base.replace(n_step=3), 3, 2)
+    n_step = build.build(base.replace(n_step=3), 3, 2)
     batch = _batch(np.random.default_rng(3), 1, 8, 3, 2)
     for steps in (1.0, 2.0, 3.0):
-        one_step = sac.build(base.replace(gamma=0.9**steps), 3, 2)
+        one_step = build.build(base.replace(gamma=0.9**steps), 3, 2)
         got, _ = n_step.update(n_step.init(0), batch._replace(steps=jnp.full((1, 8), steps, jnp.float32)))
         want, _ = one_step.update(one_step.init(0), batch)
         for a, b in zip(_leaves(got.critic), _leaves(want.critic), strict=True):
@@ -220,7 +220,7 @@ def test_n_step_target_bootstraps_with_gamma_to_the_steps():
 
 def test_delayed_policy_updates_and_critic_ensemble():
     cfg = SACConfig.preset("cleanrl").replace(hidden_sizes=[16], n_critics=3, init="orthogonal")
-    functions = sac.build(cfg, 3, 2)
+    functions = build.build(cfg, 3, 2)
     state = functions.init(0)
     assert jax.tree_util.tree_leaves(state.critic)[0].shape[0] == 3
     actor_before = _leaves(state.actor)
@@ -239,7 +239,7 @@ def _adam_steps(opt_state) -> int:
 def test_policy_schedule_counts_actor_and_alpha_steps(frequency, delay, actor_steps):
     """Over 6 critic steps: CleanRL's policy_frequency catches up (same count), TD3's policy_delay does not."""
     cfg = SACConfig().replace(hidden_sizes=[16], batch_size=8, policy_frequency=frequency, policy_delay=delay)
-    functions = sac.build(cfg, 3, 2)
+    functions = build.build(cfg, 3, 2)
     state, _ = functions.update(functions.init(0), _batch(np.random.default_rng(0), 6, 8, 3, 2))
     assert _adam_steps(state.critic_opt) == 6
     assert (_adam_steps(state.actor_opt), _adam_steps(state.alpha_opt)) == (actor_steps, actor_steps)
@@ -247,8 +247,8 @@ def test_policy_schedule_counts_actor_and_alpha_steps(frequency, delay, actor_st
 
 @pytest.mark.numerics
 def test_bfloat16_matmuls_stay_close_to_float32():
-    f32 = sac.build(SACConfig().replace(hidden_sizes=[64, 64]), 3, 2)
-    bf16 = sac.build(SACConfig().replace(hidden_sizes=[64, 64], matmul_dtype="bfloat16"), 3, 2)
+    f32 = build.build(SACConfig().replace(hidden_sizes=[64, 64]), 3, 2)
+    bf16 = build.build(SACConfig().replace(hidden_sizes=[64, 64], matmul_dtype="bfloat16"), 3, 2)
     state = f32.init(0)
     obs = jnp.asarray(np.random.default_rng(0).normal(size=(32, 3)), jnp.float32)
     a32, a16 = f32.act_deterministic(state.actor, (), obs), bf16.act_deterministic(state.actor, (), obs)
@@ -312,15 +312,15 @@ def test_unrolled_and_vmapped_critics_agree():
 
 
 def test_matmul_dtype_auto_picks_bfloat16_only_where_it_is_fast(monkeypatch):
-    monkeypatch.setattr(sac, "cpu_has_bf16", lambda: False)
-    assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
-    monkeypatch.setattr(sac, "cpu_has_bf16", lambda: True)
-    monkeypatch.setattr(sac, "jit_keeps_bf16_rounding", lambda: True)
-    assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "bfloat16"
-    assert sac.build(SACConfig().replace(matmul_dtype="float32"), 3, 2).matmul_dtype == "float32"
+    monkeypatch.setattr(build, "cpu_has_bf16", lambda: False)
+    assert build.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
+    monkeypatch.setattr(build, "cpu_has_bf16", lambda: True)
+    monkeypatch.setattr(build, "jit_keeps_bf16_rounding", lambda: True)
+    assert build.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "bfloat16"
+    assert build.build(SACConfig().replace(matmul_dtype="float32"), 3, 2).matmul_dtype == "float32"
     # a JAX whose compiler drops the bf16 rounding (0.4.30 on a CPU) multiplies in float32 anyway: auto says so
-    monkeypatch.setattr(sac, "jit_keeps_bf16_rounding", lambda: False)
-    assert sac.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
+    monkeypatch.setattr(build, "jit_keeps_bf16_rounding", lambda: False)
+    assert build.build(SACConfig().replace(matmul_dtype="auto"), 3, 2).matmul_dtype == "float32"
 
 
 SAPPHIRE_RAPIDS = {"avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "amx_tile"}
@@ -372,4 +372,4 @@ def test_cpu_has_bf16_honours_xla_max_isa(monkeypatch, cpu, xla_flags, bf16):
     if jax.default_backend() == "cpu":
         # JAX 0.4.30's CPU compiler drops the bf16 rounding: auto is float32 there, what it computes anyway
         expected = bf16 and keeps_rounding
-        assert sac.resolve_matmul_dtype("auto") == ("bfloat16" if expected else "float32")
+        assert build.resolve_matmul_dtype("auto") == ("bfloat16" if expected else "float32")

@@ -15,7 +15,7 @@ import pytest
 
 from softac import SAC
 from softac.learner import losses
-from softac.learner import sac
+from softac.learner import build, losses, policy, sac
 from softac.config.sac_config import ConfigError, SACConfig
 from softac.learner.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
                              init_simba, output_layer_mask, simba, unit_norm_hidden_units)
@@ -62,10 +62,10 @@ def test_tqc_critic_loss_is_the_quantile_huber_loss_to_the_truncated_soft_atoms(
     rewards, terminated, alpha, gamma = [1.0, -2.0, 0.5, 3.0], [0.0, 1.0, 0.0, 0.0], 0.5, 0.9
     critic = constant_quantile_critics([0.0, 1.0, 2.5], [-1.0, 0.5, 20.0])
     target_critic = constant_quantile_critics([3.0, 4.0, 6.0], [2.0, 5.0, 8.0])
-    critics = sac.Critics("relu", unroll=True, n_quantiles=M, drop_per_critic=1)
+    critics = losses.Critics("relu", unroll=True, n_quantiles=M, drop_per_critic=1)
     b = batch(rewards, terminated)
 
-    loss, (metrics, _) = sac.soft_q_loss(critic, (), target_critic, constant_actor(mean, log_std), (),
+    loss, (metrics, _) = losses.soft_q_loss(critic, (), target_critic, constant_actor(mean, log_std), (),
                                          jnp.float32(alpha), b, key, POLICY, critics, gamma)
 
     _, next_log_prob = hand_sample(key, mean, log_std)
@@ -78,7 +78,7 @@ def test_tqc_critic_loss_is_the_quantile_huber_loss_to_the_truncated_soft_atoms(
     assert float(metrics["q1_mean"]) == pytest.approx(3.5 / 3) and float(metrics["q2_mean"]) == pytest.approx(19.5 / 3)
 
     # d loss / d q_i = mean over rows and atoms of -|tau_i - 1{u < 0}| * Huber'(u), u = z - q_i, over M
-    grads = jax.grad(lambda c: sac.soft_q_loss(c, (), target_critic, constant_actor(mean, log_std), (),
+    grads = jax.grad(lambda c: losses.soft_q_loss(c, (), target_critic, constant_actor(mean, log_std), (),
                                                jnp.float32(alpha), b, key, POLICY, critics, gamma)[0])(critic)
     g = np.asarray(grads[-1]["b"])
     for n in range(2):
@@ -96,9 +96,9 @@ def test_tqc_critic_loss_is_the_quantile_huber_loss_to_the_truncated_soft_atoms(
 def test_tqc_actor_climbs_the_mean_of_all_quantiles():
     key = jax.random.PRNGKey(3)
     mean, log_std, alpha = [0.3, -0.2], [-0.5, 0.1], 0.2
-    critics = sac.Critics("relu", unroll=True, n_quantiles=M, drop_per_critic=1)
+    critics = losses.Critics("relu", unroll=True, n_quantiles=M, drop_per_critic=1)
     obs = batch([0.0] * BATCH, [0.0] * BATCH).obs
-    loss, (log_prob, _) = sac.policy_loss(constant_actor(mean, log_std), (),
+    loss, (log_prob, _) = losses.policy_loss(constant_actor(mean, log_std), (),
                                           constant_quantile_critics([0.0, 1.0, 2.0], [-3.0, 4.0, 8.0]), (),
                                           jnp.float32(alpha), obs, key, POLICY, critics)
     _, want_log_prob = hand_sample(key, mean, log_std)
@@ -119,8 +119,8 @@ def test_crossq_with_targets_bootstraps_from_the_target_critics_joint_pass():
     from test_sac_losses import constant_critics
 
     norm = BatchRenorm(momentum=0.9)
-    policy = sac.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=norm)
-    critics = sac.Critics("relu", unroll=True, batch_renorm=norm, targets=True)
+    crossq_policy = policy.Policy("relu", -20.0, 2.0, "clamp", batch_renorm=norm)
+    critics = losses.Critics("relu", unroll=True, batch_renorm=norm, targets=True)
     actor = [{**layer, "norm_scale": np.ones(layer["w"].shape[0], np.float32),
               "norm_bias": np.zeros(layer["w"].shape[0], np.float32)} for layer in constant_actor([0.1, 0.2], [-1, -1])]
     actor_stats = init_norm_stats([OBS, 4, 2 * ACT])
@@ -129,9 +129,9 @@ def test_crossq_with_targets_bootstraps_from_the_target_critics_joint_pass():
     critic, target = _with_norm_layers(constant_critics(1.0, 2.0)), _with_norm_layers(constant_critics(5.0, 7.0))
     key, alpha, gamma = jax.random.PRNGKey(4), 0.3, 0.9
     b = batch([1.0, -2.0, 0.5, 3.0], [0.0, 0.0, 1.0, 0.0])
-    loss, (metrics, new_stats) = sac.soft_q_loss(critic, stats, target, actor, actor_stats, jnp.float32(alpha), b,
-                                                 key, policy, critics, gamma, target_stats=target_stats)
-    _, log_prob = policy.sample(actor, actor_stats, b.next_obs, key)
+    loss, (metrics, new_stats) = losses.soft_q_loss(critic, stats, target, actor, actor_stats, jnp.float32(alpha), b,
+                                                 key, crossq_policy, critics, gamma, target_stats=target_stats)
+    _, log_prob = crossq_policy.sample(actor, actor_stats, b.next_obs, key)
     y = np.asarray(b.rewards) + gamma * (1 - np.asarray(b.terminated)) * (5.0 - alpha * np.asarray(log_prob))
     assert float(loss) == pytest.approx(0.5 * (np.mean((1.0 - y) ** 2) + np.mean((2.0 - y) ** 2)), rel=1e-5)
     rows = np.concatenate([np.asarray(b.obs), np.asarray(b.next_obs)])
@@ -142,7 +142,7 @@ def test_crossq_with_targets_bootstraps_from_the_target_critics_joint_pass():
 def test_crossq_with_targets_keeps_and_averages_target_statistics():
     cfg = SACConfig().replace(crossq=True, target_critics="on", tau=0.5, hidden_sizes=[16, 16], batch_size=8,
                               policy_delay=1)
-    fns = sac.build(cfg, 3, 2)
+    fns = build.build(cfg, 3, 2)
     state = fns.init(0)
     assert state.target_critic != () and len(state.target_critic_stats) == 3
     before = np.array(state.target_critic_stats[1]["var"], copy=True)
@@ -150,7 +150,7 @@ def test_crossq_with_targets_keeps_and_averages_target_statistics():
     # target statistics = 0.5 * online (after the step) + 0.5 * old target
     np.testing.assert_allclose(np.asarray(state.target_critic_stats[1]["var"]),
                                0.5 * np.asarray(state.critic_stats[1]["var"]) + 0.5 * before, rtol=1e-6)
-    assert sac.build(cfg.replace(target_critics="auto"), 3, 2).init(0).target_critic == ()  # CrossQ's default
+    assert build.build(cfg.replace(target_critics="auto"), 3, 2).init(0).target_critic == ()  # CrossQ's default
 
 
 # ---- AdamW ---------------------------------------------------------------------------------------------------
@@ -161,14 +161,14 @@ def test_adamw_decays_all_or_only_the_output_layers(layers):
     mask says, p unchanged elsewhere."""
     cfg = SACConfig().replace(weight_decay=0.1, weight_decay_layers=layers, critic_lr=0.01, hidden_sizes=[8, 8])
     params = init_critics(np.random.default_rng(0), 3, 2, [8, 8], "default", 2)
-    tx = sac.optimizer(cfg, cfg.critic_lr)
+    tx = build.optimizer(cfg, cfg.critic_lr)
     updates, _ = tx.update(jax.tree_util.tree_map(jnp.zeros_like, params), tx.init(params), params)
     for i, (layer, update) in enumerate(zip(params, updates)):
         decayed = layers == "all" or i == len(params) - 1
         for name in ("w", "b"):
             want = -0.01 * 0.1 * layer[name] if decayed else np.zeros_like(layer[name])
             np.testing.assert_allclose(np.asarray(update[name]), want, rtol=1e-6, atol=1e-12)
-    assert isinstance(sac.optimizer(cfg.replace(weight_decay=0.0), 1e-3), type(__import__("optax").adam(1e-3)))
+    assert isinstance(build.optimizer(cfg.replace(weight_decay=0.0), 1e-3), type(__import__("optax").adam(1e-3)))
 
 
 def test_output_layer_mask_of_mlp_and_simba():
@@ -204,12 +204,12 @@ def test_droq_critics_drop_units_in_every_pass_with_their_own_keys():
     # the same input rows in one call get different masks (each unit, each row)
     assert not np.allclose(one[:, 0], one[:, 1])
     # the critic loss and the actor loss both see dropout: two keys, two losses
-    critics = sac.Critics("relu", unroll=True, layer_norm=True, dropout=0.2)
+    critics = losses.Critics("relu", unroll=True, layer_norm=True, dropout=0.2)
     b = batch([1.0, -2.0, 0.5, 3.0], [0.0] * BATCH)
     actor = constant_actor([0.1, 0.2], [-1.0, -1.0])
-    losses = {float(sac.critic_loss(params, params, actor, jnp.float32(0.1), b, jax.random.PRNGKey(k), POLICY,
+    values = {float(losses.critic_loss(params, params, actor, jnp.float32(0.1), b, jax.random.PRNGKey(k), POLICY,
                                     critics, 0.9)[0]) for k in range(3)}
-    assert len(losses) == 3
+    assert len(values) == 3
 
 
 @pytest.mark.numerics
@@ -221,11 +221,11 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
     rate, alpha, gamma = 0.3, 0.2, 0.9
     critic = init_critics(rng, OBS, ACT, [6], "default", 2)
     target = init_critics(rng, OBS, ACT, [6], "default", 2)
-    critics = sac.Critics("relu", unroll=True, layer_norm=True, dropout=rate)
+    critics = losses.Critics("relu", unroll=True, layer_norm=True, dropout=rate)
     actor = constant_actor([0.3, -0.2], [-0.5, 0.1])
     b = batch([1.0, -2.0, 0.5, 3.0], [0.0, 1.0, 0.0, 0.0])
     key = jax.random.PRNGKey(9)
-    loss, _ = sac.critic_loss(critic, target, actor, jnp.float32(alpha), b, key, POLICY, critics, gamma)
+    loss, _ = losses.critic_loss(critic, target, actor, jnp.float32(alpha), b, key, POLICY, critics, gamma)
 
     online_key, next_key = losses.dropout_keys(key, critics)
     next_u, next_log_prob = hand_sample(key, [0.3, -0.2], [-0.5, 0.1])
@@ -250,7 +250,7 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
     # the loss's squares of terms ~1-10
     assert float(loss) == pytest.approx(0.5 * np.sum(np.mean((q - y) ** 2, axis=1)), rel=1e-4)
     # the gradient lowers each critic's output bias by the mean of (q - y)
-    grads = jax.grad(lambda c: sac.critic_loss(c, target, actor, jnp.float32(alpha), b, key, POLICY, critics,
+    grads = jax.grad(lambda c: losses.critic_loss(c, target, actor, jnp.float32(alpha), b, key, POLICY, critics,
                                                gamma)[0])(critic)
     np.testing.assert_allclose(np.asarray(grads[-1]["b"])[:, 0], np.mean(q - y, axis=1), rtol=1e-4, atol=1e-6)
 
@@ -267,7 +267,7 @@ def test_variants_compose_where_the_maths_allows(keys):
     """TQC's quantile critics with CrossQ (with and without target critics), with SimBa networks and with DroQ's
     dropout; SAC without target critics with AdamW: each builds and updates to finite values."""
     cfg = SACConfig().replace(**{"hidden_sizes": [16, 16], "batch_size": 8, **keys})
-    fns = sac.build(cfg, 3, 2)
+    fns = build.build(cfg, 3, 2)
     state, totals = fns.update(fns.init(0), _batches(np.random.default_rng(0), cfg.gradient_steps, 8))
     means = sac.metric_means(totals)
     assert set(means) >= {"critic_loss", "actor_loss", "q1_mean"} and all(np.isfinite(v) for v in means.values())
@@ -342,7 +342,7 @@ def test_policy_average_moves_toward_the_actor_at_its_rate_after_each_actor_step
     (policy_delay) leaves it. Float bound: a few float32 roundings of terms ~|w| (and a norm's sqrt and division)."""
     tau = 0.25
     cfg = SACConfig().replace(hidden_sizes=[16, 16], batch_size=8, policy_average_tau=tau, policy_delay=2, **keys)
-    fns = sac.build(cfg, 3, 2)
+    fns = build.build(cfg, 3, 2)
     state = fns.init(0)
     start = _numpy_tree((state.actor, state.actor_stats))
 
@@ -420,8 +420,8 @@ def test_an_averaging_runs_last_checkpoint_gives_its_final_evaluation_again_and_
 # ---- the config and target entropy ------------------------------------------------------------------------
 
 def test_target_entropy_scale():
-    assert sac.build(SACConfig().replace(hidden_sizes=[8], target_entropy_scale=0.5), 3, 6).target_entropy == -3.0
-    assert sac.build(SACConfig().replace(hidden_sizes=[8], target_entropy=-1.5), 3, 6).target_entropy == -1.5
+    assert build.build(SACConfig().replace(hidden_sizes=[8], target_entropy_scale=0.5), 3, 6).target_entropy == -3.0
+    assert build.build(SACConfig().replace(hidden_sizes=[8], target_entropy=-1.5), 3, 6).target_entropy == -1.5
 
 
 @pytest.mark.parametrize("values,fragment", [

@@ -46,7 +46,6 @@ class SAC:
             config = config.replace(env_id=env)
         else:
             config = config.replace(env_id=env_name(env))
-        self.config = config
         self.env_source: EnvSource = env
         self.device = select_device(config.device)
 
@@ -61,6 +60,12 @@ class SAC:
         self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer
         # where its training stands (counters, RNGs, exploration noise, evaluations, its run)
         self.run_state = RunState.new(config.seed, exploration_noise(config, self.spaces.act_dim))
+
+    @property
+    def config(self) -> SACConfig:
+        """The agent's settings: the learner's config (a frozen SACConfig; training past total_steps gives the
+        learner one with the raised budget)."""
+        return self.learner.config
 
     @property
     def num_steps(self) -> int:

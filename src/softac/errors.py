@@ -19,6 +19,10 @@ class EnvFailed(EnvError, RunFailed):
     """An env that raised or returned non-finite values once the run had started (exit 3)."""
 
 
+class ConfigError(SoftacError, ValueError):
+    """A bad config key or value; the message names the key."""
+
+
 class CheckpointError(SoftacError):
     """A checkpoint that cannot be read, or does not fit the config and env it is loaded for (exit 2)."""
 

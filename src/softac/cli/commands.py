@@ -78,7 +78,7 @@ def _pin_cpus(n: int | None) -> str | None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from softac.run.loop import check_success_rate
+    from softac.run.stopping import check_success_rate
     from softac.run.run_dir import run_lock
 
     check_success_rate(args.target_success, "--target-success")
@@ -308,7 +308,7 @@ def cmd_baselines(args: argparse.Namespace) -> int:
 
 def cmd_presets(args: argparse.Namespace) -> int:
     """A line per preset; with a name, that preset whole: its description and its settings."""
-    from softac.config.sac_config import preset_names, preset_summary
+    from softac.config.presets import preset_names, preset_summary
 
     if args.name:
         print(_preset_page(args.name))
@@ -322,7 +322,7 @@ def cmd_presets(args: argparse.Namespace) -> int:
 
 
 def _preset_family(name: str) -> str:
-    from softac.config.sac_config import DMC_PRESET, GENERIC_PRESETS
+    from softac.config.presets import DMC_PRESET, GENERIC_PRESETS
 
     return "[any env]" if name in GENERIC_PRESETS else "[dmc]" if name == DMC_PRESET else "[env]"
 
@@ -332,7 +332,7 @@ def _preset_page(name: str) -> str:
 
     import yaml
 
-    from softac.config.sac_config import load_preset, preset_description, preset_extends, preset_summary
+    from softac.config.presets import load_preset, preset_description, preset_extends, preset_summary
 
     values = load_preset(name)  # an unknown name: one line naming the closest
     text = [f"{name}  {_preset_family(name)}", preset_summary(name), ""]
@@ -380,7 +380,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             raise SoftacError("softac sweep needs --out DIR (or --resume DIR)")
         out = Path(args.out)
         spec = sweep_spec_from_args(args)
-    from softac.run.loop import check_success_rate
+    from softac.run.stopping import check_success_rate
 
     check_success_rate(args.success_threshold, "--success-threshold")  # (--target-success: sweep.validate)
     threshold = args.threshold

@@ -1,6 +1,6 @@
 """SACConfig: every hyperparameter once, with its one-line doc.
 
-The command line (`--set KEY=VALUE`), the YAML presets in `presets/` and the
+The command line (`--set KEY=VALUE`), the YAML presets (softac.config.presets) and the
 configuration reference (docs/reference/config.md) all come from the fields below, so there is one source of truth.
 """
 
@@ -10,23 +10,18 @@ import dataclasses
 import difflib
 import math
 from dataclasses import dataclass, field, fields
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from softac.config.names import is_dmc_id, parse_backends, task_preset_name
-from softac.errors import SoftacError
-
-
-class ConfigError(SoftacError, ValueError):
-    """A bad config key or value; the message names the key."""
+from softac.config.checks import CHECKS
+from softac.config.names import is_dmc_id, task_preset_name
+from softac.config.presets import DMC_PRESET, FALLBACK_PRESET, GENERIC_PRESETS, load_preset, preset_names
+from softac.errors import ConfigError
 
 
 DEFAULT_ENV = "InvertedPendulum-v5"
-FALLBACK_PRESET = "default"
-DMC_PRESET = "dmc"  # every DeepMind Control task without a preset of its own (issue 43); names no env itself
 
 
 def _f(default: Any, doc: str) -> Any:
@@ -35,7 +30,7 @@ def _f(default: Any, doc: str) -> Any:
     return field(default=default, metadata={"doc": doc})
 
 
-@dataclass
+@dataclass(frozen=True)
 class SACConfig:
     # environment and run
     env_id: str = _f(DEFAULT_ENV, "Gymnasium id (or module:EnvId) to train on")
@@ -200,6 +195,16 @@ class SACConfig:
         return self.target_critics == "on" or (self.target_critics == "auto" and not self.crossq)
 
     @property
+    def actor_widths(self) -> list[int]:
+        """The actor's hidden sizes: actor_hidden_sizes, else hidden_sizes."""
+        return list(self.actor_hidden_sizes or self.hidden_sizes)
+
+    @property
+    def critic_widths(self) -> list[int]:
+        """Each critic's hidden sizes: critic_hidden_sizes, else hidden_sizes."""
+        return list(self.critic_hidden_sizes or self.hidden_sizes)
+
+    @property
     def pixel_offset(self) -> float:
         """What the encoder subtracts from pixels scaled to [0, 1] (`pixel_range`)."""
         return 0.5 if self.pixel_range == "centered" else 0.0
@@ -213,147 +218,6 @@ class SACConfig:
             check(self)
 
 
-def _requirer(config: "SACConfig"):
-    """need(ok, key, what): a ConfigError naming key, its value and what it must be, unless ok."""
-    def need(ok: bool, key: str, what: str) -> None:
-        if not ok:
-            raise ConfigError(f"{key}={getattr(config, key)!r}: {what}")
-    return need
-
-
-def _check_env_and_images(config: "SACConfig") -> None:
-    """The env, its images and how its steps are run."""
-    need = _requirer(config)
-    need(bool(config.env_id.strip()), "env_id", "must name an environment")
-    need(config.total_steps >= 0, "total_steps", "must be >= 0")
-    need(config.n_envs >= 1, "n_envs", "must be >= 1")
-    need(config.n_envs <= 1024, "n_envs", "must be <= 1024")
-    need(1 <= config.action_repeat <= 1000, "action_repeat", "must be between 1 and 1000")
-    need(15 <= config.pixel_size <= 1024, "pixel_size", "must be between 15 (the encoder's smallest input) and 1024")
-    need(1 <= config.frame_stack <= 16, "frame_stack", "must be between 1 (none) and 16")
-    need(not (config.pixels and config.obs_norm), "obs_norm",
-         "normalises vector observations; with pixels the encoder scales the images (pixel_range)")
-    need(1 <= config.encoder_channels <= 1024, "encoder_channels", "must be between 1 and 1024")
-    need(1 <= config.encoder_features <= 65_536, "encoder_features", "must be between 1 and 65536")
-    need(0 <= config.augment_pad <= 64, "augment_pad", "must be between 0 (no augmentation) and 64")
-    need(config.pixel_range in ("unit", "centered"), "pixel_range", "must be unit ([0, 1]) or centered ([-0.5, 0.5])")
-    need(0 <= config.env_workers <= config.n_envs, "env_workers",
-         f"must be between 0 (the envs stepped in-process) and n_envs={config.n_envs}")
-    need(config.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")
-
-
-def _check_collection(config: "SACConfig") -> None:
-    """The replay buffer, the warm-up, exploration and HER."""
-    need = _requirer(config)
-    need(config.buffer_size >= 1, "buffer_size", "must be >= 1")
-    need(config.batch_size >= 1, "batch_size", "must be >= 1")
-    need(config.learning_starts >= 0, "learning_starts", "must be >= 0")
-    need(0.0 <= config.random_action_prob <= 1.0, "random_action_prob", "must be in [0, 1]")
-    need(config.exploration_noise in ("gaussian", "pink", "gsde"), "exploration_noise", "must be gaussian, pink or gsde")
-    need(1 <= config.sde_sample_freq <= 1_000_000, "sde_sample_freq", "must be between 1 and 1,000,000")
-    need(-20.0 <= config.sde_log_std_init <= 2.0, "sde_log_std_init", "must be in [-20, 2]")
-    need(0.0 <= config.noise_beta <= 4.0, "noise_beta", "must be in [0, 4]")
-    need(2 <= config.noise_sequence_length <= 1_000_000, "noise_sequence_length", "must be between 2 and 1,000,000")
-    need(config.obs_norm_clip > 0.0, "obs_norm_clip", "must be > 0")
-    need(config.her in ("auto", "on", "off"), "her", "must be auto, on or off")
-    need(config.her_strategy in ("future", "final", "episode"), "her_strategy", "must be future, final or episode")
-    need(1 <= config.her_k <= 1000, "her_k", "must be between 1 and 1000")
-
-
-def _check_targets_and_critics(config: "SACConfig") -> None:
-    """The critics' target, updates and variants (n-step, ensembles, quantiles, dropout)."""
-    need = _requirer(config)
-    need(0.0 <= config.gamma <= 1.0, "gamma", "must be in [0, 1]")
-    need(0.0 < config.tau <= 1.0, "tau", "must be in (0, 1]")
-    need(0.0 <= config.policy_average_tau <= 1.0, "policy_average_tau", "must be in [0, 1] (0 = off)")
-    need(config.target_update_interval >= 1, "target_update_interval", "must be >= 1")
-    need(config.gradient_steps >= 0, "gradient_steps", "must be >= 0")
-    need(config.gradient_steps <= 10_000, "gradient_steps", "must be <= 10000")
-    need(config.policy_frequency >= 1, "policy_frequency", "must be >= 1")
-    need(config.policy_delay >= 1, "policy_delay", "must be >= 1")
-    need(config.reset_interval >= 0, "reset_interval", "must be >= 0 (0: never)")
-    need(1 <= config.n_step <= 100, "n_step", "must be between 1 and 100")
-    need(1 <= config.n_critics <= 100, "n_critics", "must be between 1 and 100")
-    need(not (config.crossq and config.critic_layer_norm), "critic_layer_norm",
-         "cannot be combined with crossq, which normalises with batch renormalisation")
-    need(config.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
-    need(not (config.target_encoder and not config.has_target_critics), "target_encoder",
-         "copies the encoder for the target critics, and these critics have none (target_critics=on gives them)")
-    need(0 <= config.n_quantiles <= 1000, "n_quantiles", "must be between 0 (SAC's critics) and 1000")
-    need(config.top_quantiles_to_drop_per_net >= 0 and (
-        config.n_quantiles == 0 or config.top_quantiles_to_drop_per_net < config.n_quantiles),
-        "top_quantiles_to_drop_per_net", f"must be >= 0 and below n_quantiles={config.n_quantiles}")
-    need(0.0 <= config.critic_dropout < 1.0, "critic_dropout", "must be in [0, 1)")
-    need(not (config.critic_dropout > 0 and config.crossq), "critic_dropout",
-         "cannot be combined with crossq (dropout inside batch renormalisation's statistics is not CrossQ)")
-
-
-def _check_networks(config: "SACConfig") -> None:
-    """The networks and how they train: kind, widths, normalisation, weight decay, Adam's b1, the entropy target's
-    scale, matmul precision."""
-    need = _requirer(config)
-    need(config.network in ("mlp", "simba"), "network", "must be mlp or simba")
-    if config.network == "simba":
-        need(not config.crossq, "network", "simba cannot be combined with crossq (SimBa normalises with LayerNorm)")
-        need(not config.critic_layer_norm, "critic_layer_norm", "is built into network=simba (pre-LayerNorm blocks)")
-        need(config.critic_dropout == 0, "critic_dropout", "applies to mlp critics (network=mlp)")
-        for key in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
-            need(len(set(getattr(config, key))) <= 1, key,
-                 "with network=simba every entry is a residual block of the one width (e.g. 512,512)")
-    for key in ("actor_hidden_sizes", "critic_hidden_sizes"):
-        need(all(1 <= h <= 65_536 for h in getattr(config, key)), key, "widths must be between 1 and 65536")
-    need(config.weight_decay >= 0.0, "weight_decay", "must be >= 0")
-    need(config.weight_decay_layers in ("all", "output"), "weight_decay_layers", "must be all or output")
-    need(config.target_entropy_scale > 0.0, "target_entropy_scale", "must be > 0 (target_entropy sets any other target)")
-    need(not config.crossq or config.batch_size >= 2, "batch_size", "must be >= 2 with crossq (batch statistics)")
-    need(config.crossq or not config.weight_norm, "weight_norm",
-         "needs crossq (its batch renormalisation is what makes the weights' scale free)")
-    need(0.0 < config.batch_norm_momentum < 1.0, "batch_norm_momentum", "must be in (0, 1)")
-    need(config.batch_renorm_warmup >= 0, "batch_renorm_warmup", "must be >= 0")
-    need(0.0 <= config.adam_b1 < 1.0, "adam_b1", "must be in [0, 1)")
-    need(len(config.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
-    need(all(1 <= h <= 65_536 for h in config.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
-    need(config.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
-    need(config.init in ("default", "orthogonal"), "init", "must be default or orthogonal")
-    need(config.matmul_dtype in ("float32", "bfloat16", "auto"), "matmul_dtype", "must be float32, bfloat16 or auto")
-
-
-def _check_optimisers_and_policy(config: "SACConfig") -> None:
-    """Learning rates, alpha and the policy's log std."""
-    need = _requirer(config)
-    for key in ("actor_lr", "critic_lr", "alpha_lr"):
-        need(0.0 < getattr(config, key) < 1.0, key, "must be in (0, 1)")
-    need(config.lr_schedule in ("constant", "linear"), "lr_schedule", "must be constant or linear")
-    need(0.0 <= config.lr_end_fraction <= 1.0, "lr_end_fraction", "must be in [0, 1]")
-    need(config.alpha > 0.0 if config.autotune_alpha else config.alpha >= 0.0, "alpha",
-         "must be > 0 (>= 0 when fixed)")
-    need(config.target_entropy == "auto" or isinstance(config.target_entropy, float), "target_entropy",
-         "must be auto or a number")
-    need(config.log_std_min < config.log_std_max, "log_std_min", "must be below log_std_max")
-    need(config.log_std_mode in ("clamp", "tanh"), "log_std_mode", "must be clamp or tanh")
-
-
-def _check_outputs(config: "SACConfig") -> None:
-    """Evaluation, logs, checkpoints and loggers."""
-    need = _requirer(config)
-    need(config.eval_interval >= 0, "eval_interval", "must be >= 0 (0 disables)")
-    need(config.eval_episodes >= 1, "eval_episodes", "must be >= 1")
-    need(config.log_interval >= 1, "log_interval", "must be >= 1")
-    need(config.checkpoint_interval >= 0, "checkpoint_interval", "must be >= 0")
-    try:
-        parse_backends(config.loggers)
-    except SoftacError as exc:
-        raise ConfigError(f"loggers={config.loggers!r}: {exc}") from None
-
-
-# in the order validate() runs them: the first failing key is the one reported
-CHECKS = (_check_env_and_images, _check_collection, _check_targets_and_critics, _check_networks,
-          _check_optimisers_and_policy, _check_outputs)
-
-
-ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
-GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-avg", "crossq-wn", "sac-100k", "tqc", "simba", "droq",
-                   "drq")
 # keys written to config.yaml for the record; ignored when the file is read back
 RECORD_ONLY_KEYS = ("versions", "softac_version", "resolved_target_entropy", "resolved_matmul_dtype",
                     "buffer_bytes_per_transition", "cpus", "machine", "segments")
@@ -465,58 +329,3 @@ def _type_name(default: Any) -> str:
     if isinstance(default, list):
         return "a list of integers like 256,256"
     return "a string"
-
-
-# ---- presets ------------------------------------------------------------
-
-def _preset_dir():
-    return resources.files("softac.config") / "presets"
-
-
-def preset_names() -> list[str]:
-    return sorted(p.name[: -len(".yaml")] for p in _preset_dir().iterdir() if p.name.endswith(".yaml"))
-
-
-def load_preset(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """A preset's values; `extends: OTHER` in a preset file starts from OTHER's values (the MuJoCo env
-    presets extend `crossq`, so its settings are written once)."""
-    names = preset_names()
-    if name not in names:
-        close = difflib.get_close_matches(name, names, n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
-        raise ConfigError(f"unknown preset '{name}'{hint}; `softac presets` lists them")
-    if name in _seen:
-        raise ConfigError(f"preset '{name}' extends itself ({' -> '.join((*_seen, name))})")
-    data = _preset_file_values(name)
-    base = data.pop("extends", None)
-    return {**load_preset(str(base), (*_seen, name)), **data} if base else data
-
-
-def _preset_text(name: str) -> str:
-    return (_preset_dir() / f"{name}.yaml").read_text()
-
-
-def _preset_file_values(name: str) -> dict[str, Any]:
-    """What the preset's own file sets, `extends` included."""
-    return dict(yaml.safe_load(_preset_text(name)) or {})
-
-
-def preset_extends(name: str) -> str | None:
-    """The preset a preset's file starts from (`extends:`), or None."""
-    base = _preset_file_values(name).get("extends")
-    return str(base) if base else None
-
-
-def _preset_comments(name: str) -> list[str]:
-    return [line.lstrip("#").strip() for line in _preset_text(name).splitlines() if line.startswith("#")]
-
-
-def preset_summary(name: str) -> str:
-    """The first comment line of a preset file: what it is for, in one sentence (`softac presets` lists it)."""
-    comments = _preset_comments(name)
-    return comments[0] if comments else ""
-
-
-def preset_description(name: str) -> str:
-    """The comment lines after the summary: settings, sources, departures and figures (`softac presets NAME`)."""
-    return "\n".join(_preset_comments(name)[1:])

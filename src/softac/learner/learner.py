@@ -1,7 +1,7 @@
 """`Learner`: what the agent knows and how it acts and learns.
 
 It holds the networks, their optimisers and alpha (`sac.SACState`), the running observation statistics
-(obs_norm) and the action scaling, and the jitted functions `sac.build` made for them. It acts on
+(obs_norm) and the action scaling, and the jitted functions `build.build` made for them. It acts on
 observations (`act` while training; `predict`, the deterministic policy that evaluation runs, and
 `sample` for users), learns from a batch (`update`), and gives and takes its arrays for checkpoints. It
 knows no env, buffer, run directory or agent: the training loop hands it observations and batches, and
@@ -20,7 +20,8 @@ from softac.errors import CheckpointError, SoftacError
 from softac.learner.normalization import RunningObsNorm
 
 if TYPE_CHECKING:  # sac imports JAX, which loads only when a learner is made
-    from softac.learner.sac import SACFunctions, SACState
+    from softac.learner.build import SACFunctions
+    from softac.learner.sac import SACState
 
 STATE_PREFIX = "state"  # checkpoint array names: state<path of the leaf in SACState>, obs_norm/<name>
 OBS_NORM_PREFIX = "obs_norm/"
@@ -64,16 +65,14 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
             actor_head = head_parameters(flat, config.encoder_features)
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
         conv_activations = 4 * 2 * 4 * flat
-    actor_hidden = config.actor_hidden_sizes or config.hidden_sizes
-    critic_hidden = config.critic_hidden_sizes or config.hidden_sizes
-    actor = network_parameters(obs_dim, actor_hidden, 2 * act_dim, config.network)
-    critics = config.n_critics * network_parameters(obs_dim + act_dim, critic_hidden, config.n_quantiles or 1,
+    actor = network_parameters(obs_dim, config.actor_widths, 2 * act_dim, config.network)
+    critics = config.n_critics * network_parameters(obs_dim + act_dim, config.critic_widths, config.n_quantiles or 1,
                                                     config.network)
     # weights + Adam moments; critics also have targets (and the encoder with target_encoder)
     parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder + 3 * actor_head)
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
     # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
-    widths = sum(actor_hidden) + sum(critic_hidden) * config.n_critics
+    widths = sum(config.actor_widths) + sum(config.critic_widths) * config.n_critics
     activations = 4 * config.batch_size * (widths * 4 * (6 if config.network == "simba" else 1) + conv_activations)
     batch = config.batch_size * config.gradient_steps * batch_row
     need, have = parameters + activations + batch, available_memory_bytes()
@@ -92,11 +91,11 @@ class Learner:
                               "scales itself (pixel_range): set obs_norm=false")
         check_model_memory(config, spaces.obs_dim, spaces.act_dim, image_shape=spaces.image_shape,
                            image_state_dim=spaces.image_state_dim)
-        from softac.learner import sac
+        from softac.learner import build, losses
 
         self.config, self.spaces = config, spaces
-        self.Batch = sac.Batch
-        self.functions: SACFunctions = sac.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high,
+        self.Batch = losses.Batch
+        self.functions: SACFunctions = build.build(config, spaces.obs_dim, spaces.act_dim, spaces.low, spaces.high,
                                                  spaces.image_shape, spaces.image_state_dim)
         self.scaler = self.functions.scaler
         self.state: SACState = self.functions.init(config.seed)

@@ -223,7 +223,7 @@ class PeerRun:
             row = self.rows.row(step, time.perf_counter() - self.t0, self.record["episodes"])
             self.logs.log("train", {k: v for k, v in row.items() if k != "step"}, step)
         if self.eval_interval > 0 and step % self.eval_interval == 0:
-            from softac.run.loop import target_reached
+            from softac.run.stopping import target_reached
 
             self.evaluate(step)
             self.reached = target_reached(self.record["last"], self.record.get("last_success"), self.target_return,

@@ -37,8 +37,7 @@ def crossq_settings(c: SACConfig) -> dict[str, Any]:
                        "target_critics": c.target_critics == "on", "weight_norm": c.weight_norm,
                        "weight_decay": c.weight_decay > 0, "n_quantiles": c.n_quantiles > 0,
                        "critic_dropout": c.critic_dropout > 0,
-                       "actor and critic widths differ": (c.actor_hidden_sizes or c.hidden_sizes)
-                       != (c.critic_hidden_sizes or c.hidden_sizes)})
+                       "actor and critic widths differ": c.actor_widths != c.critic_widths})
     return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
             "learning_starts": c.learning_starts, "batch_size": c.batch_size, "gamma": c.gamma,
             "policy_delay": c.policy_delay,
@@ -75,8 +74,7 @@ def _sac_family(c: SACConfig, act_dim: int) -> dict[str, Any]:
             "learning_starts": c.learning_starts, "batch_size": c.batch_size, "tau": c.tau, "gamma": c.gamma,
             "gradient_steps": c.gradient_steps, "policy_delay": c.policy_delay, "ent_coef": f"auto_{c.alpha}",
             "target_entropy": target_entropy,
-            "policy_kwargs": {"net_arch": {"pi": list(c.actor_hidden_sizes or c.hidden_sizes),
-                                           "qf": list(c.critic_hidden_sizes or c.hidden_sizes)}, **optimizer}}
+            "policy_kwargs": {"net_arch": {"pi": c.actor_widths, "qf": c.critic_widths}, **optimizer}}
 
 
 def simba_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:

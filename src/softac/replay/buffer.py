@@ -252,18 +252,3 @@ class ObsOnceReplayBuffer(_Ring):
         self.final_obs[:] = state["final_obs"]
         self.final_owner[:] = state["final_owner"]
         self.pos, self.size, self.final_pos = pos, size, final_pos
-
-
-def make_buffer(config, obs_dim: int, act_dim: int):
-    """The replay buffer a config asks for."""
-    returns = {"n_step": config.n_step, "gamma": config.gamma}
-    if config.buffer_obs_once:
-        return ObsOnceReplayBuffer(config.buffer_size, obs_dim, act_dim, config.n_envs, **returns)
-    return ReplayBuffer(config.buffer_size, obs_dim, act_dim, n_envs=config.n_envs, **returns)
-
-
-def buffer_bytes_per_transition(config, obs_dim: int, act_dim: int) -> float:
-    """Bytes per stored transition of the buffer a config asks for."""
-    if config.buffer_obs_once:
-        return ObsOnceReplayBuffer.bytes_per_transition(obs_dim, act_dim, config.buffer_size, config.n_envs)
-    return ReplayBuffer.bytes_per_transition(obs_dim, act_dim)

@@ -9,12 +9,13 @@ each learn(); their envs' state is kept ("parked") so the next learn() carries o
 from __future__ import annotations
 
 import warnings
+from functools import partial
 from typing import TYPE_CHECKING, Any, Callable
 
 import gymnasium as gym
 import numpy as np
 
-from softac.replay.buffer import ObsOnceReplayBuffer, ReplayBuffer, buffer_bytes_per_transition, make_buffer
+from softac.replay.buffer import ObsOnceReplayBuffer, ReplayBuffer
 from softac.config.sac_config import SACConfig
 from softac.envs.make import EnvFailed, EnvPool, EnvSource, SpaceInfo, StepResult, copy_env, env_name
 from softac.replay.her_buffer import HerReplayBuffer, HerSetup
@@ -35,12 +36,33 @@ def buffer_state(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return _with_prefix(arrays, BUFFER_PREFIX)
 
 
+Buffer = ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | FrameReplayBuffer
+
+
+def replay_buffer_for(config: SACConfig, spaces: SpaceInfo, her: HerSetup | None) -> tuple[Callable[[], Buffer], float]:
+    """The one switch over buffer kinds: the replay buffer a config, its spaces and HER ask for (a function that
+    makes it, called on first use) and its bytes per transition (stated before a run starts)."""
+    size, n, obs_dim, act_dim = config.buffer_size, config.n_envs, spaces.obs_dim, spaces.act_dim
+    returns = {"n_step": config.n_step, "gamma": config.gamma}
+    if her is not None:
+        return (partial(HerReplayBuffer, size, her.layout, act_dim, n, her.reward_fn, her.strategy, her.k,
+                        gamma=config.gamma), HerReplayBuffer.bytes_per_transition(obs_dim, act_dim))
+    if spaces.image_shape is not None:  # each frame of the stacks (pixels.FrameStack) once
+        return (partial(FrameReplayBuffer, size, spaces.image_shape, act_dim, n, **returns),
+                FrameReplayBuffer.bytes_per_transition(spaces.image_shape, act_dim, size, n))
+    if config.buffer_obs_once:
+        return (partial(ObsOnceReplayBuffer, size, obs_dim, act_dim, n, **returns),
+                ObsOnceReplayBuffer.bytes_per_transition(obs_dim, act_dim, size, n))
+    return (partial(ReplayBuffer, size, obs_dim, act_dim, n_envs=n, **returns),
+            ReplayBuffer.bytes_per_transition(obs_dim, act_dim))
+
+
 class Collector:
     """The env pool and the replay buffer of one training run."""
 
     def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, her: HerSetup | None = None):
         self.config, self.env_source, self.spaces, self.her = config, env_source, spaces, her
-        self.buffer: ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | FrameReplayBuffer | None = None
+        self.buffer: Buffer | None = None
         self.pool: EnvPool | WorkerEnvPool | None = None
         self.started = False  # the envs were reset (or restored) once; they go on from where they are
         # the envs' state (the pool's get_state()) while no pool holds it: loaded from a checkpoint, or kept
@@ -49,22 +71,10 @@ class Collector:
 
     @property
     def bytes_per_transition(self) -> float:
-        if self.her is not None:
-            return HerReplayBuffer.bytes_per_transition(self.spaces.obs_dim, self.spaces.act_dim)
-        if self.spaces.image_shape is not None:
-            return FrameReplayBuffer.bytes_per_transition(self.spaces.image_shape, self.spaces.act_dim,
-                                                          self.config.buffer_size, self.config.n_envs)
-        return buffer_bytes_per_transition(self.config, self.spaces.obs_dim, self.spaces.act_dim)
+        return replay_buffer_for(self.config, self.spaces, self.her)[1]
 
-    def _make_buffer(self) -> ReplayBuffer | ObsOnceReplayBuffer | HerReplayBuffer | FrameReplayBuffer:
-        cfg, her = self.config, self.her
-        if her is not None:
-            return HerReplayBuffer(cfg.buffer_size, her.layout, self.spaces.act_dim, cfg.n_envs, her.reward_fn,
-                                   her.strategy, her.k, gamma=cfg.gamma)
-        if self.spaces.image_shape is not None:  # each frame of the stacks (pixels.FrameStack) once
-            return FrameReplayBuffer(cfg.buffer_size, self.spaces.image_shape, self.spaces.act_dim, cfg.n_envs,
-                                     n_step=cfg.n_step, gamma=cfg.gamma)
-        return make_buffer(cfg, self.spaces.obs_dim, self.spaces.act_dim)
+    def _make_buffer(self) -> Buffer:
+        return replay_buffer_for(self.config, self.spaces, self.her)[0]()
 
     def _envs_reset(self) -> None:
         """The envs start fresh episodes that the buffer did not see end (HER's episode bookkeeping)."""

@@ -129,6 +129,6 @@ def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | No
     if config.exploration_noise == "pink":
         return ColoredNoise(config.noise_beta, config.n_envs, act_dim, config.noise_sequence_length, config.seed)
     if config.exploration_noise == "gsde":
-        n_features = list(config.actor_hidden_sizes or config.hidden_sizes)[-1]
+        n_features = config.actor_widths[-1]
         return SdeNoise(config.sde_sample_freq, config.n_envs, n_features, act_dim, config.seed)
     return None

@@ -22,33 +22,18 @@ from softac.base.cpus import usable_cpus
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.run.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
 from softac.config.names import parse_backends
+from softac.config.sac_config import SACConfig
 from softac.run.loggers import Loggers, check_backends_installed, run_loggers
 from softac.run.csv_logs import Progress, TrainRows
 from softac.learner.learner import Learner
 from softac.run.run_dir import checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.run.run_state import RunState
+from softac.run.stopping import check_success_rate, target_reached
 from softac.run.checkpoint_contents import checkpoint_parts
 from softac.base.stop_signal import StopSignal
 
 
 SHOW_EVERY = 100  # env steps between progress-bar refreshes
-
-
-def check_success_rate(value: float | None, name: str) -> None:
-    """A success rate to reach (--target-success, a sweep's --success-threshold): None, or in (0, 1]."""
-    if value is not None and not 0.0 < value <= 1.0:
-        raise SoftacError(f"{name} is a success rate in (0, 1], got {value}")
-
-
-def target_reached(mean_return: float, success_rate: float | None, target_return: float | None,
-                   target_success: float | None) -> str | None:
-    """Which target an evaluation reached, `target_return` or `target_success` (a goal env's), else None: what stops
-    softac's training and a peer's run (softac.peers) alike."""
-    if target_return is not None and mean_return >= target_return:
-        return "target_return"
-    if target_success is not None and success_rate is not None and success_rate >= target_success:
-        return "target_success"
-    return None
 
 
 def crossed(before: int, after: int, interval: int) -> bool:
@@ -130,7 +115,7 @@ class TrainingLoop:
         check_success_rate(target_success, "target_success")
         self.run_path = Path(run_dir) if run_dir is not None else None
         check_backends_installed(parse_backends(learner.config.loggers) if self.run_path is not None else [])
-        self.learner, self.collector, self.run_state, self.config = learner, collector, run_state, learner.config
+        self.learner, self.collector, self.run_state = learner, collector, run_state
         self.start_step = self.run_state.num_steps
         self.end_step = self.start_step + steps
         self.target_return, self.target_success = target_return, target_success
@@ -143,9 +128,7 @@ class TrainingLoop:
             raise SoftacError(str(exc)) from None
         if self.run_path is not None:
             self.run_state.check_may_write(self.run_path)
-        # a raised budget is the run's own from now on (set once every input is accepted): its checkpoints and
-        # summary.json carry it, so a later resume continues to it, and the end-of-run evaluation and resets follow it
-        self.config.total_steps = max(self.config.total_steps, self.end_step)
+        self._raise_budget(self.end_step)
         self.extra_loggers = list(loggers or [])
         self.progress = progress
         self.writer: RunWriter | None = None
@@ -154,6 +137,18 @@ class TrainingLoop:
         self.stop_reason: str | None = None  # target_return, target_success or a callback's reason: stop now
         self.logged_at: int | None = None
         self.logged_metrics: dict[str, float] = {}  # the last progress row's means
+
+    @property
+    def config(self) -> SACConfig:
+        return self.learner.config
+
+    def _raise_budget(self, end_step: int) -> None:
+        """A raised budget is the run's own from now on (set once every input is accepted): its checkpoints and
+        summary.json carry it, so a later resume continues to it, and the end-of-run evaluation, the resets and
+        the learning-rate schedule follow it. The config itself never changes (it is frozen): the learner and the
+        collector get one with the new total_steps."""
+        if end_step > self.config.total_steps:
+            self.learner.config = self.collector.config = self.config.replace(total_steps=end_step)
 
     def run(self) -> dict[str, Any]:
         self.collector.start(self.run_state.num_steps)

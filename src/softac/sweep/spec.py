@@ -316,7 +316,7 @@ def validate(spec: SweepSpec) -> SACConfig:
         raise SoftacError(f"--framework must be one of {', '.join(FRAMEWORKS)}")
     resolve_env_id(spec.env_id)
     if spec.target_success is not None:
-        from softac.run.loop import check_success_rate
+        from softac.run.stopping import check_success_rate
 
         check_success_rate(spec.target_success, "--target-success")
     _refuse_keys_the_sweep_sets(spec)

@@ -1,0 +1,150 @@
+"""SACConfig's checks, section by section, each taking a SACConfig, in the order `SACConfig.validate` runs
+them: the first failing key is the one reported, in a ConfigError naming it, its value and what it must be."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from softac.config.names import parse_backends
+from softac.errors import ConfigError, SoftacError
+
+
+def _requirer(config: Any):
+    """need(ok, key, what): a ConfigError naming key, its value and what it must be, unless ok."""
+    def need(ok: bool, key: str, what: str) -> None:
+        if not ok:
+            raise ConfigError(f"{key}={getattr(config, key)!r}: {what}")
+    return need
+
+
+def _check_env_and_images(config: Any) -> None:
+    """The env, its images and how its steps are run."""
+    need = _requirer(config)
+    need(bool(config.env_id.strip()), "env_id", "must name an environment")
+    need(config.total_steps >= 0, "total_steps", "must be >= 0")
+    need(config.n_envs >= 1, "n_envs", "must be >= 1")
+    need(config.n_envs <= 1024, "n_envs", "must be <= 1024")
+    need(1 <= config.action_repeat <= 1000, "action_repeat", "must be between 1 and 1000")
+    need(15 <= config.pixel_size <= 1024, "pixel_size", "must be between 15 (the encoder's smallest input) and 1024")
+    need(1 <= config.frame_stack <= 16, "frame_stack", "must be between 1 (none) and 16")
+    need(not (config.pixels and config.obs_norm), "obs_norm",
+         "normalises vector observations; with pixels the encoder scales the images (pixel_range)")
+    need(1 <= config.encoder_channels <= 1024, "encoder_channels", "must be between 1 and 1024")
+    need(1 <= config.encoder_features <= 65_536, "encoder_features", "must be between 1 and 65536")
+    need(0 <= config.augment_pad <= 64, "augment_pad", "must be between 0 (no augmentation) and 64")
+    need(config.pixel_range in ("unit", "centered"), "pixel_range", "must be unit ([0, 1]) or centered ([-0.5, 0.5])")
+    need(0 <= config.env_workers <= config.n_envs, "env_workers",
+         f"must be between 0 (the envs stepped in-process) and n_envs={config.n_envs}")
+    need(config.device in ("cpu", "gpu", "cuda", "auto"), "device", "must be cpu, gpu or auto")
+
+
+def _check_collection(config: Any) -> None:
+    """The replay buffer, the warm-up, exploration and HER."""
+    need = _requirer(config)
+    need(config.buffer_size >= 1, "buffer_size", "must be >= 1")
+    need(config.batch_size >= 1, "batch_size", "must be >= 1")
+    need(config.learning_starts >= 0, "learning_starts", "must be >= 0")
+    need(0.0 <= config.random_action_prob <= 1.0, "random_action_prob", "must be in [0, 1]")
+    need(config.exploration_noise in ("gaussian", "pink", "gsde"), "exploration_noise", "must be gaussian, pink or gsde")
+    need(1 <= config.sde_sample_freq <= 1_000_000, "sde_sample_freq", "must be between 1 and 1,000,000")
+    need(-20.0 <= config.sde_log_std_init <= 2.0, "sde_log_std_init", "must be in [-20, 2]")
+    need(0.0 <= config.noise_beta <= 4.0, "noise_beta", "must be in [0, 4]")
+    need(2 <= config.noise_sequence_length <= 1_000_000, "noise_sequence_length", "must be between 2 and 1,000,000")
+    need(config.obs_norm_clip > 0.0, "obs_norm_clip", "must be > 0")
+    need(config.her in ("auto", "on", "off"), "her", "must be auto, on or off")
+    need(config.her_strategy in ("future", "final", "episode"), "her_strategy", "must be future, final or episode")
+    need(1 <= config.her_k <= 1000, "her_k", "must be between 1 and 1000")
+
+
+def _check_targets_and_critics(config: Any) -> None:
+    """The critics' target, updates and variants (n-step, ensembles, quantiles, dropout)."""
+    need = _requirer(config)
+    need(0.0 <= config.gamma <= 1.0, "gamma", "must be in [0, 1]")
+    need(0.0 < config.tau <= 1.0, "tau", "must be in (0, 1]")
+    need(0.0 <= config.policy_average_tau <= 1.0, "policy_average_tau", "must be in [0, 1] (0 = off)")
+    need(config.target_update_interval >= 1, "target_update_interval", "must be >= 1")
+    need(config.gradient_steps >= 0, "gradient_steps", "must be >= 0")
+    need(config.gradient_steps <= 10_000, "gradient_steps", "must be <= 10000")
+    need(config.policy_frequency >= 1, "policy_frequency", "must be >= 1")
+    need(config.policy_delay >= 1, "policy_delay", "must be >= 1")
+    need(config.reset_interval >= 0, "reset_interval", "must be >= 0 (0: never)")
+    need(1 <= config.n_step <= 100, "n_step", "must be between 1 and 100")
+    need(1 <= config.n_critics <= 100, "n_critics", "must be between 1 and 100")
+    need(not (config.crossq and config.critic_layer_norm), "critic_layer_norm",
+         "cannot be combined with crossq, which normalises with batch renormalisation")
+    need(config.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
+    need(not (config.target_encoder and not config.has_target_critics), "target_encoder",
+         "copies the encoder for the target critics, and these critics have none (target_critics=on gives them)")
+    need(0 <= config.n_quantiles <= 1000, "n_quantiles", "must be between 0 (SAC's critics) and 1000")
+    need(config.top_quantiles_to_drop_per_net >= 0 and (
+        config.n_quantiles == 0 or config.top_quantiles_to_drop_per_net < config.n_quantiles),
+        "top_quantiles_to_drop_per_net", f"must be >= 0 and below n_quantiles={config.n_quantiles}")
+    need(0.0 <= config.critic_dropout < 1.0, "critic_dropout", "must be in [0, 1)")
+    need(not (config.critic_dropout > 0 and config.crossq), "critic_dropout",
+         "cannot be combined with crossq (dropout inside batch renormalisation's statistics is not CrossQ)")
+
+
+def _check_networks(config: Any) -> None:
+    """The networks and how they train: kind, widths, normalisation, weight decay, Adam's b1, the entropy target's
+    scale, matmul precision."""
+    need = _requirer(config)
+    need(config.network in ("mlp", "simba"), "network", "must be mlp or simba")
+    if config.network == "simba":
+        need(not config.crossq, "network", "simba cannot be combined with crossq (SimBa normalises with LayerNorm)")
+        need(not config.critic_layer_norm, "critic_layer_norm", "is built into network=simba (pre-LayerNorm blocks)")
+        need(config.critic_dropout == 0, "critic_dropout", "applies to mlp critics (network=mlp)")
+        for key in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+            need(len(set(getattr(config, key))) <= 1, key,
+                 "with network=simba every entry is a residual block of the one width (e.g. 512,512)")
+    for key in ("actor_hidden_sizes", "critic_hidden_sizes"):
+        need(all(1 <= h <= 65_536 for h in getattr(config, key)), key, "widths must be between 1 and 65536")
+    need(config.weight_decay >= 0.0, "weight_decay", "must be >= 0")
+    need(config.weight_decay_layers in ("all", "output"), "weight_decay_layers", "must be all or output")
+    need(config.target_entropy_scale > 0.0, "target_entropy_scale", "must be > 0 (target_entropy sets any other target)")
+    need(not config.crossq or config.batch_size >= 2, "batch_size", "must be >= 2 with crossq (batch statistics)")
+    need(config.crossq or not config.weight_norm, "weight_norm",
+         "needs crossq (its batch renormalisation is what makes the weights' scale free)")
+    need(0.0 < config.batch_norm_momentum < 1.0, "batch_norm_momentum", "must be in (0, 1)")
+    need(config.batch_renorm_warmup >= 0, "batch_renorm_warmup", "must be >= 0")
+    need(0.0 <= config.adam_b1 < 1.0, "adam_b1", "must be in [0, 1)")
+    need(len(config.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
+    need(all(1 <= h <= 65_536 for h in config.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
+    need(config.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
+    need(config.init in ("default", "orthogonal"), "init", "must be default or orthogonal")
+    need(config.matmul_dtype in ("float32", "bfloat16", "auto"), "matmul_dtype", "must be float32, bfloat16 or auto")
+
+
+def _check_optimisers_and_policy(config: Any) -> None:
+    """Learning rates, alpha and the policy's log std."""
+    need = _requirer(config)
+    for key in ("actor_lr", "critic_lr", "alpha_lr"):
+        need(0.0 < getattr(config, key) < 1.0, key, "must be in (0, 1)")
+    need(config.lr_schedule in ("constant", "linear"), "lr_schedule", "must be constant or linear")
+    need(0.0 <= config.lr_end_fraction <= 1.0, "lr_end_fraction", "must be in [0, 1]")
+    need(config.alpha > 0.0 if config.autotune_alpha else config.alpha >= 0.0, "alpha",
+         "must be > 0 (>= 0 when fixed)")
+    need(config.target_entropy == "auto" or isinstance(config.target_entropy, float), "target_entropy",
+         "must be auto or a number")
+    need(config.log_std_min < config.log_std_max, "log_std_min", "must be below log_std_max")
+    need(config.log_std_mode in ("clamp", "tanh"), "log_std_mode", "must be clamp or tanh")
+
+
+def _check_outputs(config: Any) -> None:
+    """Evaluation, logs, checkpoints and loggers."""
+    need = _requirer(config)
+    need(config.eval_interval >= 0, "eval_interval", "must be >= 0 (0 disables)")
+    need(config.eval_episodes >= 1, "eval_episodes", "must be >= 1")
+    need(config.log_interval >= 1, "log_interval", "must be >= 1")
+    need(config.checkpoint_interval >= 0, "checkpoint_interval", "must be >= 0")
+    try:
+        parse_backends(config.loggers)
+    except SoftacError as exc:
+        raise ConfigError(f"loggers={config.loggers!r}: {exc}") from None
+
+
+# in the order validate() runs them: the first failing key is the one reported
+CHECKS = (_check_env_and_images, _check_collection, _check_targets_and_critics, _check_networks,
+          _check_optimisers_and_policy, _check_outputs)
+
+
+ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
