@@ -159,7 +159,7 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
                   out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of an MLP's outputs (networks.mlp, or networks.batch_renorm_mlp in evaluation mode with
     `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only."""
-    from softac.learner.networks import multiplies_in_bf16
+    from softac.learner.networks.layers import multiplies_in_bf16
 
     stats = stats if stats is not None else [None] * len(layers)
     for i, (layer, layer_stats) in enumerate(zip(layers, stats)):
@@ -199,7 +199,8 @@ def simba_bound(actor: dict, x: np.ndarray, e: np.ndarray, activation: str, matm
     """(reference, bound) of a SimBa network's outputs (networks.simba) for inputs within `e` of the float64 `x`:
     the embedding; per block the LayerNorm, two dense layers with the activation between, and the residual sum
     (one rounding of the sum); the final LayerNorm and the output layer (`out_columns`: its first ones only)."""
-    from softac.learner.networks import SIMBA_LN_EPS, multiplies_in_bf16
+    from softac.learner.networks.simba import SIMBA_LN_EPS
+    from softac.learner.networks.layers import multiplies_in_bf16
 
     def dense(x, e, w, b, columns=None):
         w, b = np.asarray(w, np.float64), np.asarray(b, np.float64)

@@ -9,7 +9,7 @@ import pytest
 from softac import SAC
 from softac.learner import build, losses, policy
 from softac.config.sac_config import SACConfig
-from softac.learner.networks import BatchRenorm, init_norm_stats
+from softac.learner.networks.layers import BatchRenorm, init_norm_stats
 
 from conftest import assert_clean_error, run_cli
 from test_sac_losses import ACT, BATCH, OBS, batch, constant_actor, constant_critics
@@ -227,7 +227,7 @@ def test_weight_norm_keeps_every_hidden_unit_on_the_unit_sphere_and_the_output_l
 
 @pytest.mark.numerics
 def test_weight_norm_changes_nothing_for_a_network_whose_units_are_already_unit_length():
-    from softac.learner.networks import unit_norm_hidden_units
+    from softac.learner.networks.layers import unit_norm_hidden_units
 
     rng = np.random.default_rng(0)
     layers = [{"w": rng.normal(size=(2, 4, 5)), "b": rng.normal(size=(2, 5))} for _ in range(2)]

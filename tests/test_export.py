@@ -21,7 +21,7 @@ from conftest import TESTS, assert_clean_error, child_env, run_cli, tiny_config
 from float_bounds import action_bound, assert_within_bound
 from softac import SAC, SoftacError
 from softac.outputs.export import export_policy
-from softac.learner.networks import jit_keeps_bf16_rounding
+from softac.learner.networks.layers import jit_keeps_bf16_rounding
 
 EXPORT_NUMPY = Path(softac.__file__).parent / "learner" / "numpy_forward.py"
 DRIFT = "softac_test_envs:Drift-v0"  # actions in [-1, 3]

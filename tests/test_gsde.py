@@ -14,7 +14,7 @@ import pytest
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from softac import SAC
 from softac.replay.exploration import SdeNoise
-from softac.learner.networks import init_actor, output_layer_mask
+from softac.learner.networks import NETWORKS, init_actor
 from softac.learner.policy import SDE_CLIP_MEAN, SDE_EPSILON, Policy
 
 OBS, ACT, HIDDEN = 3, 2, 5
@@ -66,7 +66,7 @@ def test_the_actor_outputs_the_mean_and_holds_the_exploration_matrix_log_std():
     assert actor[-1]["w"].shape == (HIDDEN, ACT)  # the mean only: no log-std outputs
     np.testing.assert_array_equal(actor[-1]["sde_log_std"], np.full((HIDDEN, ACT), -3.67, np.float32))
     # AdamW's output-layer decay (CrossQ+WN) leaves the log std alone, as SB3's optimiser does
-    assert output_layer_mask(actor)[-1] == {"w": True, "b": True, "sde_log_std": False}
+    assert NETWORKS["mlp"].output_mask(actor)[-1] == {"w": True, "b": True, "sde_log_std": False}
 
 
 @pytest.mark.numerics

@@ -9,7 +9,7 @@ import pytest
 
 from float_bounds import assert_within_bound, mlp_bound
 from softac.base import cpus
-from softac.learner import networks
+from softac.learner.networks import layers
 from softac.learner import build, losses, policy, sac
 from softac.config.sac_config import SACConfig
 
@@ -263,7 +263,7 @@ def test_bfloat16_matmuls_stay_close_to_float32():
 
 @pytest.mark.numerics
 def test_bfloat16_matmul_gradients_match_float32():
-    from softac.learner.networks import bf16_matmul
+    from softac.learner.networks.layers import bf16_matmul
 
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(size=(32, 48)), jnp.float32)
@@ -279,7 +279,8 @@ def test_bfloat16_matmul_gradients_match_float32():
 
 @pytest.mark.numerics
 def test_critic_layer_norm_normalises_hidden_features():
-    from softac.learner.networks import critics_apply, init_critics, layer_norm
+    from softac.learner.networks import critics_apply, init_critics
+    from softac.learner.networks.layers import layer_norm
 
     x = np.random.default_rng(0).normal(3.0, 5.0, (4, 64)).astype(np.float32)
     h = layer_norm(jnp.asarray(x))
@@ -289,8 +290,8 @@ def test_critic_layer_norm_normalises_hidden_features():
     np.testing.assert_allclose(np.asarray(h.std(-1)), np.sqrt(var / (var + 1e-5)), rtol=2e-5)
     params = init_critics(np.random.default_rng(0), 3, 2, [32, 32], "default", 2)
     obs, act = jnp.ones((5, 3)) * 1000.0, jnp.zeros((5, 2))
-    plain = critics_apply(params, obs, act, "relu")
-    normed = critics_apply(params, obs, act, "relu", normalize=True)
+    plain = critics_apply(params, obs, act, "relu")[0]
+    normed = critics_apply(params, obs, act, "relu", normalize=True)[0]
     assert normed.shape == plain.shape == (2, 5)
     assert float(jnp.abs(normed).max()) < 0.1 * float(jnp.abs(plain).max())  # huge inputs stay bounded
 
@@ -306,7 +307,7 @@ def test_unrolled_and_vmapped_critics_agree():
     x = np.concatenate([np.asarray(obs), np.asarray(act)], axis=-1)
     exact = [mlp_bound([{k: v[i] for k, v in layer.items()} for layer in params], x, "relu") for i in range(3)]
     for unroll in (True, False):
-        q = np.asarray(critics_apply(params, obs, act, "relu", unroll=unroll))
+        q = np.asarray(critics_apply(params, obs, act, "relu", unroll=unroll)[0])
         for i, (reference, bound) in enumerate(exact):
             assert_within_bound(q[i], reference[:, 0], bound[:, 0], f"critic {i}, unroll={unroll}")
 
@@ -365,7 +366,7 @@ def test_cpu_isa_is_the_newest_instruction_set_xla_knows_and_the_cpu_has(monkeyp
 @pytest.mark.numerics
 def test_cpu_has_bf16_honours_xla_max_isa(monkeypatch, cpu, xla_flags, bf16):
     # probed (and cached) before XLA_FLAGS changes: a compile under flags the JAX does not know aborts (0.4.30)
-    keeps_rounding = networks.jit_keeps_bf16_rounding()
+    keeps_rounding = layers.jit_keeps_bf16_rounding()
     monkeypatch.setattr(cpus, "cpu_flags", lambda: cpu)
     monkeypatch.setenv("XLA_FLAGS", xla_flags)
     assert cpus.cpu_has_bf16() is bf16

@@ -17,8 +17,9 @@ from softac import SAC
 from softac.learner import losses
 from softac.learner import build, losses, policy, sac
 from softac.config.sac_config import ConfigError, SACConfig
-from softac.learner.networks import (BatchRenorm, critics_apply, dropout, dropout_mask, init_critics, init_norm_stats,
-                             init_simba, output_layer_mask, simba, unit_norm_hidden_units)
+from softac.learner.networks.layers import BatchRenorm, dropout, dropout_mask, init_norm_stats, unit_norm_hidden_units
+from softac.learner.networks import NETWORKS, critics_apply, init_critics
+from softac.learner.networks.simba import init_simba, simba
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from test_crossq import _batches
@@ -172,9 +173,10 @@ def test_adamw_decays_all_or_only_the_output_layers(layers):
 
 
 def test_output_layer_mask_of_mlp_and_simba():
-    mlp_mask = output_layer_mask([{"w": 0, "b": 0, "norm_scale": 0}, {"w": 0, "b": 0, "norm_scale": 0}])
+    mlp_mask = NETWORKS["mlp"].output_mask([{"w": 0, "b": 0, "norm_scale": 0}, {"w": 0, "b": 0, "norm_scale": 0}])
     assert mlp_mask == [{"w": False, "b": False, "norm_scale": False}, {"w": True, "b": True, "norm_scale": False}]
-    mask = output_layer_mask(init_simba(np.random.default_rng(0), 3, [8], 1))
+    assert NETWORKS["batch_renorm_mlp"].output_mask is NETWORKS["mlp"].output_mask
+    mask = NETWORKS["simba"].output_mask(init_simba(np.random.default_rng(0), 3, [8], 1))
     assert mask["head"] == {"ln_scale": False, "ln_bias": False, "w": True, "b": True}
     assert not any(jax.tree_util.tree_leaves(mask["blocks"])) and not any(jax.tree_util.tree_leaves(mask["embed"]))
 
@@ -193,12 +195,12 @@ def test_dropout_zeroes_units_at_the_rate_and_keeps_the_mean():
 def test_droq_critics_drop_units_in_every_pass_with_their_own_keys():
     params = init_critics(np.random.default_rng(0), OBS, ACT, [64, 64], "default", 2)
     obs, act = jnp.ones((5, OBS)), jnp.zeros((5, ACT))
-    plain = np.asarray(critics_apply(params, obs, act, "relu", normalize=True))
-    one = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2, key=jax.random.PRNGKey(1)))
+    plain = np.asarray(critics_apply(params, obs, act, "relu", normalize=True)[0])
+    one = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2, key=jax.random.PRNGKey(1))[0])
     again = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2,
-                                     key=jax.random.PRNGKey(1), unroll=True))
+                                     key=jax.random.PRNGKey(1), unroll=True)[0])
     other = np.asarray(critics_apply(params, obs, act, "relu", normalize=True, dropout_rate=0.2,
-                                     key=jax.random.PRNGKey(2)))
+                                     key=jax.random.PRNGKey(2))[0])
     assert not np.allclose(one, plain) and not np.allclose(one, other)
     np.testing.assert_allclose(one, again, rtol=1e-5)  # vmapped and unrolled draw the same masks
     # the same input rows in one call get different masks (each unit, each row)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from softac.config.names import parse_backends
+from softac.config.names import NETWORK_NAMES, parse_backends
 from softac.errors import ConfigError, SoftacError
 
 
@@ -88,7 +88,7 @@ def _check_networks(config: Any) -> None:
     """The networks and how they train: kind, widths, normalisation, weight decay, Adam's b1, the entropy target's
     scale, matmul precision."""
     need = _requirer(config)
-    need(config.network in ("mlp", "simba"), "network", "must be mlp or simba")
+    need(config.network in NETWORK_NAMES, "network", f"must be one of {', '.join(NETWORK_NAMES)}")
     if config.network == "simba":
         need(not config.crossq, "network", "simba cannot be combined with crossq (SimBa normalises with LayerNorm)")
         need(not config.critic_layer_norm, "critic_layer_norm", "is built into network=simba (pre-LayerNorm blocks)")

@@ -1,5 +1,5 @@
 """Names the config refers to outside itself, as data: the id forms of the env families that choose presets
-(issue 43) and the logger backends. The config checks them without importing the envs or the loggers, which
+(issue 43), the network kinds and the logger backends. The config checks them without importing the envs or the loggers, which
 import them from here (the config is a leaf: issue 65)."""
 
 from __future__ import annotations
@@ -9,6 +9,9 @@ from softac.errors import SoftacError
 DMC_PREFIX = "dm_control/"
 SHORT_PREFIX = "dmc:"
 BACKENDS = ("tensorboard", "wandb", "mlflow")
+# the network kinds a config may name (softac.learner.networks.NETWORKS holds each; `crossq` picks the
+# batch-renormalised MLP itself): named here so that a bad name is refused before anything is built
+NETWORK_NAMES = ("mlp", "simba")
 
 
 def long_id(env_id: str) -> str:

@@ -16,8 +16,9 @@ from softac.base.cpus import cpu_has_bf16
 from softac.config.sac_config import SACConfig
 from softac.learner.encoder import image_only_shape, init_encoder, init_head, stacked_image_shape
 from softac.learner.losses import Critics
-from softac.learner.networks import (BatchRenorm, actor_sizes, critic_sizes, init_actor, init_critics, init_norm_stats,
-                                     jit_keeps_bf16_rounding, output_layer_mask, stack, unit_norm_hidden_units)
+from softac.learner.networks import actor_sizes, critic_sizes, init_actor, init_critics, network_kind
+from softac.learner.networks.layers import (BatchRenorm, init_norm_stats, jit_keeps_bf16_rounding, stack,
+                                            unit_norm_hidden_units)
 from softac.learner.policy import ActionScaler, Policy
 from softac.learner.sac import (Program, SACState, UpdateSettings, act, act_deterministic, act_with_noise, compiled_update,
                                 numbers_of, policy_encoder)
@@ -93,16 +94,18 @@ def resolve_matmul_dtype(setting: str) -> str:
 def optimizer(config: SACConfig, lr: float) -> optax.GradientTransformation:
     """Adam, or AdamW (Loshchilov & Hutter 2019) with weight_decay: on every parameter (SimBa) or on the
     output layers only (CrossQ+WN, whose hidden units weight_norm keeps on the unit sphere)."""
-    return _adam(lr, config.adam_b1, config.weight_decay, config.weight_decay_layers)
+    mask = network_kind(config.network, config.crossq).output_mask if config.weight_decay_layers == "output" else None
+    return _adam(lr, config.adam_b1, config.weight_decay, mask)
 
 
 @lru_cache(maxsize=None)
-def _adam(lr: float, b1: float, weight_decay: float = 0.0, layers: str = "all") -> optax.GradientTransformation:
+def _adam(lr: float, b1: float, weight_decay: float = 0.0,
+          mask: Callable[[Any], Any] | None = None) -> optax.GradientTransformation:
     # one object per setting, so that two builds of one config have equal UpdateSettings and share the compiled
     # update within a process, not only through the compile cache
     if weight_decay == 0:
         return optax.adam(lr, b1=b1)
-    return optax.adamw(lr, b1=b1, weight_decay=weight_decay, mask=output_layer_mask if layers == "output" else None)
+    return optax.adamw(lr, b1=b1, weight_decay=weight_decay, mask=mask)
 
 
 def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:

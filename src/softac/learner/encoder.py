@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softac.learner.networks import _orthogonal
+from softac.learner.networks.layers import orthogonal
 from softac.envs.pixels import state_rows
 
 Params = Any
@@ -60,7 +60,7 @@ def init_encoder(rng: np.random.Generator, image_shape: tuple[int, int, int], ch
     convs = []
     for fan_in in (in_channels, *[channels] * (len(CONV_STRIDES) - 1)):
         w = np.zeros((KERNEL, KERNEL, fan_in, channels), np.float32)
-        w[KERNEL // 2, KERNEL // 2] = _orthogonal(rng, fan_in, channels, math.sqrt(2.0))
+        w[KERNEL // 2, KERNEL // 2] = orthogonal(rng, fan_in, channels, math.sqrt(2.0))
         convs.append({"w": w, "b": np.zeros(channels, np.float32)})
     return {"convs": convs, "head": init_head(rng, conv_output_size(height) * conv_output_size(width) * channels,
                                               features)}
@@ -69,7 +69,7 @@ def init_encoder(rng: np.random.Generator, image_shape: tuple[int, int, int], ch
 def init_head(rng: np.random.Generator, flat: int, features: int) -> Params:
     """The encoder's head (Linear from the `flat` conv outputs to `features`, LayerNorm, tanh): orthogonal
     weights, zero biases, LayerNorm scale 1 and bias 0 (DrQ's)."""
-    return {"w": _orthogonal(rng, flat, features, 1.0), "b": np.zeros(features, np.float32),
+    return {"w": orthogonal(rng, flat, features, 1.0), "b": np.zeros(features, np.float32),
             "ln_scale": np.ones(features, np.float32), "ln_bias": np.zeros(features, np.float32)}
 
 

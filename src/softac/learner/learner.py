@@ -30,16 +30,6 @@ POLICIES = ("deployed", "actor", "average")
 METRICS_PREFIX = "metric_totals/"  # the sums behind the next progress row (a resumed run's first row is whole)
 
 
-def network_parameters(in_dim: int, hidden: list[int], out_dim: int, network: str) -> int:
-    """Parameters of one network: an MLP, or SimBa's embedding, residual blocks (inner width 4x) and head."""
-    if network == "simba":
-        w = hidden[0]
-        block = 2 * w + (w + 1) * 4 * w + (4 * w + 1) * w
-        return (in_dim + 1) * w + len(hidden) * block + 2 * w + (w + 1) * out_dim
-    sizes = [in_dim, *hidden, out_dim]
-    return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
-
-
 def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: float = 0.5,
                        image_shape: tuple[int, int, int, int] | None = None, image_state_dim: int = 0) -> None:
     """Refuse networks and batches the machine cannot hold, before allocating anything."""
@@ -65,15 +55,17 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
             actor_head = head_parameters(flat, config.encoder_features)
         # four feature maps of about the last one's size, for obs and next_obs, kept for the backward pass
         conv_activations = 4 * 2 * 4 * flat
-    actor = network_parameters(obs_dim, config.actor_widths, 2 * act_dim, config.network)
-    critics = config.n_critics * network_parameters(obs_dim + act_dim, config.critic_widths, config.n_quantiles or 1,
-                                                    config.network)
+    from softac.learner.networks import network_kind
+
+    kind = network_kind(config.network, config.crossq)
+    actor = kind.parameters(obs_dim, config.actor_widths, 2 * act_dim)
+    critics = config.n_critics * kind.parameters(obs_dim + act_dim, config.critic_widths, config.n_quantiles or 1)
     # weights + Adam moments; critics also have targets (and the encoder with target_encoder)
     parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder + 3 * actor_head)
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
     # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
     widths = sum(config.actor_widths) + sum(config.critic_widths) * config.n_critics
-    activations = 4 * config.batch_size * (widths * 4 * (6 if config.network == "simba" else 1) + conv_activations)
+    activations = 4 * config.batch_size * (widths * 4 * kind.activation_factor + conv_activations)
     batch = config.batch_size * config.gradient_steps * batch_row
     need, have = parameters + activations + batch, available_memory_bytes()
     if need > fraction * have:

@@ -19,7 +19,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from softac.learner.networks import BatchRenorm, critics_apply, batch_renorm_critics_apply
+from softac.learner.networks import critics_apply
+from softac.learner.networks.layers import BatchRenorm
 from softac.learner.policy import Policy
 
 
@@ -41,7 +42,7 @@ class Critics:
     layer_norm: bool = False
     unroll: bool = False  # critic by critic (faster on CPU, see critics_apply) instead of vmap
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
-    network: str = "mlp"  # or simba (networks.simba)
+    network: str = "mlp"  # a config's network (mlp, simba); with batch_renorm an MLP is a batch_renorm_mlp
     dropout: float = 0.0  # DroQ: hidden units dropped in every critic pass
     n_quantiles: int = 0  # TQC: quantiles per critic; 0 = one Q-value each (SAC)
     drop_per_critic: int = 0  # TQC: the largest target atoms dropped, per critic
@@ -60,18 +61,15 @@ class Critics:
                  key: jax.Array | None = None) -> jax.Array:
         """Q-values of every critic, shape [n_critics, batch] (TQC: [n_critics, batch, n_quantiles]); with
         batch renormalisation normalised with its running statistics; with dropout, drawn from `key`."""
-        if self.batch_renorm is not None:
-            return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm,
-                                              False, matmul_dtype=self.matmul_dtype, unroll=self.unroll,
-                                              quantiles=self.quantiles)[0]
         return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll,
-                             self.network, self.dropout, key, self.quantiles)
+                             self.network, self.dropout, key, self.quantiles, stats, self.batch_renorm)[0]
 
     def q_values_training(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                           renorm: jax.Array | bool) -> tuple[jax.Array, Any]:
         """Q-values normalised with this batch's statistics, and the updated running statistics."""
-        return batch_renorm_critics_apply(critic, stats, obs, actions, self.activation, self.batch_renorm, True,
-                                          renorm, self.matmul_dtype, self.unroll, self.quantiles)
+        return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll,
+                             self.network, quantiles=self.quantiles, stats=stats, batch_renorm=self.batch_renorm,
+                             train=True, renorm=renorm)
 
     def for_actor(self, q: jax.Array) -> jax.Array:
         """The value the actor climbs, per row: the smallest critic's Q (clipped double Q), or with TQC the

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softac.learner.networks import (BatchRenorm, actor_head, batch_renorm_mlp_features, dense, mlp_features,
-                             simba_features)
+from softac.learner.networks import Network, network_kind
+from softac.learner.networks.layers import BatchRenorm, dense
 
 LOG_2 = float(np.log(2.0))
 LOG_SQRT_2PI = float(0.5 * np.log(2.0 * np.pi))
@@ -83,24 +83,25 @@ class Policy:
     log_std_mode: str
     matmul_dtype: str = "float32"
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
-    network: str = "mlp"  # or simba (networks.simba)
+    network: str = "mlp"  # a config's network (mlp, simba); with batch_renorm an MLP is a batch_renorm_mlp
     sde: bool = False  # gSDE: the actor outputs the mean; its head holds the exploration matrix's log std
+
+    @property
+    def kind(self) -> Network:
+        """The network kind (softac.learner.networks.NETWORKS) of the actor."""
+        return network_kind(self.network, self.batch_renorm is not None)
 
     def _features(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
                   renorm: jax.Array | bool = False) -> tuple[jax.Array, Any]:
         """The input of the actor's output layer, and the running statistics (new ones in training mode)."""
-        if self.network == "simba":
-            return simba_features(actor, obs, self.activation, self.matmul_dtype), stats
-        if self.batch_renorm is None:
-            return mlp_features(actor, obs, self.activation, self.matmul_dtype), stats
-        return batch_renorm_mlp_features(actor, stats, obs, self.activation, self.batch_renorm, train, renorm,
-                                         self.matmul_dtype)
+        return self.kind.features(actor, stats, obs, self.activation, self.matmul_dtype, False, None,
+                                  self.batch_renorm, train, renorm)
 
     def _outputs(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
                  renorm: jax.Array | bool = False) -> tuple[jax.Array, jax.Array, Any, jax.Array]:
         """(mean, log std per action dim, running statistics, features)."""
         features, stats = self._features(actor, stats, obs, train, renorm)
-        head = actor_head(actor)
+        head = self.kind.head(actor)
         out = dense(features, head, self.matmul_dtype)
         if self.sde:
             mean = jnp.clip(out, -SDE_CLIP_MEAN, SDE_CLIP_MEAN)
@@ -114,7 +115,7 @@ class Policy:
         if not self.sde:
             return squashed_sample(mean, log_std, key)
         # one exploration matrix for the whole batch, fresh for each call (SB3 draws one per gradient step)
-        log_std_matrix = actor_head(actor)["sde_log_std"]
+        log_std_matrix = self.kind.head(actor)["sde_log_std"]
         u = mean + sde_noise(features, log_std_matrix, jax.random.normal(key, log_std_matrix.shape))
         return jnp.tanh(u), squashed_gaussian_log_prob(u, mean, log_std)
 
@@ -139,7 +140,7 @@ class Policy:
         exploration matrices' weights (batch x features x act)."""
         mean, log_std, _, features = self._outputs(actor, stats, obs)
         if self.sde:
-            return jnp.tanh(mean + sde_noise(features, actor_head(actor)["sde_log_std"], noise))
+            return jnp.tanh(mean + sde_noise(features, self.kind.head(actor)["sde_log_std"], noise))
         return jnp.tanh(mean + jnp.exp(log_std) * noise)
 
     def deterministic(self, actor: Any, stats: Any, obs: jax.Array) -> jax.Array:

@@ -21,7 +21,7 @@ import optax
 
 from softac.learner.encoder import apply_head, encode_with_conv, random_shift, split_image_and_state, stack_channels
 from softac.learner.losses import Batch, Critics, alpha_loss, policy_loss, soft_q_loss
-from softac.learner.networks import unit_norm_hidden_units
+from softac.learner.networks.layers import unit_norm_hidden_units
 from softac.learner.policy import ActionScaler, Policy
 
 

@@ -93,7 +93,7 @@ def _actor_layers(learner: Learner) -> list[dict[str, np.ndarray]]:
     """The actor's layers as numpy_forward lays them out (w, b; norm, the input's batch renormalisation of a
     CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns
     (the log-std is not needed)."""
-    from softac.learner.networks import compiled_in_bf16  # imports JAX, which the learner has loaded by now
+    from softac.learner.networks.layers import compiled_in_bf16  # imports JAX, which the learner has loaded by now
 
     (actor, actor_stats, _), norm = learner.deployed_policy(), learner.functions.policy.batch_renorm
     stats = actor_stats if norm is not None else [None] * len(actor)
@@ -118,7 +118,8 @@ def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
     """A SimBa actor (networks.simba) as numpy_forward lays it out: the embedding, each residual block's
     LayerNorm and two layers, the final LayerNorm and the output layer cut to the mean action's columns;
     `bf16` marks, in that order of the dense layers, the ones that multiply in bfloat16 (weights rounded)."""
-    from softac.learner.networks import SIMBA_LN_EPS, compiled_in_bf16  # imports JAX, loaded by the learner by now
+    from softac.learner.networks.simba import SIMBA_LN_EPS  # imports JAX, loaded by the learner by now
+    from softac.learner.networks.layers import compiled_in_bf16
 
     actor, matmul_dtype = learner.deployed_policy()[0], learner.matmul_dtype
     arrays: dict[str, np.ndarray] = {"network": np.asarray("simba"), "ln_eps": np.asarray(SIMBA_LN_EPS, np.float32)}
@@ -146,9 +147,17 @@ def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
     return arrays
 
 
+# the network kinds (config.network; crossq's batch-renormalised MLP among mlp's) whose layers the export lays
+# out for numpy_forward and builds in ONNX
+EXPORTED_NETWORKS = ("mlp", "simba")
+
+
 def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     """Everything the deterministic policy needs, as named float32 arrays (the activation's name aside), and a
     few entries for the record (`step`: the env steps it was trained for)."""
+    if learner.config.network not in EXPORTED_NETWORKS:  # a kind added to the registry without its export here
+        raise SoftacError(f"export writes the networks {', '.join(EXPORTED_NETWORKS)}; this agent's network is "
+                          f"{learner.config.network}")
     arrays: dict[str, np.ndarray] = {}
     obs_norm = learner.obs_norm
     if obs_norm is not None:  # as RunningObsNorm.normalize computes them

@@ -1,0 +1,24 @@
+"""What a network kind of the registry (softac.learner.networks.NETWORKS) provides: how its parameters are made,
+run, counted and decayed. A network's output is `dense(features(...), head(params))`; the actor and the critic
+ensemble (softac.learner.networks) are built on these, whatever the kind."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+Params = Any
+
+
+@dataclass(frozen=True)
+class Network:
+    # (rng, in_dim, widths, out_dim, init, out_gain) -> parameters, drawn from the NumPy generator rng
+    init: Callable[..., Params]
+    # (params, stats, x, activation, matmul_dtype, normalize (LayerNorm), masks (dropout), batch_renorm, train, renorm)
+    #   -> (the output layer's input, the running statistics: new ones in training mode where the kind has them)
+    features: Callable[..., tuple[Any, Params]]
+    head: Callable[[Params], dict]  # the output layer: {"w", "b", ...}
+    output_mask: Callable[[Params], Params]  # True on the output layer's w and b (CrossQ+WN decays only those)
+    parameters: Callable[[int, list[int], int], int]  # (in_dim, widths, out_dim) -> count, for the memory check
+    # activations a hidden unit keeps for the backward pass, relative to a plain MLP's (the memory check)
+    activation_factor: int = 1
