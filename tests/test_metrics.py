@@ -96,3 +96,16 @@ def test_a_run_resumed_between_rows_logs_the_rows_of_a_straight_run(tiny, tmp_pa
     rows_a, rows_b = ([{k: row[k] for k in columns} for row in _progress(tmp_path / run)] for run in ("straight", "split"))
     assert [r["step"] for r in rows_a] == [str(step) for step in range(100, 900, 100)]
     assert rows_a == rows_b
+
+
+def test_every_metric_is_a_progress_column_and_a_plot():
+    """The update's metrics are named once (learner/metric_names.py): progress.csv has a column for each, in that
+    order, and the metric grid (softac plot, softac.show) draws each."""
+    from softac.learner.metric_names import CRITIC_METRICS, METRICS, POLICY_METRICS
+    from softac.outputs.plots import METRIC_GRID
+    from softac.run.csv_logs import PROGRESS_COLUMNS
+
+    assert [c for c in PROGRESS_COLUMNS if c in METRICS] == list(METRICS)
+    assert set(CRITIC_METRICS) | set(POLICY_METRICS) == set(METRICS)
+    drawn = {name for column, _ in METRIC_GRID for name in ((column,) if isinstance(column, str) else column)}
+    assert drawn == set(METRICS)

@@ -21,6 +21,7 @@ import optax
 
 from softac.learner.encoder import apply_head, encode_with_conv, random_shift, split_image_and_state, stack_channels
 from softac.learner.losses import Batch, Critics, alpha_loss, policy_loss, soft_q_loss
+from softac.learner.metric_names import CRITIC_METRICS, POLICY_METRICS
 from softac.learner.networks.layers import unit_norm_hidden_units
 from softac.learner.policy import ActionScaler, Policy
 
@@ -304,8 +305,6 @@ def acting_actor(state: SACState) -> tuple[Any, Any, Any]:
 # Each metric is summed over the gradient steps that computed it and divided once, when a progress row is
 # written (issue 42): the actor's over actor steps only, so a row under policy_delay never shows a step that
 # did not update the actor, and each row is the interval's mean as SB3 and CleanRL log it.
-CRITIC_METRICS = ("critic_loss", "q1_mean", "q2_mean", "alpha")
-POLICY_METRICS = ("actor_loss", "alpha_loss", "log_prob_mean")
 CRITIC_STEPS, ACTOR_STEPS = "critic_steps", "actor_steps"
 
 

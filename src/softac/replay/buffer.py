@@ -22,8 +22,9 @@ def check_buffer_memory(capacity: int, bytes_each: float, memory_fraction: float
             f"{human_bytes(have)} is available; lower buffer_size (--set buffer_size=N)")
 
 
-class _Ring:
-    """Row bookkeeping shared by both buffers: the oldest rows are overwritten first."""
+class RingBuffer:
+    """Row bookkeeping every replay buffer shares (the plain, obs-once, HER and frame buffers): the oldest rows are
+    overwritten first."""
 
     capacity: int
     pos: int
@@ -74,7 +75,7 @@ class _Ring:
         return self._n_step_rows(idx)
 
 
-class ReplayBuffer(_Ring):
+class ReplayBuffer(RingBuffer):
     """Transitions (obs, action, reward, next_obs, terminated, done), oldest overwritten first.
 
     `terminated` and truncation are kept apart by construction: only `terminated` stops the bootstrap,
@@ -143,7 +144,7 @@ class ReplayBuffer(_Ring):
         self.pos, self.size = pos, size
 
 
-class ObsOnceReplayBuffer(_Ring):
+class ObsOnceReplayBuffer(RingBuffer):
     """The same transitions as ReplayBuffer, storing each observation once (`buffer_obs_once`).
 
     Row i holds obs_t of one env; that env's next observation is the row written one vector step

@@ -23,12 +23,12 @@ import numpy as np
 
 from softac.envs.goals import GOAL_KEYS, DictLayout, RewardFn, batched_reward_fn
 from softac.errors import SoftacError
-from softac.replay.buffer import _Ring, check_buffer_memory
+from softac.replay.buffer import RingBuffer, check_buffer_memory
 
 HER_STRATEGIES = ("future", "final", "episode")
 
 
-class HerReplayBuffer(_Ring):
+class HerReplayBuffer(RingBuffer):
     """Transitions of a goal env, each observation kept as its three parts, relabelled at sample time.
 
     Rows are written one vector step at a time, env 0 first (as ReplayBuffer's), so an env's next transition

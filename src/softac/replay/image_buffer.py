@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from softac.replay.buffer import _Ring, check_buffer_memory
+from softac.replay.buffer import RingBuffer, check_buffer_memory
 from softac.base.memory import human_bytes
 from softac.errors import SoftacError
 
 
-class FrameReplayBuffer(_Ring):
+class FrameReplayBuffer(RingBuffer):
     """Transitions (obs, action, reward, next_obs, terminated, done) of frame stacks [k, h, w, c] (uint8), each
     frame stored once; the same sampling, n-step returns and checkpoint interface as `ReplayBuffer`."""
 

@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from softac.learner.metric_names import METRICS
 from softac.run.run_dir import write_atomic
 
 # success columns stay empty for envs that report no success (info["is_success"]); a file written before they
 # existed keeps its own header when its run is resumed (CsvLog)
-PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", "critic_loss", "actor_loss", "alpha",
-                    "alpha_loss", "q1_mean", "q2_mean", "log_prob_mean", "success_rate"]
+PROGRESS_COLUMNS = ["step", "time_s", "fps", "episodes", "return_mean", *METRICS, "success_rate"]
 EPISODE_COLUMNS = ["step", "return", "length", "success"]
 EVAL_COLUMNS = ["step", "mean_return", "std_return", "episodes", "success_rate"]
 RECENT_EPISODES = 20  # the training episodes behind progress.csv's return_mean and the progress bar
