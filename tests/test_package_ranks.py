@@ -45,8 +45,10 @@ def softac_imports(source: str, importer: str) -> set[str]:
 
 def is_module(name: str) -> bool:
     parts = name.split(".")[1:]
-    return (PACKAGE / Path(*parts)).with_suffix(".py").exists() or (PACKAGE / Path(*parts) / "__init__.py").exists() \
-        if parts else True
+    if not parts:  # the package itself
+        return True
+    path = PACKAGE / Path(*parts)
+    return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
 
 
 def rank(module: str) -> float:

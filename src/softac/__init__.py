@@ -47,11 +47,11 @@ class _OldPaths(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
     def create_module(self, spec):
         module = importlib.import_module(self._new(spec.name))
-        self._spec = module.__spec__  # the import system sets __spec__ to the old path's; exec_module puts it back
+        spec.loader_state = module.__spec__  # the import system sets __spec__ to the old path's: put back below
         return module
 
     def exec_module(self, module):
-        module.__spec__ = self._spec
+        module.__spec__ = module.__spec__.loader_state
 
     def get_code(self, fullname):  # `python -m softac.OLD` runs the new module's code
         new = self._new(fullname)

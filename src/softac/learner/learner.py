@@ -63,7 +63,7 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
     # weights + Adam moments; critics also have targets (and the encoder with target_encoder)
     parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder + 3 * actor_head)
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
-    # SimBa's blocks hold 4x-wide inner layers and LayerNorms besides; an encoder its feature maps
+    # a network kind's activation_factor scales a unit's share (SimBa's 4x-wide blocks); an encoder its feature maps
     widths = sum(config.actor_widths) + sum(config.critic_widths) * config.n_critics
     activations = 4 * config.batch_size * (widths * 4 * kind.activation_factor + conv_activations)
     batch = config.batch_size * config.gradient_steps * batch_row

@@ -37,7 +37,9 @@ def machine() -> dict[str, str]:
     vector instruction sets, the XLA flags and JAX's version."""
     import jax
 
-    flags = set(re.findall(r"\b(avx512\w*|amx\w*|avx2|fma)\b", Path("/proc/cpuinfo").read_text()))
+    from softac.base.cpus import cpu_flags
+
+    flags = {flag for flag in cpu_flags() if re.fullmatch(r"avx512\w*|amx\w*|avx2|fma", flag)}
     return {"isa": " ".join(sorted(flags)), "xla_flags": os.environ.get("XLA_FLAGS", ""), "jax": jax.__version__}
 
 
