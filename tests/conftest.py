@@ -203,14 +203,17 @@ def assert_training_error(result: subprocess.CompletedProcess, *fragments: str) 
 
 def assert_same_learner(a, b, skip: tuple[str, ...] = ()) -> None:
     """Every leaf of the two agents' learner states (networks, targets, optimisers, alpha, key, counters) is
-    bit-identical, and the two trees have the same structure; the SACState fields in `skip` are left out.
-    Leaves are copied first: a view of a donated buffer would change under us."""
+    bit-identical, and the two trees have the same structure; the SACState fields in `skip` (SAC's, or those in
+    SACState.variants) are left out. Leaves are copied first: a view of a donated buffer would change under us."""
     import jax
     import numpy as np
 
-    left_out = dict.fromkeys(skip, ())
-    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(a.learner.state._replace(**left_out))
-    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(b.learner.state._replace(**left_out))
+    def kept(state):
+        own = {name: () for name in skip if name in state._fields}
+        return state._replace(**own).with_variants(**{name: () for name in skip if name not in own})
+
+    paths_a, tree_a = jax.tree_util.tree_flatten_with_path(kept(a.learner.state))
+    paths_b, tree_b = jax.tree_util.tree_flatten_with_path(kept(b.learner.state))
     assert tree_a == tree_b
     for (path, x), (_, y) in zip(paths_a, paths_b, strict=True):
         np.testing.assert_array_equal(np.array(x, copy=True), np.array(y, copy=True),

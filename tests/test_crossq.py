@@ -115,8 +115,8 @@ def test_crossq_actor_loss_uses_the_critics_running_statistics_and_updates_the_a
         return losses.policy_loss(actor, actor_stats, state.critic, critic_stats, jnp.float32(0.1), obs, key, POLICY,
                                critics)
 
-    value, (log_prob, new_actor_stats) = loss(state.critic_stats)
-    shifted = jax.tree_util.tree_map(lambda s: s + 1.0, state.critic_stats)
+    value, (log_prob, new_actor_stats) = loss(state.variants.critic_stats)
+    shifted = jax.tree_util.tree_map(lambda s: s + 1.0, state.variants.critic_stats)
     assert float(loss(shifted)[0]) != pytest.approx(float(value))  # the critics read their running statistics
     np.testing.assert_allclose(np.asarray(new_actor_stats[0]["mean"]), 0.1 * np.asarray(obs).mean(0), rtol=1e-5)
     assert log_prob.shape == (BATCH,)
@@ -135,13 +135,13 @@ def test_crossq_update_keeps_no_targets_and_moves_both_networks_statistics():
     cfg = SACConfig().replace(crossq=True, hidden_sizes=[16, 16], batch_size=8, policy_delay=3)
     fns = build.build(cfg, 3, 2)
     state = fns.init(0)
-    assert state.target_critic == () and len(state.actor_stats) == 3 and len(state.critic_stats) == 3
+    assert state.target_critic == () and len(state.variants.actor_stats) == 3 and len(state.variants.critic_stats) == 3
     state, metrics = fns.update(state, _batches(np.random.default_rng(0), 2, 8))
     assert all(np.isfinite(float(v)) for v in metrics.values())
-    assert np.any(np.asarray(state.critic_stats[1]["var"]) != 1.0)
-    assert not np.any(np.asarray(state.actor_stats[0]["mean"]))  # no actor step yet (policy_delay 3)
+    assert np.any(np.asarray(state.variants.critic_stats[1]["var"]) != 1.0)
+    assert not np.any(np.asarray(state.variants.actor_stats[0]["mean"]))  # no actor step yet (policy_delay 3)
     state, _ = fns.update(state, _batches(np.random.default_rng(1), 1, 8))
-    assert np.any(np.asarray(state.actor_stats[0]["mean"]))
+    assert np.any(np.asarray(state.variants.actor_stats[0]["mean"]))
 
 
 @pytest.mark.numerics
@@ -160,9 +160,9 @@ def test_crossq_reset_renews_the_statistics(tiny):
     agent = SAC(tiny(crossq=True))
     agent.learn(400, progress=False)
     after = agent.learner.functions.reset(agent.learner.state, agent.config.seed, 1)
-    assert np.any(np.asarray(agent.learner.state.critic_stats[0]["mean"]))
-    for leaf, fresh in zip(jax.tree_util.tree_leaves(after.critic_stats),
-                           jax.tree_util.tree_leaves(agent.learner.functions.init(0).critic_stats), strict=True):
+    assert np.any(np.asarray(agent.learner.state.variants.critic_stats[0]["mean"]))
+    for leaf, fresh in zip(jax.tree_util.tree_leaves(after.variants.critic_stats),
+                           jax.tree_util.tree_leaves(agent.learner.functions.init(0).variants.critic_stats), strict=True):
         np.testing.assert_array_equal(leaf, fresh)
 
 
@@ -174,9 +174,9 @@ def test_a_crossq_agent_learns_and_predicts_with_its_statistics(tiny, tmp_path):
     loaded = SAC.load(tmp_path / "run", which="last")
     np.testing.assert_array_equal(agent.predict(obs), loaded.predict(obs))
     zeroed = agent.learner.functions.act_deterministic(agent.learner.state.actor, jax.tree_util.tree_map(jnp.zeros_like,
-                                                                                   agent.learner.state.actor_stats), obs)
+                                                                                   agent.learner.state.variants.actor_stats), obs)
     assert not np.allclose(np.asarray(zeroed), np.asarray(agent.learner.functions.act_deterministic(
-        agent.learner.state.actor, agent.learner.state.actor_stats, obs)))  # acting reads the running statistics
+        agent.learner.state.actor, agent.learner.state.variants.actor_stats, obs)))  # acting reads the running statistics
 
 
 def test_crossq_with_layer_norm_critics_is_refused_in_one_line(tmp_path):

@@ -153,7 +153,7 @@ def trained(tmp_path_factory):
 def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     agent, _ = trained(kind)
     if kind == "crossq":  # the running statistics folded into the weights are not the initial ones
-        for stats in agent.learner.state.actor_stats:
+        for stats in agent.learner.state.variants.actor_stats:
             assert np.abs(np.asarray(stats["mean"])).max() > 1e-2
             assert np.abs(np.asarray(stats["var"]) - 1.0).max() > 1e-2
     if kind == "crossq-averaged":  # what is exported is the average, which has drifted apart from the actor

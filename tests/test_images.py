@@ -11,6 +11,7 @@ from softac.learner.encoder import (CONV_STRIDES, conv_features, conv_output_siz
                             random_shift, smallest_image, stack_channels)
 from softac.errors import SoftacError
 from softac.replay.image_buffer import FrameReplayBuffer
+from softac.learner.metrics import zero_totals
 
 jax = pytest.importorskip("jax")
 jnp = jax.numpy
@@ -549,18 +550,19 @@ def test_the_critic_step_trains_the_encoder_and_hands_the_actor_features_from_be
                       next_obs=rng.integers(0, 256, (8, *image), dtype=np.uint8),
                       terminated=np.zeros(8, np.float32), steps=np.ones(8, np.float32))
     key = jax.random.PRNGKey(3)
-    new, _, features = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s))(state, batch, key)
+    new, _, features = jax.jit(lambda st, b, k: sac.critic_step(st, b, k, s))(state, batch, key)
     moved = [np.abs(np.asarray(a) - np.asarray(b)).max()
-             for a, b in zip(jax.tree_util.tree_leaves(state.encoder), jax.tree_util.tree_leaves(new.encoder))]
+             for a, b in zip(jax.tree_util.tree_leaves(state.variants.encoder),
+                             jax.tree_util.tree_leaves(new.variants.encoder))]
     assert max(moved) > 0  # the critic loss moved the encoder
     augment_key = jax.random.split(key)[0]
     obs_key = jax.random.split(augment_key)[0]
-    expected = encode(state.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
+    expected = encode(state.variants.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
     # the same float32 arithmetic compiled in two graphs: they may round apart by a few units of 2^-24 of tanh's
     # inputs (LayerNorm's sums of 16 terms); 1e-5 leaves room, and the moved encoder's features lie far outside it
     before_gap = np.abs(np.asarray(features) - np.asarray(expected)).max()
     assert before_gap < 1e-5
-    after = encode(new.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
+    after = encode(new.variants.encoder, random_shift(stack_channels(batch.obs), obs_key, IMAGE["augment_pad"]))
     assert np.abs(np.asarray(after) - np.asarray(features)).max() > 1e-4
 
 
@@ -585,24 +587,24 @@ def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at
     fns = build.build(config, 0, 1, image_shape=image)
     state = fns.init(0)
     leaves = jax.tree_util.tree_leaves
-    for online, target in zip(leaves(state.encoder), leaves(state.target_encoder)):
+    for online, target in zip(leaves(state.variants.encoder), leaves(state.variants.target_encoder)):
         np.testing.assert_array_equal(np.asarray(online), np.asarray(target))
     without = build.build(config.replace(target_encoder=False), 0, 1, image_shape=image).init(0)
-    assert without.target_encoder == ()  # and the same networks otherwise
-    for a, b in zip(leaves(without.encoder), leaves(state.encoder)):
+    assert without.variants.target_encoder == ()  # and the same networks otherwise
+    for a, b in zip(leaves(without.variants.encoder), leaves(state.variants.encoder)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
     s = build.update_settings(config, 1, fns.matmul_dtype, images=True)
     batch, key = _image_batch(image), jax.random.PRNGKey(3)
-    step = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s)[1]["critic_loss"])
+    step = jax.jit(lambda st, b, k: sac.critic_step(st, b, k, s)[1]["critic_loss"])
     # with the target encoder equal to the online one, the loss is the online-features one (two graphs of the
     # same float32 arithmetic: a relative 1e-5 leaves room for their rounding)
     s_online = build.update_settings(config.replace(target_encoder=False), 1, fns.matmul_dtype, images=True)
-    online_loss = float(jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s_online)[1]["critic_loss"])(
+    online_loss = float(jax.jit(lambda st, b, k: sac.critic_step(st, b, k, s_online)[1]["critic_loss"])(
         without, batch, key))
     assert abs(float(step(state, batch, key)) - online_loss) <= 1e-5 * abs(online_loss)
     # a different target encoder changes the next-state values, so the loss
-    moved = state._replace(target_encoder=jax.tree_util.tree_map(lambda x: x * 0.5, state.target_encoder))
+    moved = state.with_variants(target_encoder=jax.tree_util.tree_map(lambda x: x * 0.5, state.variants.target_encoder))
     assert abs(float(step(moved, batch, key)) - online_loss) > 1e-3 * abs(online_loss)
 
     # one gradient step (the 1st: not due) and a second (due: n_updates 2 % 2 == 0)
@@ -610,17 +612,19 @@ def test_a_target_encoder_starts_as_the_encoder_feeds_the_targets_and_follows_at
     new, _ = fns.update(jax.tree_util.tree_map(jnp.copy, state), batches)
     first = jax.tree_util.tree_map(jnp.copy, state)
     # jitted, as the update runs it (op by op, this one step took about a minute of the suite's time: issue 64)
-    (after_one, _), _ = jax.jit(lambda carry, b: sac.gradient_step(s, None, carry, b))((first, sac.zero_totals()),
+    (after_one, _), _ = jax.jit(lambda carry, b: sac.gradient_step(s, None, carry, b))((first, zero_totals()),
                                                                                       batch)
-    for target, start in zip(leaves(after_one.target_encoder), leaves(state.target_encoder)):
+    for target, start in zip(leaves(after_one.variants.target_encoder), leaves(state.variants.target_encoder)):
         np.testing.assert_array_equal(np.asarray(target), np.asarray(start))  # not due yet
-    for target, start, online in zip(leaves(new.target_encoder), leaves(state.target_encoder), leaves(new.encoder)):
+    for target, start, online in zip(leaves(new.variants.target_encoder), leaves(state.variants.target_encoder),
+                                     leaves(new.variants.encoder)):
         expected = 0.75 * np.asarray(start) + 0.25 * np.asarray(online)
         # one multiply-add in float32 each: a few ulps of the operands' size
         bound = 4 * np.finfo(np.float32).eps * (np.abs(np.asarray(start)) + np.abs(np.asarray(online))) + 1e-30
         assert np.all(np.abs(np.asarray(target) - expected) <= bound)
     assert max(float(np.abs(np.asarray(t) - np.asarray(o)).max())
-               for t, o in zip(leaves(new.target_encoder), leaves(new.encoder))) > 0  # it lags the encoder
+               for t, o in zip(leaves(new.variants.target_encoder),
+                               leaves(new.variants.encoder))) > 0  # it lags the encoder
 
 
 def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_and_is_what_the_policy_acts_through(
@@ -635,29 +639,29 @@ def test_an_actor_head_is_trained_by_the_actor_loss_on_the_shared_convolutions_a
     agent = SAC(config)
     state = agent.learner.state
     leaves = jax.tree_util.tree_leaves
-    assert state.actor_head["w"].shape[1] == IMAGE["encoder_features"]
+    assert state.variants.actor_head["w"].shape[1] == IMAGE["encoder_features"]
     without = SAC(config.replace(actor_encoder_head=False)).learner.state
-    for a, b in zip(leaves((without.actor, without.encoder)), leaves((state.actor, state.encoder))):
+    for a, b in zip(leaves((without.actor, without.variants.encoder)), leaves((state.actor, state.variants.encoder))):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # drawn after the encoder: the rest unchanged
     actor, stats, encoder = agent.learner.deployed_policy()
-    assert encoder["convs"] is state.encoder["convs"] and encoder["head"] is state.actor_head
+    assert encoder["convs"] is state.variants.encoder["convs"] and encoder["head"] is state.variants.actor_head
 
     s = build.update_settings(config, 1, agent.learner.functions.matmul_dtype, images=True,
                             image_state_dim=agent.spaces.image_state_dim)
     batch = _image_batch(agent.spaces.image_shape, act_dim=agent.spaces.act_dim)
-    after_critic, _, (critic_obs, conv) = jax.jit(lambda st, b, k: sac.image_critic_step(st, b, k, s))(
+    after_critic, _, (critic_obs, conv) = jax.jit(lambda st, b, k: sac.critic_step(st, b, k, s))(
         state, batch, jax.random.PRNGKey(1))
-    for a, b in zip(leaves(after_critic.actor_head), leaves(state.actor_head)):
+    for a, b in zip(leaves(after_critic.variants.actor_head), leaves(state.variants.actor_head)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    flat = state.actor_head["w"].shape[0]
+    flat = state.variants.actor_head["w"].shape[0]
     assert conv.shape == (8, flat + agent.spaces.image_state_dim)
     assert critic_obs.shape == (8, IMAGE["encoder_features"] + agent.spaces.image_state_dim)
     after_actor, _ = jax.jit(lambda st, o, k: sac.actor_and_alpha_step(st, o, k, s))(
         after_critic, (critic_obs, conv), jax.random.PRNGKey(2))
-    for tree in ("actor", "actor_head"):
+    for tree in (lambda st: st.actor, lambda st: st.variants.actor_head):
         assert max(float(np.abs(np.asarray(a) - np.asarray(b)).max())
-                   for a, b in zip(leaves(getattr(after_actor, tree)), leaves(getattr(after_critic, tree)))) > 0, tree
-    for a, b in zip(leaves(after_actor.encoder), leaves(after_critic.encoder)):
+                   for a, b in zip(leaves(tree(after_actor)), leaves(tree(after_critic)))) > 0
+    for a, b in zip(leaves(after_actor.variants.encoder), leaves(after_critic.variants.encoder)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     agent.learn(300, progress=False)  # trains, acts and evaluates through the head
     assert agent.num_steps == 300 and agent.predict(agent.make_env().reset(seed=0)[0]).shape == (agent.spaces.act_dim,)

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from softac import SAC
-from softac.learner import build, sac
+from softac.learner import build
 from softac.config.sac_config import SACConfig
 from softac.run.csv_logs import read_csv
+from softac.learner.metrics import metric_means
 
 from conftest import straight_and_resumed
 from test_sac_math import _batch
@@ -33,12 +34,12 @@ def test_totals_over_several_calls_are_the_mean_of_each_calls_steps():
         per_call.append({k: float(v) for k, v in totals.items()})
     assert [t["critic_steps"] for t in per_call] == [1.0, 1.0, 1.0]
     assert [t["actor_steps"] for t in per_call] == [0.0, 0.0, 1.0]
-    assert sac.metric_means(per_call[0]).keys() == set(CRITIC_COLUMNS)  # no actor step: no actor metrics at all
+    assert metric_means(per_call[0]).keys() == set(CRITIC_COLUMNS)  # no actor step: no actor metrics at all
 
     state, totals = fns.init(0), None
     for b in batches:  # the same steps, summed across calls
         state, totals = fns.update(state, b, totals)
-    means = sac.metric_means(totals)
+    means = metric_means(totals)
     # float32 sums of three terms, then one division: a few roundings of the terms' size
     for name in CRITIC_COLUMNS:
         expected = sum(t[name] for t in per_call) / 3
@@ -99,9 +100,9 @@ def test_a_run_resumed_between_rows_logs_the_rows_of_a_straight_run(tiny, tmp_pa
 
 
 def test_every_metric_is_a_progress_column_and_a_plot():
-    """The update's metrics are named once (learner/metric_names.py): progress.csv has a column for each, in that
+    """The update's metrics are named once (learner/metrics.py): progress.csv has a column for each, in that
     order, and the metric grid (softac plot, softac.show) draws each."""
-    from softac.learner.metric_names import CRITIC_METRICS, METRICS, POLICY_METRICS
+    from softac.learner.metrics import CRITIC_METRICS, METRICS, POLICY_METRICS
     from softac.outputs.plots import METRIC_GRID
     from softac.run.csv_logs import PROGRESS_COLUMNS
 

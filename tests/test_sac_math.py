@@ -12,6 +12,7 @@ from softac.base import cpus
 from softac.learner.networks import layers
 from softac.learner import build, losses, policy, sac
 from softac.config.sac_config import SACConfig
+from softac.learner.metrics import metric_means
 
 
 def squashed_probability(lo, hi, mean, std):
@@ -146,7 +147,7 @@ def test_gradient_steps_fuse_in_one_call():
     state, totals = functions.update(state, _batch(np.random.default_rng(0), 5, 8, 3, 2))
     assert int(state.n_updates) == 5
     assert (float(totals["critic_steps"]), float(totals["actor_steps"])) == (5.0, 5.0)
-    assert set(sac.metric_means(totals)) == {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean",
+    assert set(metric_means(totals)) == {"critic_loss", "actor_loss", "alpha", "alpha_loss", "q1_mean", "q2_mean",
                                              "log_prob_mean"}
 
 
@@ -162,15 +163,15 @@ def test_configs_differing_only_in_the_updates_numbers_share_one_compiled_update
         return _leaves(functions.update(functions.init(0), batch)[0])
 
     first = trained(base)
-    programs = sac.compiled_update._cache_size()
+    programs = build.compiled_update._cache_size()
     others = [trained(base.replace(**change)) for change in (
         dict(actor_lr=1e-3, critic_lr=2e-3), dict(gamma=0.9), dict(tau=0.5), dict(alpha=0.5),
         dict(target_entropy=-0.5, autotune_alpha=True, alpha_lr=1e-2), dict(target_entropy=-3.0, autotune_alpha=True))]
-    assert sac.compiled_update._cache_size() == programs + 1  # the autotuned ones: one other program for both
+    assert build.compiled_update._cache_size() == programs + 1  # the autotuned ones: one other program for both
     for other in others:  # and each number took effect
         assert any(not np.array_equal(a, b) for a, b in zip(first, other, strict=True))
     trained(base.replace(hidden_sizes=[11]))
-    assert sac.compiled_update._cache_size() == programs + 2
+    assert build.compiled_update._cache_size() == programs + 2
 
 
 @pytest.mark.numerics
@@ -178,7 +179,7 @@ def test_fixed_alpha_is_not_learned_and_autotune_moves_it():
     rng = np.random.default_rng(0)
     fixed = build.build(SACConfig().replace(hidden_sizes=[16], autotune_alpha=False, alpha=0.2), 3, 2)
     state, totals = fixed.update(fixed.init(0), _batch(rng, 3, 8, 3, 2))
-    assert sac.metric_means(totals)["alpha"] == pytest.approx(0.2)
+    assert metric_means(totals)["alpha"] == pytest.approx(0.2)
     assert float(jnp.exp(state.log_alpha)) == pytest.approx(0.2)
     tuned = build.build(SACConfig().replace(hidden_sizes=[16], alpha=0.5), 3, 2)
     state, totals = tuned.update(tuned.init(0), _batch(rng, 3, 8, 3, 2))
@@ -197,7 +198,7 @@ def test_terminated_transitions_do_not_bootstrap():
     batch = batch._replace(rewards=jnp.full((1, 16), 3.0), next_obs=batch.next_obs * 100.0)
     batches = losses.Batch(*[jnp.repeat(x, 300, axis=0) for x in batch])
     state, totals = functions.update(state, batches)
-    assert sac.metric_means(totals)["q1_mean"] == pytest.approx(3.0, abs=0.15)
+    assert metric_means(totals)["q1_mean"] == pytest.approx(3.0, abs=0.15)
 
 
 @pytest.mark.numerics

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from softac import SAC
-from softac.learner import losses
 from softac.learner import build, losses, policy, sac
 from softac.config.sac_config import ConfigError, SACConfig
 from softac.learner.networks.layers import BatchRenorm, dropout, dropout_mask, init_norm_stats, unit_norm_hidden_units
 from softac.learner.networks import NETWORKS, critics_apply, init_critics
 from softac.learner.networks.simba import init_simba, simba
+from softac.learner.metrics import metric_means
 
 from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed
 from test_crossq import _batches
@@ -145,12 +145,12 @@ def test_crossq_with_targets_keeps_and_averages_target_statistics():
                               policy_delay=1)
     fns = build.build(cfg, 3, 2)
     state = fns.init(0)
-    assert state.target_critic != () and len(state.target_critic_stats) == 3
-    before = np.array(state.target_critic_stats[1]["var"], copy=True)
+    assert state.target_critic != () and len(state.variants.target_critic_stats) == 3
+    before = np.array(state.variants.target_critic_stats[1]["var"], copy=True)
     state, _ = fns.update(state, _batches(np.random.default_rng(0), 1, 8))
     # target statistics = 0.5 * online (after the step) + 0.5 * old target
-    np.testing.assert_allclose(np.asarray(state.target_critic_stats[1]["var"]),
-                               0.5 * np.asarray(state.critic_stats[1]["var"]) + 0.5 * before, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(state.variants.target_critic_stats[1]["var"]),
+                               0.5 * np.asarray(state.variants.critic_stats[1]["var"]) + 0.5 * before, rtol=1e-6)
     assert build.build(cfg.replace(target_critics="auto"), 3, 2).init(0).target_critic == ()  # CrossQ's default
 
 
@@ -271,7 +271,7 @@ def test_variants_compose_where_the_maths_allows(keys):
     cfg = SACConfig().replace(**{"hidden_sizes": [16, 16], "batch_size": 8, **keys})
     fns = build.build(cfg, 3, 2)
     state, totals = fns.update(fns.init(0), _batches(np.random.default_rng(0), cfg.gradient_steps, 8))
-    means = sac.metric_means(totals)
+    means = metric_means(totals)
     assert set(means) >= {"critic_loss", "actor_loss", "q1_mean"} and all(np.isfinite(v) for v in means.values())
     leaf = jax.tree_util.tree_leaves(state.critic)[-1]
     assert leaf.shape[-1] == (cfg.n_quantiles or 1) and leaf.shape[0] == cfg.n_critics
@@ -346,7 +346,7 @@ def test_policy_average_moves_toward_the_actor_at_its_rate_after_each_actor_step
     cfg = SACConfig().replace(hidden_sizes=[16, 16], batch_size=8, policy_average_tau=tau, policy_delay=2, **keys)
     fns = build.build(cfg, 3, 2)
     state = fns.init(0)
-    start = _numpy_tree((state.actor, state.actor_stats))
+    start = _numpy_tree((state.actor, state.variants.actor_stats))
 
     def leaves(tree):
         return jax.tree_util.tree_leaves(_numpy_tree(tree))
@@ -354,17 +354,17 @@ def test_policy_average_moves_toward_the_actor_at_its_rate_after_each_actor_step
     assert all(np.array_equal(a, b) for a, b in zip(leaves(sac.deployed(state)[:2]), leaves(start)))
     rng = np.random.default_rng(0)
     state, _ = fns.update(state, _batches(rng, 1, 8))  # gradient step 1 of a policy_delay of 2: no actor step
-    assert all(np.array_equal(a, b) for a, b in zip(leaves(state.policy_average[:2]), leaves(start)))
+    assert all(np.array_equal(a, b) for a, b in zip(leaves(state.variants.policy_average[:2]), leaves(start)))
     state, totals = fns.update(state, _batches(rng, 1, 8))  # step 2: an actor step
     assert float(totals["actor_steps"]) == 1.0
-    actor, stats = _numpy_tree((state.actor, state.actor_stats))
+    actor, stats = _numpy_tree((state.actor, state.variants.actor_stats))
     want_actor, want_stats = jax.tree_util.tree_map(lambda old, new: (1 - tau) * old + tau * new, start, (actor, stats))
     if cfg.weight_norm:
         want_actor = unit_norm_hidden_units(want_actor, np)
         norms = [np.sqrt(np.sum(np.asarray(l["w"]) ** 2, axis=0) + np.asarray(l["b"]) ** 2)
-                 for l in state.policy_average[0][:-1]]
+                 for l in state.variants.policy_average[0][:-1]]
         np.testing.assert_allclose(np.concatenate(norms), 1.0, rtol=1e-5)
-    got_actor, got_stats = _numpy_tree(state.policy_average[:2])
+    got_actor, got_stats = _numpy_tree(state.variants.policy_average[:2])
     for got, want in zip(leaves((got_actor, got_stats)), leaves((want_actor, want_stats))):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     assert not np.allclose(leaves(got_actor)[0], leaves(actor)[0])  # the average is not the actor
@@ -373,10 +373,10 @@ def test_policy_average_moves_toward_the_actor_at_its_rate_after_each_actor_step
 def test_without_policy_average_the_actor_is_deployed_and_checkpoints_are_as_before(tiny):
     agent = SAC(tiny())
     state = agent.learner.state
-    assert state.policy_average == () and sac.deployed(state)[0] is state.actor
+    assert state.variants.policy_average == () and sac.deployed(state)[0] is state.actor
     assert not any("policy_average" in name for name in agent.learner.arrays())
     averaged = SAC(tiny(policy_average_tau=0.1)).learner.arrays()
-    assert any(name.startswith("state.policy_average") for name in averaged)
+    assert any(name.startswith("state.variants.policy_average") for name in averaged)
 
 
 def test_policy_average_changes_what_is_deployed_and_nothing_the_agent_trains(tiny):

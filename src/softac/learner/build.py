@@ -1,9 +1,10 @@
 """Building SAC's functions for one config: fresh networks and their reset, the optimisers, the update's
-settings (`UpdateSettings`) and `build`, which returns the jitted init, reset, update and acting functions
-(`SACFunctions`). The maths they run is `sac.py`'s."""
+settings (`UpdateSettings`), the one compiled update every build shares, and `build`, which returns the jitted
+init, reset, update and acting functions (`SACFunctions`). The maths they run is `sac.py`'s."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache, partial
 from typing import Any, Callable, NamedTuple
 
@@ -15,13 +16,14 @@ import optax
 from softac.base.cpus import cpu_has_bf16
 from softac.config.sac_config import SACConfig
 from softac.learner.encoder import image_only_shape, init_encoder, init_head, stacked_image_shape
-from softac.learner.losses import Critics
+from softac.learner.losses import Batch, Critics
 from softac.learner.networks import actor_sizes, critic_sizes, init_actor, init_critics, network_kind
 from softac.learner.networks.layers import (BatchRenorm, init_norm_stats, jit_keeps_bf16_rounding, stack,
                                             unit_norm_hidden_units)
 from softac.learner.policy import ActionScaler, Policy
-from softac.learner.sac import (Program, SACState, UpdateSettings, act, act_deterministic, act_with_noise, compiled_update,
-                                numbers_of, policy_encoder)
+from softac.learner.acting import act, act_deterministic, act_with_noise
+from softac.learner.pixels import ImageSettings, policy_encoder
+from softac.learner.sac import SACState, UpdateSettings, Variants, update
 
 
 # ---- the state: fresh, and reset -----------------------------------------------------------------------
@@ -69,15 +71,20 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
     def copy(tree: Any, wanted: bool) -> Any:
         return jax.tree_util.tree_map(jnp.copy, tree) if wanted else ()
 
+    image = s.image
     return SACState(
         actor=actor, critic=critic, target_critic=copy(critic, s.has_targets),
         log_alpha=log_alpha, actor_opt=s.actor_tx.init(actor), critic_opt=s.critic_tx.init(critic),
         alpha_opt=s.alpha_tx.init(log_alpha), key=key, n_updates=jnp.zeros((), jnp.int32),
-        actor_stats=actor_stats, critic_stats=critic_stats, target_critic_stats=copy(critic_stats, s.has_targets),
-        encoder=encoder, encoder_opt=s.encoder_tx.init(encoder) if s.encoder_tx is not None else (),
-        target_encoder=copy(encoder, s.target_encoder),  # SACConfig refuses target_encoder without target critics
-        actor_head=actor_head, actor_head_opt=s.actor_head_tx.init(actor_head) if s.actor_head_tx is not None else (),
-        policy_average=copy((actor, actor_stats, policy_encoder(encoder, actor_head)), s.policy_average_tau > 0),
+        variants=Variants(
+            actor_stats=actor_stats, critic_stats=critic_stats,
+            target_critic_stats=copy(critic_stats, s.has_targets),
+            encoder=encoder, encoder_opt=image.encoder_tx.init(encoder) if image is not None else (),
+            # SACConfig refuses target_encoder without target critics
+            target_encoder=copy(encoder, image is not None and image.target_encoder),
+            actor_head=actor_head,
+            actor_head_opt=image.actor_head_tx.init(actor_head) if image and image.actor_head_tx else (),
+            policy_average=copy((actor, actor_stats, policy_encoder(encoder, actor_head)), s.policy_average_tau > 0)),
     )
 
 
@@ -134,14 +141,54 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
         policy_frequency=c.policy_frequency, policy_delay=c.policy_delay, autotune_alpha=c.autotune_alpha,
         alpha=c.alpha, batch_renorm_warmup=c.batch_renorm_warmup, weight_norm=c.weight_norm,
+        image=image_settings(c, image_state_dim) if images else None, policy_average_tau=c.policy_average_tau)
+
+
+def image_settings(config: SACConfig, state_dim: int) -> ImageSettings:
+    c = config
+    return ImageSettings(
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
-        encoder_tx=_adam(1.0, c.adam_b1) if images else None, augment_pad=c.augment_pad,
-        image_state_dim=image_state_dim, policy_average_tau=c.policy_average_tau,
-        target_encoder=images and c.target_encoder,
+        encoder_tx=_adam(1.0, c.adam_b1), augment_pad=c.augment_pad, state_dim=state_dim,
+        pixel_offset=c.pixel_offset, target_encoder=c.target_encoder,
         # on a CPU the convolutions run faster in pieces of 8 images (encoder.chunked_encode); a GPU wants the batch
-        encoder_chunk=8 if images and jax.default_backend() == "cpu" else 0,
-        actor_head_tx=_adam(1.0, c.adam_b1) if images and c.actor_encoder_head else None,
-        pixel_offset=c.pixel_offset)
+        chunk=8 if jax.default_backend() == "cpu" else 0,
+        actor_head_tx=_adam(1.0, c.adam_b1) if c.actor_encoder_head else None)
+
+
+# ---- the compiled update: one program per shape, its numbers traced (issue 64) ------------------
+
+NUMBERS = ("target_entropy", "gamma", "tau", "tau_keep", "alpha", "actor_lr", "critic_lr", "alpha_lr")
+
+
+class Program:
+    """What shapes the compiled update: UpdateSettings without its NUMBERS. Hashed once (JAX hashes a static
+    argument at every call), equal to another of equal settings, so that equal configs share the program."""
+
+    def __init__(self, s: UpdateSettings) -> None:
+        self.settings = replace(s, **{name: 0.0 for name in NUMBERS})
+        self.hash = hash(self.settings)
+
+    def __hash__(self) -> int:
+        return self.hash
+
+    def __eq__(self, other: object) -> bool:
+        return self is other or (isinstance(other, Program) and self.settings == other.settings)
+
+
+def numbers_of(s: UpdateSettings) -> tuple[jax.Array, ...]:
+    """`s`'s NUMBERS as JAX scalars, made once (Python floats would be converted at every call); weakly typed,
+    as the Python floats were, so rounded to float32 once, the same."""
+    return tuple(jnp.asarray(getattr(s, name)) for name in NUMBERS)
+
+
+def update_program(program: Program, numbers: tuple[jax.Array, ...], state: SACState, batches: Batch,
+                   totals: dict | None = None, lr_scale: jax.Array | None = None) -> tuple[SACState, dict]:
+    return update(replace(program.settings, **dict(zip(NUMBERS, numbers))), state, batches, totals, lr_scale)
+
+
+# One jitted update for every build (issue 64): the program's settings static, their numbers traced; the state
+# and the totals donated (updated in place).
+compiled_update = jax.jit(update_program, static_argnums=0, donate_argnums=(2, 4))
 
 
 class SACFunctions(NamedTuple):
@@ -168,6 +215,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     if image_shape is not None:
         obs_dim = config.encoder_features + image_state_dim
     scaler = ActionScaler(np.full(act_dim, -1.0) if low is None else low, np.ones(act_dim) if high is None else high)
+    pixel_offset = config.pixel_offset
     # one compiled call (cached across processes) instead of dozens of eager ops
     new_state = jax.jit(partial(assemble, s, config.alpha))
 
@@ -195,11 +243,11 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         init=init,
         reset=reset,
         update=partial(compiled_update, Program(s), numbers_of(s)),
-        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, pixel_offset=s.pixel_offset)),
+        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, pixel_offset=pixel_offset)),
         act_deterministic=jax.jit(partial(act_deterministic, s.policy, state_dim=image_state_dim,
-                                          pixel_offset=s.pixel_offset)),
+                                          pixel_offset=pixel_offset)),
         act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler, state_dim=image_state_dim,
-                                       pixel_offset=s.pixel_offset)),
+                                       pixel_offset=pixel_offset)),
         policy=s.policy,
         target_entropy=s.target_entropy,
         scaler=scaler,

@@ -24,6 +24,9 @@ if TYPE_CHECKING:  # sac imports JAX, which loads only when a learner is made
     from softac.learner.sac import SACState
 
 STATE_PREFIX = "state"  # checkpoint array names: state<path of the leaf in SACState>, obs_norm/<name>
+# SACState's variant fields sat beside SAC's before issue 65 put them in SACState.variants: checkpoints written
+# then name `state.actor_stats...` what is now `state.variants.actor_stats...` (the same leaves, in the same order)
+VARIANTS_PATH = STATE_PREFIX + ".variants."
 OBS_NORM_PREFIX = "obs_norm/"
 # which of an agent's policies to act with (Learner.policy_networks); "deployed" is the average where there is one
 POLICIES = ("deployed", "actor", "average")
@@ -200,10 +203,10 @@ class Learner:
 
             return acting_actor(self.state)
         if policy == "average":
-            if not self.state.policy_average:
+            if not self.state.variants.policy_average:
                 raise SoftacError("this agent keeps no weight average of its actor (policy_average_tau is 0): "
                                   "its policies are 'actor' and 'deployed', the same one")
-            return self.state.policy_average
+            return self.state.variants.policy_average
         raise SoftacError(f"policy must be one of {', '.join(POLICIES)}, got {policy!r}")
 
     def predict(self, obs: Any, policy: str = "deployed") -> np.ndarray:
@@ -231,7 +234,7 @@ class Learner:
         if totals is None:
             # zeros, never None, after each progress row: a None would be a second pytree structure and so a
             # second compiled update (4-5 s of XLA compilation per process, even for 32-wide networks)
-            from softac.learner.sac import zero_totals
+            from softac.learner.metrics import zero_totals
 
             totals = zero_totals()
         self.state, self.totals = self.functions.update(self.state, self.Batch(**batch), totals, self.lr_scale(step))
@@ -251,7 +254,7 @@ class Learner:
     def metrics(self) -> dict[str, float]:
         """Each metric's mean over the gradient steps since the last `take_metrics()` that computed it (the
         actor's over actor steps); {} before any. Reading them waits for the device."""
-        from softac.learner.sac import metric_means
+        from softac.learner.metrics import metric_means
 
         return metric_means(self.totals) if self.totals is not None else {}
 
@@ -289,6 +292,8 @@ class Learner:
         for path, template in paths:
             name = STATE_PREFIX + jax.tree_util.keystr(path)
             value = arrays.get(name)
+            if value is None and name.startswith(VARIANTS_PATH):
+                value = arrays.get(STATE_PREFIX + "." + name[len(VARIANTS_PATH):])
             if value is None or value.shape != np.shape(template) or value.dtype != np.asarray(template).dtype:
                 raise CheckpointError(f"checkpoint {where} does not match this config/env at {name}")
             # a copy the device owns: jnp.asarray may alias the NumPy array on CPU, and the update donates

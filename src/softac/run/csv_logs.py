@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from softac.learner.metric_names import METRICS
+from softac.learner.metrics import METRICS
 from softac.run.run_dir import write_atomic
 
 # success columns stay empty for envs that report no success (info["is_success"]); a file written before they
