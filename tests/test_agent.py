@@ -442,7 +442,7 @@ def test_load_replaces_only_the_settings_that_do_not_change_what_is_computed(tin
 def test_random_action_prob_replaces_that_share_of_actions_by_uniform_ones():
     """mix_in_random_actions: about PROB of the rows become uniform in [-1, 1], the others stay as they were
     (bounds: 5 binomial standard deviations), and the generator advances the same whichever rows it picks."""
-    from softac.run.loop import mix_in_random_actions
+    from softac.replay.exploration import mix_in_random_actions
 
     n, prob = 20000, 0.3
     policy = np.full((n, 3), 0.25, np.float32)

@@ -11,7 +11,7 @@ from conftest import run_cli_in_process
 from softac.config.sac_config import SACConfig
 from softac.config.presets import DMC_PRESET, GENERIC_PRESETS, load_preset, preset_names
 from softac.config.names import is_dmc_id
-from softac.envs.make import ROBOTICS_PREFIXES
+from softac.envs.robotics import ROBOTICS_PREFIXES
 
 # a preset of an older env version trains on it as written (InvertedPendulum-v4), which Gymnasium says is out of date
 pytestmark = pytest.mark.filterwarnings("ignore:.*is out of date. You should consider upgrading:DeprecationWarning")

@@ -13,7 +13,8 @@ import pytest
 from softac import SAC
 from softac.config.sac_config import SACConfig
 from softac.config.presets import load_preset, preset_names
-from softac.envs.make import EnvError, ROBOTICS_PREFIXES, get_env_state, make_env, set_env_state
+from softac.envs.make import EnvError, get_env_state, make_env, set_env_state
+from softac.envs.robotics import ROBOTICS_PREFIXES
 
 pytestmark = pytest.mark.robotics
 

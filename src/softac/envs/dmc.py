@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from softac.config.names import DMC_PREFIX
+from softac.config.names import DMC_PREFIX, long_id
 
 INSTALL_HINT = "pip install 'softac[dmc]'"
 CAMERAS = {"quadruped": 2}  # the domain's camera in videos (else 0), as DrQ and TD-MPC2 use
@@ -63,6 +63,13 @@ def suite():
 
 def suite_tasks() -> list[tuple[str, str]]:
     return list(suite().ALL_TASKS)
+
+
+def resolve(env_id: str) -> str:
+    """`dmc:DOMAIN-TASK` or `dm_control/DOMAIN-TASK-v0` -> the latter, the suite's tasks registered."""
+    env_id = long_id(env_id)
+    register(env_id)
+    return env_id
 
 
 def register(env_id: str) -> None:

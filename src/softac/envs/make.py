@@ -15,8 +15,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
-import importlib
-import importlib.util
 import io
 import contextlib
 from dataclasses import dataclass
@@ -26,8 +24,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.envs.registration import EnvSpec
 
-from softac.config.names import is_dmc_id, long_id
-from softac.envs import dmc
+from softac.envs.families import family_of, family_of_entry_point
 from softac.errors import EnvError, EnvFailed, SoftacError
 from softac.envs.goals import DictLayout, dict_layout, dict_observation_space, is_goal_env
 from softac.envs.pixels import (ImageStateLayout, ImageWithState, frame_stack_of, image_key_of, is_frame_stack_space,
@@ -45,55 +42,11 @@ def env_name(source: EnvSource | EnvSpec) -> str:
     return spec.id if spec is not None else type(getattr(source, "unwrapped", source)).__name__
 
 
-# ids Gymnasium-Robotics registers when imported (the `robotics` extra); softac imports it for them
-ROBOTICS_PREFIXES = ("Fetch", "PointMaze", "AntMaze", "HandReach", "HandManipulate", "AdroitHand", "FrankaKitchen")
-# its Fetch envs fail to construct with later MuJoCo releases (AssertionError in mujoco_utils.set_joint_qpos)
-ROBOTICS_MUJOCO = ((3, 8, 1), (3, 12, 0))
-
-
-def _import_robotics(env_id: str) -> None:
-    """Import Gymnasium-Robotics, which registers its envs, when `env_id` is one of them."""
-    if env_id in gym.registry or not env_id.startswith(ROBOTICS_PREFIXES):
-        return
-    if importlib.util.find_spec("gymnasium_robotics") is None:
-        raise EnvError(f"env '{env_id}' comes from Gymnasium-Robotics, which is not installed: "
-                       "pip install 'softac[robotics]'")
-    import warnings
-
-    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        warnings.simplefilter("ignore")
-        importlib.import_module("gymnasium_robotics")
-
-
-def robotics_mujoco_problem() -> str | None:
-    """Why the installed MuJoCo cannot run Gymnasium-Robotics' envs, or None."""
-    try:
-        import mujoco
-    except ImportError:
-        return None
-    have = tuple(int(p) for p in mujoco.__version__.split(".")[:3] if p.isdigit())
-    low, high = ROBOTICS_MUJOCO
-    if low <= have < high:
-        return None
-    return (f"Gymnasium-Robotics' envs need MuJoCo {'.'.join(map(str, low))} up to (not including) "
-            f"{'.'.join(map(str, high))}, and MuJoCo {mujoco.__version__} is installed: pip install 'softac[robotics]'")
-
-
 def resolve_env_id(env_id: str) -> str:
-    """Check that `env_id` is registered, importing `module` first for `module:EnvId` (and Gymnasium-Robotics
-    or the DeepMind Control Suite for their envs: `dmc:DOMAIN-TASK` is `dm_control/DOMAIN-TASK-v0`)."""
+    """Check that `env_id` is registered, importing `module` first for `module:EnvId`, and its family's package
+    for a family's id (envs.families: `dmc:DOMAIN-TASK` is `dm_control/DOMAIN-TASK-v0`; Gymnasium-Robotics')."""
     env_id = env_id.strip()
-    if is_dmc_id(env_id):
-        env_id = long_id(env_id)
-        dmc.register(env_id)
-    elif ":" in env_id:
-        module, _, name = env_id.partition(":")
-        try:
-            importlib.import_module(module)
-        except Exception as exc:  # any import failure is the user's module, not ours
-            raise EnvError(f"cannot import module '{module}' for env '{env_id}': {exc}") from None
-        env_id = name
-    _import_robotics(env_id)
+    env_id = family_of(env_id).resolve(env_id)
     if env_id not in gym.registry:
         close = difflib.get_close_matches(env_id, list(gym.registry.keys()), n=3, cutoff=0.6)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
@@ -115,7 +68,8 @@ def make_env(source: EnvSource | EnvSpec, render_mode: str | None = None, **kwar
             env = gym.make(env_id, **kwargs)
     except Exception as exc:
         entry = str(getattr(gym.spec(env_id) if isinstance(env_id, str) else env_id, "entry_point", ""))
-        problem = robotics_mujoco_problem() if entry.startswith("gymnasium_robotics") else None
+        family = family_of_entry_point(entry)
+        problem = family.problem() if family is not None else None
         if problem:
             raise EnvError(f"cannot make env '{env_name(env_id)}': {problem}") from None
         raise EnvError(f"cannot make env '{env_name(env_id)}': {type(exc).__name__}: {exc}".splitlines()[0]) from None

@@ -29,9 +29,9 @@ import gymnasium as gym
 import numpy as np
 
 from softac.errors import EnvError
+from softac.envs.families import renders_at_size
 from softac.envs.goals import DictLayout, dict_layout
 
-SIZED_RENDERERS = ("gymnasium.envs.mujoco", "softac.envs.dmc")  # entry points whose envs render at a given width/height
 
 
 def is_image_space(space: gym.Space) -> bool:
@@ -275,7 +275,7 @@ def with_image_wrappers(source: Any, observation_space: gym.Space, pixels: bool,
     spec, wrappers = source, list(source.additional_wrappers)
     if pixels:
         kwargs = {**spec.kwargs, "render_mode": "rgb_array"}
-        if str(spec.entry_point).startswith(SIZED_RENDERERS):
+        if renders_at_size(str(spec.entry_point)):
             kwargs.update(width=size, height=size)
         spec = dataclasses.replace(spec, kwargs=kwargs)
         wrappers.append(_wrapper_spec(PixelObservation, size=size))

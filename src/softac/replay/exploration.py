@@ -1,5 +1,6 @@
-"""Temporally correlated exploration noise: coloured (pink) noise for the policy's Gaussian, and gSDE's
-exploration matrices.
+"""Exploration while training: the action choice of each vector-env step (`Explorer`), and the temporally
+correlated noise it can draw through, coloured (pink) noise for the policy's Gaussian and gSDE's exploration
+matrices.
 
 SAC explores with a = tanh(mean + std * eps), eps white (independent at each step). Eberhard et al. 2023
 ("Pink Noise Is All You Need", ICLR) draw eps from a sequence whose power spectrum falls as 1/f^beta along
@@ -18,6 +19,8 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+
+from softac.errors import RunFailed
 
 
 def colored_noise(rng: np.random.Generator, beta: float, shape: tuple[int, ...], length: int) -> np.ndarray:
@@ -132,3 +135,49 @@ def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | No
         n_features = config.actor_widths[-1]
         return SdeNoise(config.sde_sample_freq, config.n_envs, n_features, act_dim, config.seed)
     return None
+
+
+# ---- the action choice ---------------------------------------------------------------------------------
+
+def mix_in_random_actions(rng: np.random.Generator, actions: np.ndarray, prob: float) -> np.ndarray:
+    """Each row of ACTIONS (one per env, in [-1, 1]) replaced with probability PROB by a uniform one.
+    Andrychowicz et al. (2017) explore Fetch with 30% random actions: a policy that never touches the object
+    learns nothing from hindsight goals about moving it. Draws the same numbers whichever rows it replaces."""
+    replace = rng.random(actions.shape[0]) < prob
+    uniform = rng.uniform(-1.0, 1.0, actions.shape)
+    return np.where(replace[:, None], uniform, actions).astype(np.float32)
+
+
+class Explorer:
+    """The training loop's actions for one vector-env step: uniform before learning_starts; after it the
+    policy's sample, through the run's coloured or gSDE noise where it has one, else through the run's act
+    key; with random_action_prob, that share of the rows uniform again. `policy`: the learner (its config,
+    act, act_with_noise, scaler); `streams`: the run state, whose random streams (rng, act_key, noise) are
+    checkpointed with it and advanced here."""
+
+    def __init__(self, policy: Any, streams: Any) -> None:
+        self.policy, self.streams = policy, streams
+
+    def actions(self, obs: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """(actions in [-1, 1], the same in env bounds) for the envs' observations at env step `step`."""
+        policy, rs = self.policy, self.streams
+        cfg = policy.config
+        if step < cfg.learning_starts:
+            actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, policy.spaces.act_dim)).astype(np.float32)
+            return actions, policy.scaler.to_env(actions)
+        if rs.noise is not None:
+            actions, env_actions = policy.act_with_noise(obs, rs.noise.next())
+        else:
+            actions, env_actions, rs.act_key = policy.act(obs, rs.act_key)
+        if not np.all(np.isfinite(actions)):
+            raise RunFailed(f"training diverged at step {step}: the policy produced non-finite "
+                            "actions; the last good checkpoint is kept")
+        if cfg.random_action_prob > 0:  # drawn only when asked: other runs keep their random numbers
+            actions = mix_in_random_actions(rs.rng, actions, cfg.random_action_prob)
+            env_actions = policy.scaler.to_env(actions)
+        return actions, env_actions
+
+    def episode_ended(self, env: int) -> None:
+        """An env's episode ended: its noise sequence starts afresh (pink; gSDE keeps its matrices)."""
+        if self.streams.noise is not None:
+            self.streams.noise.episode_ended(env)

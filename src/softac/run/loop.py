@@ -1,8 +1,9 @@
-"""The training loop: collect, learn, evaluate, log, checkpoint, show progress.
+"""The training loop: a chunk of env steps and their updates from the run's source of transitions
+(softac.run.transitions), then what is due (evaluate, log, checkpoint, callbacks, progress), until done.
 
-Per vector-env step there is one policy call (jitted), one step of each env,
-one buffer write (vectorised) and one jitted update that runs all
-`gradient_steps`. Metrics stay on the device until a log row needs them.
+With the host's source a chunk is one vector-env step: one policy call (jitted), one step of each env, one
+buffer write (vectorised) and one jitted update that runs all `gradient_steps`. Metrics stay on the device
+until a log row needs them.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from softac.learner.learner import Learner
 from softac.run.run_dir import checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.run.run_state import RunState
 from softac.run.stopping import check_success_rate, target_reached
+from softac.run.transitions import Chunk, HostTransitions
 from softac.run.checkpoint_contents import checkpoint_parts
 from softac.base.stop_signal import StopSignal
 
@@ -91,17 +93,8 @@ def train(learner: Learner, collector: Collector, run: RunState, steps: int, run
                         target_success=target_success).run()
 
 
-def mix_in_random_actions(rng: np.random.Generator, actions: np.ndarray, prob: float) -> np.ndarray:
-    """Each row of ACTIONS (one per env, in [-1, 1]) replaced with probability PROB by a uniform one.
-    Andrychowicz et al. (2017) explore Fetch with 30% random actions: a policy that never touches the object
-    learns nothing from hindsight goals about moving it. Draws the same numbers whichever rows it replaces."""
-    replace = rng.random(actions.shape[0]) < prob
-    uniform = rng.uniform(-1.0, 1.0, actions.shape)
-    return np.where(replace[:, None], uniform, actions).astype(np.float32)
-
-
 class TrainingLoop:
-    """One training call: collect, learn, and the work due at each interval (log rows, evaluations,
+    """One training call: chunks of collecting and learning, and the work due at each interval (log rows, evaluations,
     checkpoints, callbacks), until `steps` more env steps, a target return or success rate, or a stop. Every input is
     checked when it is made, before the run directory is written (a refused callback leaves no half-made
     run); `run()` opens the run directory and everything else inside one `try`."""
@@ -116,6 +109,7 @@ class TrainingLoop:
         self.run_path = Path(run_dir) if run_dir is not None else None
         check_backends_installed(parse_backends(learner.config.loggers) if self.run_path is not None else [])
         self.learner, self.collector, self.run_state = learner, collector, run_state
+        self.source = HostTransitions(learner, collector, run_state)
         self.start_step = self.run_state.num_steps
         self.end_step = self.start_step + steps
         self.target_return, self.target_success = target_return, target_success
@@ -151,7 +145,7 @@ class TrainingLoop:
             self.learner.config = self.collector.config = self.config.replace(total_steps=end_step)
 
     def run(self) -> dict[str, Any]:
-        self.collector.start(self.run_state.num_steps)
+        self.source.start()
         self.wall0, self.time0 = time.perf_counter(), self.run_state.train_time_s
         # progress.csv's fps, return_mean and success_rate
         self.rows = TrainRows(self.start_step, self.run_state.recent_returns, self.run_state.recent_successes)
@@ -170,9 +164,10 @@ class TrainingLoop:
                     if self.stop.requested:
                         raise TrainingInterrupted(self.run_state.num_steps, self.save_checkpoint("last"))
                     self.reset_if_due()
-                    before, after = self.collect()
-                    self.learn(after)
-                    self.stop_reason = self.on_intervals(before, after)
+                    chunk = self.source.chunk()
+                    self.count_episodes(chunk)
+                    self.stop_reason = self.on_intervals(chunk.before, chunk.after)
+                    after = chunk.after
                     if after >= next_show or self.stop_reason is not None:  # redraw at most every SHOW_EVERY
                         next_show = after + SHOW_EVERY
                         self.show.update(after, ret=self.rows.recent_mean(), eval=self.run_state.last_eval,
@@ -280,46 +275,16 @@ class TrainingLoop:
         if 0 < step < cfg.total_steps and crossed(step - cfg.n_envs, step, cfg.reset_interval):
             self.learner.reset_networks(cfg.seed, step // cfg.reset_interval)
 
-    def collect(self) -> tuple[int, int]:
-        """One vector-env step: act (uniformly at random before learning_starts), step the envs, store the
-        transitions, count finished episodes. Returns the step counter before and after."""
-        learner, cfg, rs = self.learner, self.config, self.run_state
-        before, obs = rs.num_steps, self.collector.obs
-        learner.observe(obs)  # every observation the policy acts on, warm-up included (obs_norm)
-        if before < cfg.learning_starts:
-            actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, learner.spaces.act_dim)).astype(np.float32)
-            env_actions = learner.scaler.to_env(actions)
-        else:
-            if rs.noise is not None:
-                actions, env_actions = learner.act_with_noise(obs, rs.noise.next())
-            else:
-                actions, env_actions, rs.act_key = learner.act(obs, rs.act_key)
-            if not np.all(np.isfinite(actions)):
-                raise RunFailed(f"training diverged at step {before}: the policy produced non-finite "
-                                "actions; the last good checkpoint is kept")
-            if cfg.random_action_prob > 0:  # drawn only when asked: other runs keep their random numbers
-                actions = mix_in_random_actions(rs.rng, actions, cfg.random_action_prob)
-                env_actions = learner.scaler.to_env(actions)
-        result = self.collector.step(obs, actions, env_actions, before)
-        rs.num_steps = after = before + cfg.n_envs
-        for episode in result.finished:
-            if rs.noise is not None:
-                rs.noise.episode_ended(episode.env)
-            rs.num_episodes += 1
+    def count_episodes(self, chunk: Chunk) -> None:
+        """The episodes that ended in a chunk: counted, in the progress rows' recent returns, and logged."""
+        for episode in chunk.finished:
+            self.run_state.num_episodes += 1
             self.rows.episode_finished(episode.ret, episode.success)
             if self.logs is not None:
                 values = {"return": round(episode.ret, 6), "length": episode.length}
                 if episode.success is not None:
                     values["success"] = episode.success
-                self.logs.log("rollout", values, after)
-        return before, after
-
-    def learn(self, after: int) -> None:
-        """`gradient_steps` updates in one jitted call, once learning has started."""
-        cfg = self.config
-        if after >= cfg.learning_starts and cfg.gradient_steps > 0 and self.collector.can_sample():
-            batch = self.collector.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
-            self.learner.update(batch, after)
+                self.logs.log("rollout", values, chunk.after)
 
     def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training

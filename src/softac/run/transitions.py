@@ -1,0 +1,58 @@
+"""Where a run's transitions come from and how they reach the learner, a chunk of env steps at a time: the
+training loop's one seam for its sources (issue 65). The loop calls `chunk()` until its budget is spent and
+does the host's work between chunks (log rows, evaluations, checkpoints, callbacks, progress); a source does
+the env steps, the replay writes and the gradient steps of each chunk.
+
+Today's source is the host's: envs stepped on the host one vector step at a time (the collector's pool and
+its NumPy buffer), so a chunk is one vector-env step and its `gradient_steps` updates. A source whose envs
+step on the device, inside the update's jit, runs many env steps a chunk and reports them the same way
+(issue 67).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from softac.envs.make import Episode
+from softac.learner.learner import Learner
+from softac.replay.collector import Collector
+from softac.replay.exploration import Explorer
+from softac.run.run_state import RunState
+
+
+class Chunk(NamedTuple):
+    before: int  # the run's env steps before the chunk
+    after: int  # and after it
+    finished: list[Episode]  # the training episodes that ended in it
+
+
+class HostTransitions:
+    """Envs on the host: each chunk one vector-env step (the explorer's actions, the envs stepped, the
+    transitions stored), then its gradient steps in one jitted update once learning has started."""
+
+    def __init__(self, learner: Learner, collector: Collector, run_state: RunState) -> None:
+        self.learner, self.collector, self.run_state = learner, collector, run_state
+        self.explorer = Explorer(learner, run_state)
+
+    def start(self) -> None:
+        """Envs ready to step from the run's current step (fresh, or as a checkpoint left them)."""
+        self.collector.start(self.run_state.num_steps)
+
+    def chunk(self) -> Chunk:
+        learner, rs = self.learner, self.run_state
+        before, obs = rs.num_steps, self.collector.obs
+        learner.observe(obs)  # every observation the policy acts on, warm-up included (obs_norm)
+        actions, env_actions = self.explorer.actions(obs, before)
+        result = self.collector.step(obs, actions, env_actions, before)
+        rs.num_steps = after = before + learner.config.n_envs
+        for episode in result.finished:
+            self.explorer.episode_ended(episode.env)
+        self.learn(after)
+        return Chunk(before, after, result.finished)
+
+    def learn(self, after: int) -> None:
+        """`gradient_steps` updates in one jitted call, once learning has started."""
+        cfg = self.learner.config
+        if after >= cfg.learning_starts and cfg.gradient_steps > 0 and self.collector.can_sample():
+            batch = self.collector.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
+            self.learner.update(batch, after)

@@ -1,0 +1,139 @@
+"""The seams issue 65 left for the next capabilities: the training loop takes its transitions from a source, a
+chunk at a time (run/transitions.py), so a source that runs many env steps a chunk (issue 67's device envs)
+plugs into the one loop; the action choice is the explorer's; an env family is a module and a row of
+envs/families.py."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from conftest import assert_same_learner, assert_same_run_state
+
+
+class ChunksOf:
+    """A source that runs `n` of the host source's vector steps a chunk and reports them as one, as a source
+    stepping envs inside the update's jit would."""
+
+    def __init__(self, host, n: int):
+        self.host, self.n = host, n
+
+    def start(self):
+        self.host.start()
+
+    def chunk(self):
+        from softac.run.transitions import Chunk
+
+        parts = [self.host.chunk() for _ in range(self.n)]
+        return Chunk(parts[0].before, parts[-1].after, [e for part in parts for e in part.finished])
+
+
+def test_a_source_that_runs_many_env_steps_a_chunk_plugs_into_the_one_loop(tiny, tmp_path):
+    """The loop with a source of 5-step chunks trains exactly as with the host's one-step chunks (the same
+    learner state, run state and episodes), and writes its log rows and evaluations on their schedule: the
+    loop does the host's work between chunks, whatever a chunk holds."""
+    from softac import SAC
+    from softac.run.csv_logs import read_csv
+    from softac.run.loop import TrainingLoop
+
+    config = tiny(eval_interval=250, log_interval=50)
+    plain, chunked = SAC(config), SAC(config)
+    plain.learn(500, run_dir=tmp_path / "plain", progress=False)
+    loop = TrainingLoop(chunked.learner, chunked.collector, chunked.run_state, 500, run_dir=tmp_path / "chunked",
+                        progress=False, agent=chunked)
+    loop.source = ChunksOf(loop.source, 5)
+    summary = loop.run()
+    chunked.collector.close_workers()
+    assert summary["stop_reason"] == "steps" and chunked.num_steps == 500
+    assert_same_learner(plain, chunked)
+    assert_same_run_state(plain, chunked)
+    for name in ("progress.csv", "eval.csv"):
+        a, b = read_csv(tmp_path / "plain" / name), read_csv(tmp_path / "chunked" / name)
+        assert [row["step"] for row in a] == [row["step"] for row in b] and len(a) > 1, name
+    assert [r["mean_return"] for r in read_csv(tmp_path / "plain" / "eval.csv")] == \
+        [r["mean_return"] for r in read_csv(tmp_path / "chunked" / "eval.csv")]
+
+
+class _Policy:
+    """What the explorer asks of a learner: its config, spaces, scaler and the two ways to act."""
+
+    def __init__(self, config, actions):
+        from softac.learner.policy import ActionScaler
+
+        self.config, self.actions, self.calls = config, actions, 0
+        self.spaces = type("Spaces", (), {"act_dim": actions.shape[1]})()
+        self.scaler = ActionScaler(np.full(actions.shape[1], -2.0), np.full(actions.shape[1], 2.0))
+
+    def act(self, obs, key):
+        self.calls += 1
+        return self.actions, self.scaler.to_env(self.actions), key + 1
+
+
+def test_the_explorer_chooses_warm_up_policy_and_random_actions_and_refuses_non_finite_ones(tiny):
+    from softac.errors import RunFailed
+    from softac.replay.exploration import Explorer
+    from softac.run.run_state import RunState
+
+    config = tiny(learning_starts=10, n_envs=2)
+    actions = np.array([[0.5], [-0.25]], np.float32)
+    policy, streams = _Policy(config, actions), RunState.new(0)
+    explorer = Explorer(policy, streams)
+    warm, warm_env = explorer.actions(np.zeros((2, 3)), step=8)  # before learning_starts: uniform, no policy call
+    assert policy.calls == 0 and warm.shape == (2, 1) and np.all(np.abs(warm) <= 1)
+    np.testing.assert_allclose(warm_env, 2.0 * warm, rtol=1e-6)
+    key = streams.act_key
+    chosen, chosen_env = explorer.actions(np.zeros((2, 3)), step=10)
+    assert policy.calls == 1 and np.array_equal(chosen, actions) and np.all(streams.act_key == key + 1)
+    np.testing.assert_allclose(chosen_env, 2.0 * actions)
+
+    policy.config = config.replace(random_action_prob=1.0)  # every row uniform again, in bounds
+    mixed, mixed_env = explorer.actions(np.zeros((2, 3)), step=12)
+    assert not np.array_equal(mixed, actions) and np.all(np.abs(mixed) <= 1)
+    np.testing.assert_allclose(mixed_env, 2.0 * mixed, rtol=1e-6)
+
+    policy.actions = np.array([[np.nan], [0.0]], np.float32)
+    with pytest.raises(RunFailed, match="training diverged at step 14: the policy produced non-finite actions"):
+        explorer.actions(np.zeros((2, 3)), step=14)
+
+
+def test_env_ids_find_their_family():
+    from softac.envs import families
+
+    ids = ("dmc:cheetah-run", "dm_control/walker-walk-v0", "FetchPush-v4", "Hopper-v5", "mymodule:Thing-v0")
+    assert [families.family_of(i).name for i in ids] == ["dmc", "dmc", "robotics", "gymnasium", "gymnasium"]
+    assert families.family_of_entry_point("gymnasium_robotics.envs.fetch.push:MujocoFetchPushEnv").name == "robotics"
+    assert families.family_of_entry_point("gymnasium.envs.mujoco.hopper_v5:HopperEnv") is None  # no row claims it
+    assert families.renders_at_size("gymnasium.envs.mujoco.hopper_v5:HopperEnv")
+    assert families.renders_at_size("softac.envs.dmc:make_suite_env")
+    assert not families.renders_at_size("gymnasium.envs.classic_control.pendulum:PendulumEnv")
+
+
+def test_a_family_is_a_module_and_one_row(monkeypatch):
+    """A family added as one row (here a toy one whose `toy:NAME` ids register on first use, and whose envs
+    cannot be made while its `problem` says why) is resolved, made and refused through the row alone."""
+    from softac.envs import families
+    from softac.envs.make import make_env, resolve_env_id
+    from softac.errors import EnvError
+
+    def resolve(env_id: str) -> str:
+        name = f"Toy{env_id.removeprefix('toy:').capitalize()}-v0"
+        if name not in gym.registry:
+            gym.register(name, entry_point="toy_family_test:make")
+        return name
+
+    problem = {"why": None}
+    toy = families.EnvFamily("toy", owns=lambda env_id: env_id.startswith("toy:"), resolve=resolve,
+                             problem=lambda: problem["why"], entry_points=("toy_family_test",))
+    monkeypatch.setattr(families, "FAMILIES", (toy, *families.FAMILIES))
+    monkeypatch.setitem(__import__("sys").modules, "toy_family_test",
+                        type("M", (), {"make": staticmethod(lambda **kw: gym.make("Pendulum-v1").unwrapped)}))
+    try:
+        assert resolve_env_id("toy:swing") == "ToySwing-v0"
+        assert make_env("toy:swing").action_space.shape == (1,)
+        gym.registry["ToyBroken-v0"] = gym.envs.registration.EnvSpec("ToyBroken-v0",
+                                                                      entry_point="toy_family_test:nothing")
+        problem["why"] = "toy envs need toy-sim 2: pip install toy-sim"
+        with pytest.raises(EnvError, match="cannot make env 'ToyBroken-v0': toy envs need toy-sim 2"):
+            make_env("toy:broken")
+    finally:
+        for name in ("ToySwing-v0", "ToyBroken-v0"):
+            gym.registry.pop(name, None)
