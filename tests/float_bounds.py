@@ -25,7 +25,7 @@ Algorithms, ch. 3), carried layer by layer as a vector `e` of bounds on |compute
   error left), else at most one bf16 step away. Rare observations near a boundary get a bound as large as
   their true error can be, the others keep a float32-sized one;
 * CrossQ's batch renormalisation: JAX evaluates it as written, before the dot; the export folds it into
-  the float32 layers' weights in float64 (export._fold_batch_renorm) and rounds them once, which rounds
+  the float32 layers' weights in float64 (networks/mlp.py, _fold_batch_renorm) and rounds them once, which rounds
   differently. Each layer's rounding term is the larger of the two programs' terms, so the bound covers
   both (a bound built from the exported, folded arrays would understate JAX's error where x ~ mean).
 

@@ -23,7 +23,7 @@ import numpy as np
 from softac.version import __version__
 from softac.run.checkpoint import is_checkpoint
 from softac.errors import SoftacError
-from softac.learner.numpy_forward import dense_bf16_flags, is_simba, round_bf16, simba_block_count
+from softac.learner.numpy_forward import is_simba
 from softac.learner.normalization import EPSILON
 from softac.run.run_dir import write_atomic
 from softac.run.checkpoint_contents import load_learner
@@ -68,95 +68,15 @@ def check_target(path: Path, format: str) -> None:
 
 # ---- the arrays -------------------------------------------------------------------
 
-def _batch_renorm_steps(layer: dict, stats: dict, eps: float) -> dict[str, np.ndarray]:
-    """A layer input's batch renormalisation as networks.BatchRenorm computes it in evaluation mode, step by
-    step in float32 ((x - mean) * inv_std * scale + bias, inv_std from JAX's own rsqrt): the values a bf16
-    layer then rounds are JAX's to the last bit, so the rounding is too."""
-    import jax  # here, not at the top: `softac export` checks its inputs before JAX loads
-
-    inv_std = jax.lax.rsqrt(jax.numpy.asarray(stats["var"], np.float32) + np.float32(eps))
-    return {"mean": np.asarray(stats["mean"], np.float32), "inv_std": np.asarray(inv_std, np.float32),
-            "scale": np.asarray(layer["norm_scale"], np.float32), "bias": np.asarray(layer["norm_bias"], np.float32)}
-
-
-def _fold_batch_renorm(layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
-    """(w, b) of one dense layer with its input's batch renormalisation (evaluation mode: running statistics)
-    folded in: ((x - mean) / sqrt(var + eps) * scale + bias) @ w + b == x @ (s[:, None] * w) + (t @ w + b),
-    with s = scale / sqrt(var + eps) and t = bias - mean * s. Folded in float64, then rounded once."""
-    w, b = np.asarray(layer["w"], np.float64), np.asarray(layer["b"], np.float64)
-    s = np.asarray(layer["norm_scale"], np.float64) / np.sqrt(np.asarray(stats["var"], np.float64) + eps)
-    t = np.asarray(layer["norm_bias"], np.float64) - np.asarray(stats["mean"], np.float64) * s
-    return (s[:, None] * w).astype(np.float32), (t @ w + b).astype(np.float32)
-
-
-def _actor_layers(learner: Learner) -> list[dict[str, np.ndarray]]:
-    """The actor's layers as numpy_forward lays them out (w, b; norm, the input's batch renormalisation of a
-    CrossQ layer that multiplies in bf16; bf16: whether it does), the last cut to the mean action's columns
-    (the log-std is not needed)."""
-    from softac.learner.networks.layers import compiled_in_bf16  # imports JAX, which the learner has loaded by now
-
-    (actor, actor_stats, _), norm = learner.deployed_policy(), learner.functions.policy.batch_renorm
-    stats = actor_stats if norm is not None else [None] * len(actor)
-    layers = []
-    for layer, layer_stats in zip(actor, stats):
-        bf16 = compiled_in_bf16(np.shape(layer["w"]), learner.matmul_dtype)
-        entry = {"w": np.asarray(layer["w"], np.float32), "b": np.asarray(layer["b"], np.float32), "bf16": bf16}
-        if norm is not None and bf16:  # folded, the weights would be rounded after scaling: not what JAX does
-            entry["norm"] = _batch_renorm_steps(layer, layer_stats, norm.eps)
-        elif norm is not None:
-            entry["w"], entry["b"] = _fold_batch_renorm(layer, layer_stats, norm.eps)
-        if bf16:
-            entry["w"] = round_bf16(entry["w"])
-        layers.append(entry)
-    act_dim = learner.spaces.act_dim
-    layers[-1]["w"] = np.ascontiguousarray(layers[-1]["w"][:, :act_dim])
-    layers[-1]["b"] = np.ascontiguousarray(layers[-1]["b"][:act_dim])
-    return layers
-
-
-def simba_actor_arrays(learner: Learner) -> dict[str, np.ndarray]:
-    """A SimBa actor (networks.simba) as numpy_forward lays it out: the embedding, each residual block's
-    LayerNorm and two layers, the final LayerNorm and the output layer cut to the mean action's columns;
-    `bf16` marks, in that order of the dense layers, the ones that multiply in bfloat16 (weights rounded)."""
-    from softac.learner.networks.simba import SIMBA_LN_EPS  # imports JAX, loaded by the learner by now
-    from softac.learner.networks.layers import compiled_in_bf16
-
-    actor, matmul_dtype = learner.deployed_policy()[0], learner.matmul_dtype
-    arrays: dict[str, np.ndarray] = {"network": np.asarray("simba"), "ln_eps": np.asarray(SIMBA_LN_EPS, np.float32)}
-    bf16_flags = []
-
-    def put_dense(name: str, w: Any, b: Any, columns: int | None = None) -> None:
-        w, b = np.asarray(w, np.float32), np.asarray(b, np.float32)
-        bf16 = compiled_in_bf16(w.shape, matmul_dtype)  # on the whole layer, as JAX decides it
-        w, b = np.ascontiguousarray(w[:, :columns]), np.ascontiguousarray(b[:columns])
-        arrays[f"{name}_w"], arrays[f"{name}_b"] = (round_bf16(w) if bf16 else w), b
-        bf16_flags.append(bf16)
-
-    put_dense("embed", actor["embed"]["w"], actor["embed"]["b"])
-    for i, block in enumerate(actor["blocks"]):
-        arrays[f"block{i}_ln_scale"] = np.asarray(block["ln_scale"], np.float32)
-        arrays[f"block{i}_ln_bias"] = np.asarray(block["ln_bias"], np.float32)
-        put_dense(f"block{i}_1", block["w1"], block["b1"])
-        put_dense(f"block{i}_2", block["w2"], block["b2"])
-    head = actor["head"]
-    arrays["head_ln_scale"] = np.asarray(head["ln_scale"], np.float32)
-    arrays["head_ln_bias"] = np.asarray(head["ln_bias"], np.float32)
-    put_dense("head", head["w"], head["b"], columns=learner.spaces.act_dim)
-    if any(bf16_flags):
-        arrays["bf16"] = np.array(bf16_flags, np.int8)
-    return arrays
-
-
-# the network kinds (config.network; crossq's batch-renormalised MLP among mlp's) whose layers the export lays
-# out for numpy_forward and builds in ONNX
-EXPORTED_NETWORKS = ("mlp", "simba")
-
-
 def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     """Everything the deterministic policy needs, as named float32 arrays (the activation's name aside), and a
     few entries for the record (`step`: the env steps it was trained for)."""
-    if learner.config.network not in EXPORTED_NETWORKS:  # a kind added to the registry without its export here
-        raise SoftacError(f"export writes the networks {', '.join(EXPORTED_NETWORKS)}; this agent's network is "
+    from softac.learner.networks import NETWORKS, network_kind  # imports JAX, which the learner has loaded by now
+
+    kind = network_kind(learner.config.network, learner.config.crossq)
+    if kind.export is None:  # a kind in the registry without an export of its own
+        exported = sorted({name for name, entry in NETWORKS.items() if entry.export is not None} - {"batch_renorm_mlp"})
+        raise SoftacError(f"export writes the networks {', '.join(exported)}; this agent's network is "
                           f"{learner.config.network}")
     arrays: dict[str, np.ndarray] = {}
     obs_norm = learner.obs_norm
@@ -164,16 +84,9 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
         arrays["obs_mean"] = obs_norm.mean.astype(np.float32)
         arrays["obs_std"] = np.sqrt(obs_norm.var + EPSILON).astype(np.float32)
         arrays["obs_clip"] = np.asarray(obs_norm.clip, np.float32)
-    if learner.config.network == "simba":
-        arrays.update(simba_actor_arrays(learner))
-    else:
-        layers = _actor_layers(learner)
-        for i, layer in enumerate(layers):
-            arrays[f"w{i}"], arrays[f"b{i}"] = layer["w"], layer["b"]
-            for key, value in layer.get("norm", {}).items():
-                arrays[f"n{i}_{key}"] = value
-        if any(layer["bf16"] for layer in layers):
-            arrays["bf16"] = np.array([layer["bf16"] for layer in layers], np.int8)
+    actor, actor_stats, _ = learner.deployed_policy()
+    arrays.update(kind.export.arrays(actor, actor_stats, learner.functions.policy.batch_renorm, learner.matmul_dtype,
+                                     learner.spaces.act_dim))
     if learner.functions.policy.sde:
         from softac.learner.policy import SDE_CLIP_MEAN
 
@@ -226,47 +139,12 @@ def numpy_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 
 # ---- the ONNX graph -----------------------------------------------------------------
 
-class _Graph:
-    """Nodes and constants of an ONNX graph, each node's output named after it."""
-
-    def __init__(self, onnx: Any):
-        self.onnx = onnx
-        self.nodes: list[Any] = []
-        self.constants: dict[str, Any] = {}
-
-    def const(self, name: str, value: np.ndarray | float, dtype: Any = np.float32) -> str:
-        if name not in self.constants:
-            array = np.asarray(value, dtype)
-            self.constants[name] = self.onnx.numpy_helper.from_array(array, name)
-        return name
-
-    def op(self, op_type: str, *inputs: str, output: str | None = None, **attributes: Any) -> str:
-        output = output or f"{op_type.lower()}_{len(self.nodes)}"
-        self.nodes.append(self.onnx.helper.make_node(op_type, list(inputs), [output], **attributes))
-        return output
-
-
-def _onnx_activation(g: _Graph, name: str, x: str) -> str:
-    if name == "relu":
-        return g.op("Relu", x)
-    if name == "tanh":
-        return g.op("Tanh", x)
-    if name == "elu":
-        return g.op("Elu", x, alpha=1.0)
-    if name == "gelu":  # the tanh approximation, as jax.nn.gelu (opset 17 has no Gelu op)
-        cube = g.op("Mul", g.op("Mul", x, x), x)
-        inner = g.op("Add", x, g.op("Mul", g.const("gelu_c", 0.044715), cube))
-        tanh = g.op("Tanh", g.op("Mul", g.const("sqrt_2_over_pi", np.sqrt(2.0 / np.pi)), inner))
-        cdf = g.op("Mul", g.const("half", 0.5), g.op("Add", g.const("one", 1.0), tanh))
-        return g.op("Mul", x, cdf)
-    raise SoftacError(f"cannot export activation '{name}'")
-
-
-def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
+def _onnx_encoder(g: Any, arrays: dict[str, np.ndarray], images: str) -> str:
     """softac.learner.encoder.encode on uint8 frame stacks [batch, k, h, w, c]: the frames laid along the channels
     (ONNX's Conv takes [batch, channels, h, w]), the convolutions, the features flattened in JAX's [h, w,
     channels] order, the linear layer, LayerNorm as JAX computes it, tanh."""
     from softac.learner.encoder import LN_EPS  # here, not at the top: `softac export` checks its inputs before JAX loads
+    from softac.learner.networks.onnx_layers import layer_norm
 
     onnx = g.onnx
     k, height, width, channels = (int(n) for n in arrays["image_shape"])
@@ -280,49 +158,7 @@ def _onnx_encoder(g: _Graph, arrays: dict[str, np.ndarray], images: str) -> str:
                               strides=[stride, stride]))
     x = g.op("Reshape", g.op("Transpose", x, perm=[0, 2, 3, 1]), g.const("flat_shape", [0, -1], np.int64))
     h = g.op("Add", g.op("MatMul", x, g.const("enc_w", arrays["enc_w"])), g.const("enc_b", arrays["enc_b"]))
-    return g.op("Tanh", _onnx_layer_norm(g, arrays, h, "enc_ln", LN_EPS))
-
-
-def _onnx_layer_norm(g: _Graph, arrays: dict[str, np.ndarray], x: str, name: str, eps: float) -> str:
-    """LayerNorm over the last axis as networks.layer_norm computes it, then the arrays NAME_scale, NAME_bias."""
-    centred = g.op("Sub", x, g.op("ReduceMean", x, axes=[-1], keepdims=1))
-    variance = g.op("ReduceMean", g.op("Mul", centred, centred), axes=[-1], keepdims=1)
-    inv_std = g.op("Reciprocal", g.op("Sqrt", g.op("Add", variance, g.const(f"{name}_eps", eps))))
-    return g.op("Add", g.op("Mul", g.op("Mul", centred, inv_std), g.const(f"{name}_scale", arrays[f"{name}_scale"])),
-                g.const(f"{name}_bias", arrays[f"{name}_bias"]))
-
-
-def _onnx_dense(g: _Graph, arrays: dict[str, np.ndarray], x: str, w: str, b: str, bf16: bool) -> str:
-    if bf16:  # rounded to bf16 and back, as the run's bf16 matmul sees its input
-        x = g.op("Cast", g.op("Cast", x, to=g.onnx.TensorProto.BFLOAT16), to=g.onnx.TensorProto.FLOAT)
-    return g.op("Add", g.op("MatMul", x, g.const(w, arrays[w])), g.const(b, arrays[b]))
-
-
-def _onnx_mlp_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
-    bf16 = dense_bf16_flags(arrays)
-    for i in range(len(bf16)):
-        if f"n{i}_mean" in arrays:
-            x = g.op("Mul", g.op("Sub", x, g.const(f"n{i}_mean", arrays[f"n{i}_mean"])),
-                     g.const(f"n{i}_inv_std", arrays[f"n{i}_inv_std"]))
-            x = g.op("Add", g.op("Mul", x, g.const(f"n{i}_scale", arrays[f"n{i}_scale"])),
-                     g.const(f"n{i}_bias", arrays[f"n{i}_bias"]))
-        x = _onnx_dense(g, arrays, x, f"w{i}", f"b{i}", bf16[i])
-        if i < len(bf16) - 1:
-            x = _onnx_activation(g, str(arrays["activation"]), x)
-    return x
-
-
-def _onnx_simba_actor(g: _Graph, arrays: dict[str, np.ndarray], x: str) -> str:
-    """numpy_forward.simba_forward: the embedding, the residual blocks, the final LayerNorm, the output layer."""
-    eps, n_blocks = float(arrays["ln_eps"]), simba_block_count(arrays)
-    bf16 = iter(dense_bf16_flags(arrays))
-    x = _onnx_dense(g, arrays, x, "embed_w", "embed_b", next(bf16))
-    for i in range(n_blocks):
-        h = _onnx_layer_norm(g, arrays, x, f"block{i}_ln", eps)
-        h = _onnx_activation(g, str(arrays["activation"]),
-                             _onnx_dense(g, arrays, h, f"block{i}_1_w", f"block{i}_1_b", next(bf16)))
-        x = g.op("Add", x, _onnx_dense(g, arrays, h, f"block{i}_2_w", f"block{i}_2_b", next(bf16)))
-    return _onnx_dense(g, arrays, _onnx_layer_norm(g, arrays, x, "head_ln", eps), "head_w", "head_b", next(bf16))
+    return g.op("Tanh", layer_norm(g, arrays, h, "enc_ln", LN_EPS))
 
 
 def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
@@ -330,8 +166,11 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     input per key, [batch, size] each, concatenated in the flat observation's order), output `action`
     [batch, act_dim]. An image agent's input `obs` is uint8 frame stacks [batch, k, h, w, c]; for an image
     beside state values, the image key's input is those and each state key's [batch, size] float32."""
+    from softac.learner.networks import NETWORKS
+    from softac.learner.networks.onnx_layers import Graph
+
     onnx = require_onnx()
-    g = _Graph(onnx)
+    g = Graph(onnx)
     obs_dim = arrays["embed_w" if is_simba(arrays) else "w0"].shape[0]
     if "image_shape" in arrays:
         image_input = str(arrays.get("image_key", "obs"))
@@ -355,7 +194,7 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         x = g.op("Div", g.op("Sub", x, g.const("obs_mean", arrays["obs_mean"])), g.const("obs_std", arrays["obs_std"]))
         clip = float(arrays["obs_clip"])
         x = g.op("Clip", x, g.const("obs_clip_low", -clip), g.const("obs_clip_high", clip))
-    x = (_onnx_simba_actor if is_simba(arrays) else _onnx_mlp_actor)(g, arrays, x)
+    x = NETWORKS[str(arrays.get("network", "mlp"))].export.onnx(g, arrays, x)  # files hold "network" but for an MLP
     if "mean_clip" in arrays:
         clip = float(arrays["mean_clip"])
         x = g.op("Clip", x, g.const("mean_clip_low", -clip), g.const("mean_clip_high", clip))

@@ -43,4 +43,5 @@ def _features(params, stats, x, activation, matmul_dtype, normalize=False, masks
 BATCH_RENORM_MLP = Network(
     init=lambda rng, in_dim, widths, out_dim, init, out_gain: mlp.init_mlp(rng, [in_dim, *widths, out_dim], init,
                                                                            out_gain, norm=True),
-    features=_features, head=lambda params: params[-1], output_mask=mlp.output_layer_mask, parameters=mlp.parameters)
+    features=_features, head=lambda params: params[-1], output_mask=mlp.output_layer_mask, parameters=mlp.parameters,
+    export=mlp.MLP_EXPORT)  # its batch renormalisation folded into the weights, or kept where a layer is bf16

@@ -1,6 +1,6 @@
 """What a network kind of the registry (softac.learner.networks.NETWORKS) provides: how its parameters are made,
-run, counted and decayed. A network's output is `dense(features(...), head(params))`; the actor and the critic
-ensemble (softac.learner.networks) are built on these, whatever the kind."""
+run, counted, decayed and exported. A network's output is `dense(features(...), head(params))`; the actor and
+the critic ensemble (softac.learner.networks) are built on these, whatever the kind."""
 
 from __future__ import annotations
 
@@ -8,6 +8,17 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 Params = Any
+
+
+@dataclass(frozen=True)
+class ActorExport:
+    """How `softac export` writes a kind's deterministic actor. Its NumPy forward pass is numpy_forward's (a
+    file that imports NumPy alone, so that users can copy it), chosen there by the arrays' `network` entry."""
+    # (actor, actor_stats, batch_renorm (BatchRenorm or None), matmul_dtype, act_dim) -> named float32 arrays,
+    # the output layer cut to the mean action's columns
+    arrays: Callable[..., dict[str, Any]]
+    # (onnx_layers.Graph, arrays, input name) -> the name of the mean action before tanh: numpy_forward's pass
+    onnx: Callable[..., str]
 
 
 @dataclass(frozen=True)
@@ -22,3 +33,4 @@ class Network:
     parameters: Callable[[int, list[int], int], int]  # (in_dim, widths, out_dim) -> count, for the memory check
     # activations a hidden unit keeps for the backward pass, relative to a plain MLP's (the memory check)
     activation_factor: int = 1
+    export: ActorExport | None = None  # None: `softac export` refuses the kind (one line)
