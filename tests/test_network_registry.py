@@ -69,3 +69,48 @@ def test_the_export_refuses_a_network_it_has_no_layout_for(tiny, tmp_path, monke
     agent = SAC(tiny(network="sine"))
     with pytest.raises(SoftacError, match="export writes the networks mlp, simba; this agent's network is sine"):
         export_policy(agent, tmp_path / "policy.npz", "numpy")
+
+
+def _sine_export_arrays(actor, actor_stats, batch_renorm, matmul_dtype, act_dim):
+    arrays = {"network": np.asarray("sine_exported")}
+    for i, layer in enumerate(actor):
+        w, b = np.asarray(layer["w"], np.float32), np.asarray(layer["b"], np.float32)
+        if i == len(actor) - 1:
+            w, b = np.ascontiguousarray(w[:, :act_dim]), np.ascontiguousarray(b[:act_dim])
+        arrays[f"w{i}"], arrays[f"b{i}"] = w, b
+    return arrays
+
+
+def _sine_onnx(g, arrays, x):
+    from softac.learner.networks import onnx_layers
+
+    n = sum(1 for key in arrays if key.startswith("w") and key[1:].isdigit())
+    for i in range(n):
+        x = onnx_layers.dense(g, arrays, x, f"w{i}", f"b{i}", False)
+        if i < n - 1:
+            x = g.op("Sin", x)
+    return x
+
+
+def test_a_network_with_an_export_in_its_entry_is_exported_through_it(tiny, tmp_path, monkeypatch):
+    """The export reaches a kind through its entry's ActorExport alone: its arrays go into the file and its ONNX
+    nodes into the graph, which then acts as predict() does (float32: the ONNX runtime's sums in other orders)."""
+    ort = pytest.importorskip("onnxruntime")
+    from softac.learner.networks.entry import ActorExport
+    from softac.outputs.export import export_policy
+
+    exported = Network(init=MLP.init, features=_sine_features, head=lambda params: params[-1],
+                       output_mask=MLP.output_mask, parameters=MLP.parameters,
+                       export=ActorExport(arrays=_sine_export_arrays, onnx=_sine_onnx,
+                                          input_size=lambda arrays: arrays["w0"].shape[0]))
+    monkeypatch.setitem(NETWORKS, "sine_exported", exported)
+    monkeypatch.setattr("softac.config.checks.NETWORK_NAMES", (*names.NETWORK_NAMES, "sine_exported"))
+    agent = SAC(tiny(network="sine_exported", matmul_dtype="float32"))
+    agent.learn(300, progress=False)
+    path = export_policy(agent, tmp_path / "policy.onnx", "onnx")
+    assert str(np.load(export_policy(agent, tmp_path / "policy.npz", "numpy"))["network"]) == "sine_exported"
+    obs = np.random.default_rng(1).normal(size=(16, 2)).astype(np.float32)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    actions = session.run(["action"], {"obs": obs})[0]
+    np.testing.assert_allclose(actions, agent.predict(obs), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(actions, 0.0)

@@ -45,6 +45,15 @@ def test_an_old_checkpoint_loads_to_the_same_arrays(case, tmp_path):
     run = shutil.copytree(FIXTURES / case / "run", tmp_path / "run")  # never written into the repository
     agent = SAC.load(run, which="last")
     assert agent.num_steps == CHECKPOINT_AT
+    # each leaf from its own old name (the variants' fields sat beside SAC's before SACState.variants): a swap of
+    # two leaves of one shape (an encoder and its target) would keep the sorted contents below equal
+    import jax
+
+    _, old = load_checkpoint(run / "checkpoints" / "last")
+    for path, leaf in jax.tree_util.tree_flatten_with_path(agent.learner.state)[0]:
+        name = "state" + jax.tree_util.keystr(path)
+        np.testing.assert_array_equal(np.asarray(leaf), old[name.replace("state.variants.", "state.", 1)],
+                                      err_msg=name)
     agent.save(tmp_path / "again", include_buffer=True)
     assert _contents(tmp_path / "again") == _contents(run / "checkpoints" / "last")
 

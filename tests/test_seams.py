@@ -29,8 +29,8 @@ class ChunksOf:
 
 def test_a_source_that_runs_many_env_steps_a_chunk_plugs_into_the_one_loop(tiny, tmp_path):
     """The loop with a source of 5-step chunks trains exactly as with the host's one-step chunks (the same
-    learner state, run state and episodes), and writes its log rows and evaluations on their schedule: the
-    loop does the host's work between chunks, whatever a chunk holds."""
+    learner state, run state and episodes), and writes the same log rows and evaluations (its intervals are
+    multiples of 5): the loop does the host's work between chunks, whatever a chunk holds."""
     from softac import SAC
     from softac.run.csv_logs import read_csv
     from softac.run.loop import TrainingLoop
@@ -46,11 +46,33 @@ def test_a_source_that_runs_many_env_steps_a_chunk_plugs_into_the_one_loop(tiny,
     assert summary["stop_reason"] == "steps" and chunked.num_steps == 500
     assert_same_learner(plain, chunked)
     assert_same_run_state(plain, chunked)
-    for name in ("progress.csv", "eval.csv"):
-        a, b = read_csv(tmp_path / "plain" / name), read_csv(tmp_path / "chunked" / name)
-        assert [row["step"] for row in a] == [row["step"] for row in b] and len(a) > 1, name
-    assert [r["mean_return"] for r in read_csv(tmp_path / "plain" / "eval.csv")] == \
-        [r["mean_return"] for r in read_csv(tmp_path / "chunked" / "eval.csv")]
+    for name in ("progress.csv", "eval.csv"):  # every row and value but the clock's
+        a, b = (read_csv(tmp_path / run / name) for run in ("plain", "chunked"))
+        clockless = [[{k: v for k, v in row.items() if k not in ("time_s", "fps")} for row in rows] for rows in (a, b)]
+        assert clockless[0] == clockless[1] and len(a) > 1, name
+    # the same episodes, each logged at the end of the chunk it ended in
+    a, b = (read_csv(tmp_path / run / "episodes.csv") for run in ("plain", "chunked"))
+    assert [(r["return"], r["length"]) for r in a] == [(r["return"], r["length"]) for r in b] and len(a) > 3
+    assert [int(r["step"]) for r in b] == [-(-int(r["step"]) // 5) * 5 for r in a]
+
+
+def test_periodic_resets_follow_chunks_that_cross_their_interval(tiny):
+    """reset_interval with chunks that do not divide it: one reset before the first chunk past each multiple,
+    none skipped (7-step chunks cross 100 in the chunk 98 -> 105), and the host's one-step chunks reset at the
+    first step past each multiple as before."""
+    from softac import SAC
+    from softac.run.loop import TrainingLoop
+
+    for n, expected in ((7, [(105, 1), (203, 2)]), (1, [(100, 1), (200, 2)])):
+        agent = SAC(tiny(reset_interval=100, total_steps=1000))
+        resets = []
+        reset = agent.learner.reset_networks
+        agent.learner.reset_networks = lambda seed, k: (resets.append((agent.num_steps, k)), reset(seed, k))
+        loop = TrainingLoop(agent.learner, agent.collector, agent.run_state, 245, progress=False, agent=agent)
+        loop.source = ChunksOf(loop.source, n)
+        loop.run()
+        agent.collector.close_workers()
+        assert resets == expected, (n, resets)
 
 
 class _Policy:
@@ -90,16 +112,47 @@ def test_the_explorer_chooses_warm_up_policy_and_random_actions_and_refuses_non_
     assert not np.array_equal(mixed, actions) and np.all(np.abs(mixed) <= 1)
     np.testing.assert_allclose(mixed_env, 2.0 * mixed, rtol=1e-6)
 
+    policy.config = config  # random_action_prob 0: the run's NumPy stream is left alone after warm-up
+    rng_state = streams.rng.bit_generator.state
+    explorer.actions(np.zeros((2, 3)), step=13)
+    assert streams.rng.bit_generator.state == rng_state
+
     policy.actions = np.array([[np.nan], [0.0]], np.float32)
     with pytest.raises(RunFailed, match="training diverged at step 14: the policy produced non-finite actions"):
         explorer.actions(np.zeros((2, 3)), step=14)
 
 
+def test_the_explorer_acts_through_the_runs_noise_and_restarts_an_ended_episodes_sequence(tiny):
+    """With pink noise the policy acts on the noise sequence's next values (not the act key), and an env whose
+    episode ended starts a fresh sequence."""
+    from softac.replay.exploration import ColoredNoise, Explorer
+    from softac.run.run_state import RunState
+
+    config = tiny(learning_starts=0, n_envs=2)
+    policy = _Policy(config, np.zeros((2, 1), np.float32))
+    seen = []
+    policy.act_with_noise = lambda obs, noise: (seen.append(noise.copy()), (np.tanh(noise), 2 * np.tanh(noise)))[1]
+    noise = ColoredNoise(1.0, 2, 1, 16, seed=0)
+    streams = RunState.new(0, noise)
+    key = np.asarray(streams.act_key).copy()
+    explorer = Explorer(policy, streams)
+    first = noise.sequences[:, :, :2].copy()
+    for step in range(2):
+        actions, _ = explorer.actions(np.zeros((2, 3)), step)
+        np.testing.assert_array_equal(seen[step], first[:, :, step].astype(np.float32))  # the sequence's values
+        np.testing.assert_array_equal(actions, np.tanh(seen[step]))
+    assert policy.calls == 0 and np.array_equal(np.asarray(streams.act_key), key)  # the key is not drawn from
+    explorer.episode_ended(1)
+    assert noise.position.tolist() == [2, 0] and not np.array_equal(noise.sequences[1, :, :2], first[1])
+
+
 def test_env_ids_find_their_family():
     from softac.envs import families
 
-    ids = ("dmc:cheetah-run", "dm_control/walker-walk-v0", "FetchPush-v4", "Hopper-v5", "mymodule:Thing-v0")
-    assert [families.family_of(i).name for i in ids] == ["dmc", "dmc", "robotics", "gymnasium", "gymnasium"]
+    ids = ("dmc:cheetah-run", "dm_control/walker-walk-v0", "FetchPush-v4", "Hopper-v5", "mymodule:Thing-v0",
+           "FetchEnvs:MyArm-v0")  # a user's module named like Gymnasium-Robotics' ids is still imported first
+    assert [families.family_of(i).name for i in ids] == ["dmc", "dmc", "robotics", "gymnasium", "gymnasium",
+                                                         "gymnasium"]
     assert families.family_of_entry_point("gymnasium_robotics.envs.fetch.push:MujocoFetchPushEnv").name == "robotics"
     assert families.family_of_entry_point("gymnasium.envs.mujoco.hopper_v5:HopperEnv") is None  # no row claims it
     assert families.renders_at_size("gymnasium.envs.mujoco.hopper_v5:HopperEnv")

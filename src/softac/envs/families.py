@@ -6,7 +6,8 @@ Any other Gymnasium id, or `module:EnvId`, is the `gymnasium` family's. A family
 config's knowledge (softac.config.names: the id forms that choose presets), since the config imports no env.
 
 Adding a family: its module here in envs/ (a resolver; the exact env state where Gymnasium's is not enough)
-and a row in FAMILIES; an id form in config/names.py and a preset file only if it has a default preset.
+and a row in FAMILIES, before gymnasium's (which takes every id); an id form in config/names.py and a preset
+file only if it has a default preset.
 """
 
 from __future__ import annotations
@@ -33,13 +34,13 @@ class EnvFamily:
 def resolve_gymnasium(env_id: str) -> str:
     """`module:EnvId` imports `module` (which registers EnvId) first; any other id is Gymnasium's as it is."""
     if ":" not in env_id:
-        return robotics.resolve(env_id)  # a Gymnasium-Robotics id written without its family's import
+        return env_id
     module, _, name = env_id.partition(":")
     try:
         importlib.import_module(module)
     except Exception as exc:  # any import failure is the user's module, not ours
         raise EnvError(f"cannot import module '{module}' for env '{env_id}': {exc}") from None
-    return robotics.resolve(name)
+    return robotics.resolve(name)  # `module:FetchReach-v4`: Gymnasium-Robotics' id, where module did not register it
 
 
 FAMILIES = (
@@ -54,7 +55,8 @@ FAMILIES = (
 
 
 def family_of(env_id: str) -> EnvFamily:
-    """The first family whose ids include `env_id` (gymnasium's include every id)."""
+    """The first family whose ids include `env_id` (gymnasium's, the last row, include every id: a new family's
+    row goes before it)."""
     return next(family for family in FAMILIES if family.owns(env_id))
 
 

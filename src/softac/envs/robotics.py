@@ -18,7 +18,8 @@ ROBOTICS_MUJOCO = ((3, 8, 1), (3, 12, 0))
 
 
 def is_robotics_id(env_id: str) -> bool:
-    return env_id.startswith(ROBOTICS_PREFIXES)
+    """One of the ids Gymnasium-Robotics registers (`module:EnvId` is the module's, whatever EnvId)."""
+    return ":" not in env_id and env_id.startswith(ROBOTICS_PREFIXES)
 
 
 def resolve(env_id: str) -> str:

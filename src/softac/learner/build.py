@@ -83,7 +83,8 @@ def assemble(s: UpdateSettings, initial_alpha: float, actor: Any, critic: Any, k
             # SACConfig refuses target_encoder without target critics
             target_encoder=copy(encoder, image is not None and image.target_encoder),
             actor_head=actor_head,
-            actor_head_opt=image.actor_head_tx.init(actor_head) if image and image.actor_head_tx else (),
+            actor_head_opt=(image.actor_head_tx.init(actor_head)
+                            if image is not None and image.actor_head_tx is not None else ()),
             policy_average=copy((actor, actor_stats, policy_encoder(encoder, actor_head)), s.policy_average_tau > 0)),
     )
 

@@ -3,8 +3,9 @@ CrossQ+WN (Palenicek et al. 2025), TQC (Kuznetsov et al. 2020), DroQ (Hiraoka et
 (Lee et al. 2024), DrQ from images (Kostrikov et al. 2021).
 
 Read with `policy.py` (the tanh-squashed Gaussian) and `losses.py` (the critic, actor and entropy
-losses). This module composes them: a critic step, an actor-and-alpha step, the target update, then one
-jitted `update` that fuses `gradient_steps` of them with `lax.scan` and sums their metrics. The variants
+losses). This module composes them: a critic step, an actor-and-alpha step, the target update, then `update`,
+which fuses `gradient_steps` of them in one call (`lax.scan`; unrolled for image observations) and sums their
+metrics; `build.compiled_update` jits it once for every build. The variants
 differ in the losses (`losses.Critics`), the networks and the optimisers (AdamW, weight normalisation), so
 nothing here branches on the algorithm but whether there are target critics, the networks' shapes and
 whether the observations are images (`pixels.py`: what the actor and critics read of them).
@@ -95,8 +96,6 @@ class UpdateSettings:
     @property
     def has_targets(self) -> bool:
         return self.critics.has_targets
-
-
 
 
 # ---- one gradient step ---------------------------------------------------------------------------

@@ -23,7 +23,6 @@ import numpy as np
 from softac.version import __version__
 from softac.run.checkpoint import is_checkpoint
 from softac.errors import SoftacError
-from softac.learner.numpy_forward import is_simba
 from softac.learner.normalization import EPSILON
 from softac.run.run_dir import write_atomic
 from softac.run.checkpoint_contents import load_learner
@@ -71,11 +70,12 @@ def check_target(path: Path, format: str) -> None:
 def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     """Everything the deterministic policy needs, as named float32 arrays (the activation's name aside), and a
     few entries for the record (`step`: the env steps it was trained for)."""
+    from softac.config.names import NETWORK_NAMES
     from softac.learner.networks import NETWORKS, network_kind  # imports JAX, which the learner has loaded by now
 
     kind = network_kind(learner.config.network, learner.config.crossq)
     if kind.export is None:  # a kind in the registry without an export of its own
-        exported = sorted({name for name, entry in NETWORKS.items() if entry.export is not None} - {"batch_renorm_mlp"})
+        exported = [name for name in NETWORK_NAMES if name in NETWORKS and NETWORKS[name].export is not None]
         raise SoftacError(f"export writes the networks {', '.join(exported)}; this agent's network is "
                           f"{learner.config.network}")
     arrays: dict[str, np.ndarray] = {}
@@ -171,7 +171,8 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
 
     onnx = require_onnx()
     g = Graph(onnx)
-    obs_dim = arrays["embed_w" if is_simba(arrays) else "w0"].shape[0]
+    actor = NETWORKS[str(arrays.get("network", "mlp"))].export  # files hold "network" but for an MLP
+    obs_dim = actor.input_size(arrays)
     if "image_shape" in arrays:
         image_input = str(arrays.get("image_key", "obs"))
         stack = ["batch", *(int(n) for n in arrays["image_shape"])]
@@ -194,7 +195,7 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         x = g.op("Div", g.op("Sub", x, g.const("obs_mean", arrays["obs_mean"])), g.const("obs_std", arrays["obs_std"]))
         clip = float(arrays["obs_clip"])
         x = g.op("Clip", x, g.const("obs_clip_low", -clip), g.const("obs_clip_high", clip))
-    x = NETWORKS[str(arrays.get("network", "mlp"))].export.onnx(g, arrays, x)  # files hold "network" but for an MLP
+    x = actor.onnx(g, arrays, x)
     if "mean_clip" in arrays:
         clip = float(arrays["mean_clip"])
         x = g.op("Clip", x, g.const("mean_clip_low", -clip), g.const("mean_clip_high", clip))

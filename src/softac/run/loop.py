@@ -130,6 +130,7 @@ class TrainingLoop:
         self.eval_envs: list | None = None
         self.stop_reason: str | None = None  # target_return, target_success or a callback's reason: stop now
         self.logged_at: int | None = None
+        self.chunk_started_at: int | None = None  # the last chunk's first step (reset_if_due)
         self.logged_metrics: dict[str, float] = {}  # the last progress row's means
 
     @property
@@ -165,6 +166,7 @@ class TrainingLoop:
                         raise TrainingInterrupted(self.run_state.num_steps, self.save_checkpoint("last"))
                     self.reset_if_due()
                     chunk = self.source.chunk()
+                    self.chunk_started_at = chunk.before
                     self.count_episodes(chunk)
                     self.stop_reason = self.on_intervals(chunk.before, chunk.after)
                     after = chunk.after
@@ -267,12 +269,13 @@ class TrainingLoop:
         return self.learner.metrics() or self.logged_metrics
 
     def reset_if_due(self) -> None:
-        """reset_interval: at the first step past each multiple, so the evaluation and checkpoint at the
-        multiple see the policy before the reset and a resumed run resets where a straight one does; none
-        at or past total_steps (a rule of the config, not of this call): a reset needs the rest of the
-        budget to recover."""
+        """reset_interval: before the first chunk past each multiple (with the host's one-step chunks, at the
+        first step past it), so the evaluation and checkpoint at the multiple see the policy before the reset
+        and a resumed run resets where a straight one does; none at or past total_steps (a rule of the config,
+        not of this call): a reset needs the rest of the budget to recover."""
         step, cfg = self.run_state.num_steps, self.config
-        if 0 < step < cfg.total_steps and crossed(step - cfg.n_envs, step, cfg.reset_interval):
+        before = self.chunk_started_at if self.chunk_started_at is not None else step - cfg.n_envs
+        if 0 < step < cfg.total_steps and crossed(before, step, cfg.reset_interval):
             self.learner.reset_networks(cfg.seed, step // cfg.reset_interval)
 
     def count_episodes(self, chunk: Chunk) -> None:

@@ -6,7 +6,9 @@ the env steps, the replay writes and the gradient steps of each chunk.
 Today's source is the host's: envs stepped on the host one vector step at a time (the collector's pool and
 its NumPy buffer), so a chunk is one vector-env step and its `gradient_steps` updates. A source whose envs
 step on the device, inside the update's jit, runs many env steps a chunk and reports them the same way
-(issue 67).
+(issue 67). The host's work then falls at chunk ends: a log row, evaluation or checkpoint at the end of the
+chunk that crosses its interval, periodic resets before the chunk after it, a callback's on_step once a
+chunk, and a chunk's episodes logged at its last step.
 """
 
 from __future__ import annotations

@@ -15,10 +15,12 @@ class ActorExport:
     """How `softac export` writes a kind's deterministic actor. Its NumPy forward pass is numpy_forward's (a
     file that imports NumPy alone, so that users can copy it), chosen there by the arrays' `network` entry."""
     # (actor, actor_stats, batch_renorm (BatchRenorm or None), matmul_dtype, act_dim) -> named float32 arrays,
-    # the output layer cut to the mean action's columns
+    # the output layer cut to the mean action's columns; among them `network`, the kind's registry name (an
+    # MLP's layout leaves it out, as files from before it did)
     arrays: Callable[..., dict[str, Any]]
     # (onnx_layers.Graph, arrays, input name) -> the name of the mean action before tanh: numpy_forward's pass
     onnx: Callable[..., str]
+    input_size: Callable[[dict[str, Any]], int]  # (arrays) -> the size of the observation vector it takes
 
 
 @dataclass(frozen=True)

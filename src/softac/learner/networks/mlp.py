@@ -125,7 +125,7 @@ def onnx_actor(g: onnx_layers.Graph, arrays: dict[str, np.ndarray], x: str) -> s
     return x
 
 
-MLP_EXPORT = ActorExport(arrays=export_arrays, onnx=onnx_actor)
+MLP_EXPORT = ActorExport(arrays=export_arrays, onnx=onnx_actor, input_size=lambda arrays: arrays["w0"].shape[0])
 
 MLP = Network(
     init=lambda rng, in_dim, widths, out_dim, init, out_gain: init_mlp(rng, [in_dim, *widths, out_dim], init, out_gain),

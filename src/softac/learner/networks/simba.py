@@ -122,4 +122,5 @@ def onnx_actor(g: onnx_layers.Graph, arrays: dict[str, np.ndarray], x: str) -> s
 SIMBA = Network(
     init=lambda rng, in_dim, widths, out_dim, init, out_gain: init_simba(rng, in_dim, widths, out_dim),
     features=_features, head=lambda params: params["head"], output_mask=output_layer_mask, parameters=parameters,
-    activation_factor=6, export=ActorExport(arrays=export_arrays, onnx=onnx_actor))
+    activation_factor=6, export=ActorExport(arrays=export_arrays, onnx=onnx_actor,
+                                            input_size=lambda arrays: arrays["embed_w"].shape[0]))
