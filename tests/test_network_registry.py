@@ -83,8 +83,9 @@ def _sine_export_arrays(actor, actor_stats, batch_renorm, matmul_dtype, act_dim)
 
 def _sine_onnx(g, arrays, x):
     from softac.learner.networks import onnx_layers
+    from softac.learner.numpy_forward import layer_count
 
-    n = sum(1 for key in arrays if key.startswith("w") and key[1:].isdigit())
+    n = layer_count(arrays)
     for i in range(n):
         x = onnx_layers.dense(g, arrays, x, f"w{i}", f"b{i}", False)
         if i < n - 1:

@@ -27,22 +27,30 @@ class ChunksOf:
         return Chunk(parts[0].before, parts[-1].after, [e for part in parts for e in part.finished])
 
 
+def learn_in_chunks(agent, steps: int, n: int, run_dir=None) -> dict:
+    """`agent.learn(steps, run_dir)` with the loop's source replaced by one of `n`-step chunks."""
+    from softac.run.loop import TrainingLoop
+
+    loop = TrainingLoop(agent.learner, agent.collector, agent.run_state, steps, run_dir=run_dir, progress=False,
+                        agent=agent)
+    loop.source = ChunksOf(loop.source, n)
+    try:
+        return loop.run()
+    finally:
+        agent.collector.close_workers()
+
+
 def test_a_source_that_runs_many_env_steps_a_chunk_plugs_into_the_one_loop(tiny, tmp_path):
     """The loop with a source of 5-step chunks trains exactly as with the host's one-step chunks (the same
     learner state, run state and episodes), and writes the same log rows and evaluations (its intervals are
     multiples of 5): the loop does the host's work between chunks, whatever a chunk holds."""
     from softac import SAC
     from softac.run.csv_logs import read_csv
-    from softac.run.loop import TrainingLoop
 
     config = tiny(eval_interval=250, log_interval=50)
     plain, chunked = SAC(config), SAC(config)
     plain.learn(500, run_dir=tmp_path / "plain", progress=False)
-    loop = TrainingLoop(chunked.learner, chunked.collector, chunked.run_state, 500, run_dir=tmp_path / "chunked",
-                        progress=False, agent=chunked)
-    loop.source = ChunksOf(loop.source, 5)
-    summary = loop.run()
-    chunked.collector.close_workers()
+    summary = learn_in_chunks(chunked, 500, 5, run_dir=tmp_path / "chunked")
     assert summary["stop_reason"] == "steps" and chunked.num_steps == 500
     assert_same_learner(plain, chunked)
     assert_same_run_state(plain, chunked)
@@ -61,17 +69,13 @@ def test_periodic_resets_follow_chunks_that_cross_their_interval(tiny):
     none skipped (7-step chunks cross 100 in the chunk 98 -> 105), and the host's one-step chunks reset at the
     first step past each multiple as before."""
     from softac import SAC
-    from softac.run.loop import TrainingLoop
 
     for n, expected in ((7, [(105, 1), (203, 2)]), (1, [(100, 1), (200, 2)])):
         agent = SAC(tiny(reset_interval=100, total_steps=1000))
         resets = []
         reset = agent.learner.reset_networks
         agent.learner.reset_networks = lambda seed, k: (resets.append((agent.num_steps, k)), reset(seed, k))
-        loop = TrainingLoop(agent.learner, agent.collector, agent.run_state, 245, progress=False, agent=agent)
-        loop.source = ChunksOf(loop.source, n)
-        loop.run()
-        agent.collector.close_workers()
+        learn_in_chunks(agent, 245, n)
         assert resets == expected, (n, resets)
 
 

@@ -216,7 +216,6 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     if image_shape is not None:
         obs_dim = config.encoder_features + image_state_dim
     scaler = ActionScaler(np.full(act_dim, -1.0) if low is None else low, np.ones(act_dim) if high is None else high)
-    pixel_offset = config.pixel_offset
     # one compiled call (cached across processes) instead of dozens of eager ops
     new_state = jax.jit(partial(assemble, s, config.alpha))
 
@@ -244,11 +243,11 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         init=init,
         reset=reset,
         update=partial(compiled_update, Program(s), numbers_of(s)),
-        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, pixel_offset=pixel_offset)),
+        act=jax.jit(partial(act, s.policy, scaler, state_dim=image_state_dim, pixel_offset=config.pixel_offset)),
         act_deterministic=jax.jit(partial(act_deterministic, s.policy, state_dim=image_state_dim,
-                                          pixel_offset=pixel_offset)),
+                                          pixel_offset=config.pixel_offset)),
         act_with_noise=jax.jit(partial(act_with_noise, s.policy, scaler, state_dim=image_state_dim,
-                                       pixel_offset=pixel_offset)),
+                                       pixel_offset=config.pixel_offset)),
         policy=s.policy,
         target_entropy=s.target_entropy,
         scaler=scaler,
