@@ -180,11 +180,7 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
                 folded_w, t = s[:, None] * w, bias - mean * s
                 folded_rounding = (gamma(n + 2) * ((np.abs(x) + e) @ np.abs(folded_w) + np.abs(t @ w + b))
                                    + 2.0**-50 * (n + 1) * (np.abs(t) @ np.abs(w) + np.abs(b)))
-            # as JAX (and the export's bf16 layers) compute it: ((x - mean) * inv_std) * scale + bias: the
-            # subtraction, two products (u each) and inv_std's own error scale |x - mean| |s|, the sum |x_hat|
-            centred = np.abs(x - mean) + e
-            x = (x - mean) * s + bias
-            e = e * np.abs(s) + (3 * U + RSQRT_REL) * centred * np.abs(s) + U * (np.abs(x) + e * np.abs(s))
+            x, e = _batch_norm(x, e, layer, layer_stats, norm.eps)
         z, e, magnitude = _dense(x, e, w, b, bf16)
         rounding = np.maximum(gamma(n + 1) * magnitude, folded_rounding)
         e = e + rounding + TINY * (n + 1) * (1.0 + np.abs(w).max())
@@ -192,6 +188,35 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
         if i < len(layers) - 1:
             x, e = _activation_error(activation, x, e)
     return x, e
+
+
+def _batch_norm(x: np.ndarray, e: np.ndarray, layer: dict, stats: dict, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of a batch normalisation in evaluation mode, as JAX (and the exports' kept-apart steps)
+    compute it: ((x - mean) * inv_std) * scale + bias: the subtraction, two products (u each) and inv_std's own
+    error scale |x - mean| |s|, the sum |x_hat|."""
+    var = np.asarray(stats["var"], np.float32).astype(np.float64)
+    mean = np.asarray(stats["mean"], np.float64)
+    scale, bias = np.asarray(layer["norm_scale"], np.float64), np.asarray(layer["norm_bias"], np.float64)
+    s = scale / np.sqrt(var + eps)  # exact: the reference's inv_std * scale
+    centred = np.abs(x - mean) + e
+    x = (x - mean) * s + bias
+    return x, e * np.abs(s) + (3 * U + RSQRT_REL) * centred * np.abs(s) + U * (np.abs(x) + e * np.abs(s))
+
+
+def bn_mlp_bound(actor: dict, stats: dict, x: np.ndarray, e: np.ndarray, activation: str, eps: float,
+                 matmul_dtype: str = "float32", out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of XQC's network (networks.bn_mlp in evaluation mode): the input's batch normalisation;
+    per hidden layer a matmul without bias, its batch normalisation and the activation; the output layer
+    (`out_columns`: its first ones only)."""
+    from softac.learner.networks.layers import multiplies_in_bf16
+
+    x, e = _batch_norm(x, e, actor["input"], stats["input"], eps)
+    for layer, layer_stats in zip(actor["layers"], stats["layers"]):
+        w = np.asarray(layer["w"], np.float64)
+        x, e = _rounded_dense(x, e, w, np.zeros(w.shape[1]), multiplies_in_bf16(w.shape, matmul_dtype))
+        x, e = _activation_error(activation, *_batch_norm(x, e, layer, layer_stats, eps))
+    w, b = _weights(actor["head"])
+    return _rounded_dense(x, e, w[:, :out_columns], b[:out_columns], multiplies_in_bf16(w.shape, matmul_dtype))
 
 
 def simba_bound(actor: dict, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
@@ -324,6 +349,9 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     actor, actor_stats, _ = agent.learner.deployed_policy()  # the averaged actor with policy_average_tau
     if agent.config.network == "simba":
         x, e = simba_bound(actor, x, e, agent.config.activation, matmul_dtype, out_columns=agent.spaces.act_dim)
+    elif agent.config.network == "bn_mlp":
+        x, e = bn_mlp_bound(actor, actor_stats, x, e, agent.config.activation, norm.eps, matmul_dtype,
+                            out_columns=agent.spaces.act_dim)
     else:
         x, e = network_bound(actor, x, e, agent.config.activation, matmul_dtype, norm,
                              actor_stats if norm is not None else None,

@@ -44,6 +44,11 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     # bf16 in Pusher's 23x32 embedding and the blocks' 32x128 and 128x32 layers, not in the 32x14 output layer
     "simba-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, network="simba", critic_hidden_sizes=[32],
                                       matmul_dtype="bfloat16"),
+    # XQC's actor (issue 66): batch normalisation on the input and before each activation, kernels at unit norm
+    "bn_mlp": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, network="bn_mlp", weight_norm=True,
+                                  target_critics="on", n_atoms=11, reward_scale="std"),
+    "bn_mlp-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, network="bn_mlp",
+                                       weight_norm=True, matmul_dtype="bfloat16"),
 }
 
 

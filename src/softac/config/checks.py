@@ -79,6 +79,17 @@ def _check_targets_and_critics(config: Any) -> None:
     need(config.top_quantiles_to_drop_per_net >= 0 and (
         config.n_quantiles == 0 or config.top_quantiles_to_drop_per_net < config.n_quantiles),
         "top_quantiles_to_drop_per_net", f"must be >= 0 and below n_quantiles={config.n_quantiles}")
+    need(config.n_atoms == 0 or 2 <= config.n_atoms <= 1000, "n_atoms",
+         "must be 0 (one Q-value per critic) or between 2 and 1000")
+    need(not (config.n_atoms and config.n_quantiles), "n_atoms",
+         f"categorical critics cannot also be quantile critics (n_quantiles={config.n_quantiles}): set one of them")
+    need(config.categorical_target in ("c51", "two_hot", "hl_gauss"), "categorical_target",
+         "must be c51, two_hot or hl_gauss")
+    need(config.v_min < config.v_max, "v_min", f"must be below v_max={config.v_max}")
+    need(config.reward_scale in ("off", "std", "std_max"), "reward_scale", "must be off, std or std_max")
+    need(config.reward_scale != "std_max" or config.v_max > 0, "reward_scale",
+         f"std_max keeps the largest return below v_max, which must then be > 0 (v_max={config.v_max})")
+    need(0.0 < config.hl_gauss_sigma <= 100.0, "hl_gauss_sigma", "must be in (0, 100] atom spacings")
     need(0.0 <= config.critic_dropout < 1.0, "critic_dropout", "must be in [0, 1)")
     need(not (config.critic_dropout > 0 and config.crossq), "critic_dropout",
          "cannot be combined with crossq (dropout inside batch renormalisation's statistics is not CrossQ)")
@@ -96,6 +107,8 @@ def _check_networks(config: Any) -> None:
         for key in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
             need(len(set(getattr(config, key))) <= 1, key,
                  "with network=simba every entry is a residual block of the one width (e.g. 512,512)")
+    need(config.network != "bn_mlp" or config.crossq, "network",
+         "bn_mlp normalises with batch statistics: it needs crossq=true (the joint pass and the running statistics)")
     for key in ("actor_hidden_sizes", "critic_hidden_sizes"):
         need(all(1 <= h <= 65_536 for h in getattr(config, key)), key, "widths must be between 1 and 65536")
     need(config.weight_decay >= 0.0, "weight_decay", "must be >= 0")

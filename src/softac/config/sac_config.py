@@ -79,9 +79,15 @@ class SACConfig:
     target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")
     n_quantiles: int = _f(0, "TQC (Kuznetsov et al. 2020): quantiles each critic predicts (25 in the paper), trained with the quantile Huber loss on the pooled, truncated next-state atoms; 0 = one Q-value per critic (SAC)")
     top_quantiles_to_drop_per_net: int = _f(2, "with n_quantiles: the largest next-state atoms dropped, per critic (TQC's d: n_critics * d of the pool)")
+    n_atoms: int = _f(0, "categorical critics: each critic predicts a distribution over n_atoms evenly spaced values from v_min to v_max, learned by cross-entropy to the soft target's distribution (C51, Bellemare et al. 2017: 51; XQC, FastTD3 and FlashSAC: 101); the target is, per row, the distribution of the next-state critic with the lowest mean (clipped double Q on distributions), the actor climbs the smallest mean; 0 = one Q-value per critic (SAC)")
+    categorical_target: str = _f("c51", "with n_atoms: the target distribution: c51 (each next-state atom z moved to r + gamma (z - alpha log pi) and projected back onto the support with its probability, as XQC and FastTD3), two_hot (the scalar soft target on its two neighbouring atoms) or hl_gauss (the scalar soft target as a Gaussian of hl_gauss_sigma atom spacings, Farebrother et al. 2024)")
+    v_min: float = _f(-5.0, "with n_atoms: the support's lowest value (in the critics' reward units: after reward_scale)")
+    v_max: float = _f(5.0, "with n_atoms: the support's highest value")
+    hl_gauss_sigma: float = _f(0.75, "with categorical_target hl_gauss: the Gaussian's standard deviation in atom spacings (0.75 as Farebrother et al. 2024)")
+    reward_scale: str = _f("off", "the critics' rewards divided by the spread of the running discounted return G (each env's G <- gamma (1 - done) G + r, SimbaV2's normaliser), so that returns fit a fixed support: std (by sigma_G, as XQC), std_max (by max(sigma_G, G_max / v_max), as FlashSAC), or off; the statistics are saved in checkpoints; evaluation returns stay in the env's units")
     critic_layer_norm: bool = _f(False, "LayerNorm before each hidden activation of the critics (RLPD; for high gradient_steps)")
     critic_dropout: float = _f(0.0, "dropout rate on the critics' hidden units in every critic pass (DroQ, Hiraoka et al. 2022: 0.01, with critic_layer_norm, at high gradient_steps)")
-    network: str = _f("mlp", "actor and critic networks: mlp, or simba (Lee et al. 2024): a linear embedding, one pre-LayerNorm residual block (inner width 4x) per hidden width, a final LayerNorm; use with obs_norm")
+    network: str = _f("mlp", "actor and critic networks: mlp; simba (Lee et al. 2024): a linear embedding, one pre-LayerNorm residual block (inner width 4x) per hidden width, a final LayerNorm, use with obs_norm; or bn_mlp (XQC, Palenicek et al. 2026; needs crossq): batch normalisation of the input, then per hidden width a dense layer without bias, batch normalisation and the activation (with weight_norm every kernel's units at unit norm, the output layer's too)")
     actor_hidden_sizes: list = _f([], "the actor's hidden widths when they differ from hidden_sizes (empty: hidden_sizes)")
     critic_hidden_sizes: list = _f([], "the critics' hidden widths when they differ from hidden_sizes (empty: hidden_sizes)")
     crossq: bool = _f(False, "CrossQ (Bhatt et al. 2024): no target critics (tau unused); batch renormalisation in actor and critics, the critics seeing (s, a) and (s', a') as one batch")
@@ -193,6 +199,11 @@ class SACConfig:
     def has_target_critics(self) -> bool:
         """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
         return self.target_critics == "on" or (self.target_critics == "auto" and not self.crossq)
+
+    @property
+    def critic_outputs(self) -> int:
+        """Each critic's outputs: its quantiles (TQC), its atoms' logits (categorical), or its Q-value."""
+        return self.n_quantiles or self.n_atoms or 1
 
     @property
     def actor_widths(self) -> list[int]:

@@ -17,9 +17,8 @@ from softac.base.cpus import cpu_has_bf16
 from softac.config.sac_config import SACConfig
 from softac.learner.encoder import image_only_shape, init_encoder, init_head, stacked_image_shape
 from softac.learner.losses import Batch, Critics
-from softac.learner.networks import actor_sizes, critic_sizes, init_actor, init_critics, network_kind
-from softac.learner.networks.layers import (BatchRenorm, init_norm_stats, jit_keeps_bf16_rounding, stack,
-                                            unit_norm_hidden_units)
+from softac.learner.networks import init_actor, init_critics, network_kind
+from softac.learner.networks.layers import BatchRenorm, jit_keeps_bf16_rounding, stack
 from softac.learner.policy import ActionScaler, Policy
 from softac.learner.acting import act, act_deterministic, act_with_noise
 from softac.learner.pixels import ImageSettings, policy_encoder
@@ -34,14 +33,14 @@ def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random
     actor = init_actor(rng, obs_dim, act_dim, c.actor_widths, c.init, norm=norm, network=c.network,
                        sde_log_std_init=c.sde_log_std_init if c.exploration_noise == "gsde" else None)
     critic = init_critics(rng, obs_dim, act_dim, c.critic_widths, c.init, c.n_critics, norm=norm, network=c.network,
-                          out_dim=c.n_quantiles or 1)
+                          out_dim=c.critic_outputs)
+    kind = network_kind(c.network, norm)
     if c.weight_norm:  # on the sphere from the start, so the running statistics see one scale throughout
-        actor, critic = unit_norm_hidden_units(actor, np), unit_norm_hidden_units(critic, np)
+        actor, critic = kind.unit_norm(actor, np), kind.unit_norm(critic, np)
     if not norm:
         return actor, critic, (), ()
-    critic_sizes_ = critic_sizes(obs_dim, act_dim, c.critic_widths, c.n_quantiles or 1)
-    return (actor, critic, init_norm_stats(actor_sizes(obs_dim, act_dim, c.actor_widths)),
-            stack([init_norm_stats(critic_sizes_)] * c.n_critics))
+    return (actor, critic, kind.init_stats(obs_dim, c.actor_widths, 2 * act_dim),
+            stack([kind.init_stats(obs_dim + act_dim, c.critic_widths, c.critic_outputs)] * c.n_critics))
 
 
 def fresh_encoder(config: SACConfig, image_shape: tuple[int, int, int, int] | None, rng: np.random.Generator,
@@ -134,7 +133,9 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
                       sde=c.exploration_noise == "gsde"),
         critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
-                        drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics),
+                        drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics,
+                        n_atoms=c.n_atoms, v_min=c.v_min, v_max=c.v_max, categorical_target=c.categorical_target,
+                        hl_gauss_sigma=c.hl_gauss_sigma),
         # the optimisers at rate 1, `scaled` applying each rate (AdamW's decay lr * weight_decay * p with the rest)
         actor_tx=optimizer(c, 1.0), critic_tx=optimizer(c, 1.0), alpha_tx=_adam(1.0, c.adam_b1),
         actor_lr=c.actor_lr, critic_lr=c.critic_lr, alpha_lr=c.alpha_lr,

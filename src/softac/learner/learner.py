@@ -17,7 +17,7 @@ import numpy as np
 from softac.config.sac_config import SACConfig
 from softac.envs.make import SpaceInfo
 from softac.errors import CheckpointError, SoftacError
-from softac.learner.normalization import RunningObsNorm
+from softac.learner.normalization import RunningObsNorm, RunningReturnScale
 
 if TYPE_CHECKING:  # sac imports JAX, which loads only when a learner is made
     from softac.learner.build import SACFunctions
@@ -28,6 +28,7 @@ STATE_PREFIX = "state"  # checkpoint array names: state<path of the leaf in SACS
 # then name `state.actor_stats...` what is now `state.variants.actor_stats...` (the same leaves, in the same order)
 VARIANTS_PATH = STATE_PREFIX + ".variants."
 OBS_NORM_PREFIX = "obs_norm/"
+REWARD_SCALE_PREFIX = "reward_scale/"
 # which of an agent's policies to act with (Learner.policy_networks); "deployed" is the average where there is one
 POLICIES = ("deployed", "actor", "average")
 METRICS_PREFIX = "metric_totals/"  # the sums behind the next progress row (a resumed run's first row is whole)
@@ -62,7 +63,7 @@ def check_model_memory(config: SACConfig, obs_dim: int, act_dim: int, fraction: 
 
     kind = network_kind(config.network, config.crossq)
     actor = kind.parameters(obs_dim, config.actor_widths, 2 * act_dim)
-    critics = config.n_critics * kind.parameters(obs_dim + act_dim, config.critic_widths, config.n_quantiles or 1)
+    critics = config.n_critics * kind.parameters(obs_dim + act_dim, config.critic_widths, config.critic_outputs)
     # weights + Adam moments; critics also have targets (and the encoder with target_encoder)
     parameters = 4 * (3 * actor + 4 * critics + (3 + config.target_encoder) * encoder + 3 * actor_head)
     # activations kept for the backward passes, per gradient step (critics, targets and actor, both phases);
@@ -97,6 +98,9 @@ class Learner:
         self.totals: dict[str, Any] | None = None  # metric sums since the last take_metrics(), on the device
         # running observation statistics (obs_norm): updated while training, applied wherever the actor acts
         self.obs_norm = RunningObsNorm(spaces.obs_dim, config.obs_norm_clip) if config.obs_norm else None
+        # the running return's spread (reward_scale): updated with each training step, divides the batches' rewards
+        self.return_scale = (RunningReturnScale(config.n_envs, config.gamma, config.reward_scale, config.v_max)
+                             if config.reward_scale != "off" else None)
 
     @property
     def target_entropy(self) -> float:
@@ -113,6 +117,12 @@ class Learner:
         """Count observations the policy acts on while training into the running statistics (obs_norm)."""
         if self.obs_norm is not None:
             self.obs_norm.update(obs)
+
+    def observe_rewards(self, rewards: np.ndarray, dones: np.ndarray) -> None:
+        """Count a training step's rewards into the running return's statistics (reward_scale); `dones`: which
+        envs' episodes the step ended (terminated or truncated)."""
+        if self.return_scale is not None:
+            self.return_scale.update(rewards, dones)
 
     def normalize_obs(self, obs: np.ndarray) -> np.ndarray:
         """What the networks see: raw observations, or with obs_norm the normalised ones."""
@@ -230,6 +240,8 @@ class Learner:
         (normalised here with the current statistics); their metrics are added to the totals on the device.
         `step`: the env steps taken so far, which a learning-rate schedule follows (lr_scale)."""
         batch = dict(batch, obs=self.normalize_obs(batch["obs"]), next_obs=self.normalize_obs(batch["next_obs"]))
+        if self.return_scale is not None:
+            batch["rewards"] = self.return_scale.scale_rewards(batch["rewards"])
         totals = self.totals
         if totals is None:
             # zeros, never None, after each progress row: a None would be a second pytree structure and so a
@@ -278,6 +290,8 @@ class Learner:
                   for path, leaf in jax.tree_util.tree_flatten_with_path(self.state)[0]}
         if self.obs_norm is not None:  # in every checkpoint, best too: predict() needs them
             arrays.update({OBS_NORM_PREFIX + k: v for k, v in self.obs_norm.state_dict().items()})
+        if self.return_scale is not None:
+            arrays.update({REWARD_SCALE_PREFIX + k: v for k, v in self.return_scale.state_dict().items()})
         if self.totals is not None:
             arrays.update({METRICS_PREFIX + k: np.asarray(v) for k, v in self.totals.items()})
         return arrays
@@ -309,5 +323,13 @@ class Learner:
                 raise CheckpointError(f"checkpoint {where} has obs_norm on but no observation statistics")
             try:
                 self.obs_norm.load_state_dict(stats)
+            except SoftacError as exc:
+                raise CheckpointError(f"checkpoint {where}: {exc}") from None
+        if self.return_scale is not None:
+            stats = {k[len(REWARD_SCALE_PREFIX):]: v for k, v in arrays.items() if k.startswith(REWARD_SCALE_PREFIX)}
+            if set(stats) != {"count", "mean", "m2", "returns", "max_abs"}:
+                raise CheckpointError(f"checkpoint {where} has reward_scale on but no return statistics")
+            try:
+                self.return_scale.load_state_dict(stats)
             except SoftacError as exc:
                 raise CheckpointError(f"checkpoint {where}: {exc}") from None

@@ -6,9 +6,11 @@ once and chosen by `Critics`: CrossQ (Bhatt et al. 2024) normalises the critics'
 renormalisation and computes the next-state value in one joint pass over (s, a) and (s', a') (`q_and_next_q`),
 with or without target critics (CrossQ+WN, Palenicek et al. 2025, keeps them); TQC (Kuznetsov et al. 2020)
 has quantile critics, a truncated pool of next-state atoms and the quantile Huber loss
-(`truncated_target_atoms`, `quantile_huber_error`); DroQ (Hiraoka et al. 2022) drops critic units in every
-pass (`dropout_keys`); SimBa (Lee et al. 2024) changes only the networks. `critic_loss` and `actor_loss` are
-SAC's form of the two (no running statistics), as the loss tests pin them.
+(`truncated_target_atoms`, `quantile_huber_error`); categorical critics (C51, Bellemare et al. 2017, as XQC
+and FastTD3 run it; two-hot and HL-Gauss targets, Farebrother et al. 2024) predict a distribution over a fixed
+support and learn it by cross-entropy (`categorical_error`); DroQ (Hiraoka et al. 2022) drops critic units in
+every pass (`dropout_keys`); SimBa (Lee et al. 2024) changes only the networks. `critic_loss` and `actor_loss`
+are SAC's form of the two (no running statistics), as the loss tests pin them.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from softac.learner.networks import critics_apply
+from softac.learner.networks import Network, critics_apply, network_kind
 from softac.learner.networks.layers import BatchRenorm
 from softac.learner.policy import Policy
 
@@ -46,6 +48,11 @@ class Critics:
     dropout: float = 0.0  # DroQ: hidden units dropped in every critic pass
     n_quantiles: int = 0  # TQC: quantiles per critic; 0 = one Q-value each (SAC)
     drop_per_critic: int = 0  # TQC: the largest target atoms dropped, per critic
+    n_atoms: int = 0  # categorical critics: logits over the atoms of `support`; 0 = none
+    v_min: float = -5.0  # the support's first and last atom
+    v_max: float = 5.0
+    categorical_target: str = "c51"  # c51, two_hot or hl_gauss (categorical_target_distribution)
+    hl_gauss_sigma: float = 0.75  # hl_gauss: the Gaussian's standard deviation, in atom spacings
     # Polyak-averaged target critics give the next-state value (off: the online ones); None: SAC's yes, CrossQ's no
     targets: bool | None = None
 
@@ -54,27 +61,50 @@ class Critics:
         return self.batch_renorm is None if self.targets is None else self.targets
 
     @property
+    def kind(self) -> Network:
+        """The network kind (softac.learner.networks.NETWORKS) of the critics."""
+        return network_kind(self.network, self.batch_renorm is not None)
+
+    @property
     def quantiles(self) -> bool:
         return self.n_quantiles > 0
+
+    @property
+    def categorical(self) -> bool:
+        return self.n_atoms > 0
+
+    @property
+    def support(self) -> jax.Array:
+        """The categorical critics' atoms, evenly spaced from v_min to v_max."""
+        return jnp.linspace(self.v_min, self.v_max, self.n_atoms, dtype=jnp.float32)
+
+    def values(self, q: jax.Array) -> jax.Array:
+        """Each critic's Q-value per row [n_critics, batch] from its outputs: the categorical distribution's
+        mean, the quantiles' mean (TQC), or the output itself."""
+        if self.categorical:
+            return jax.nn.softmax(q, axis=-1) @ self.support
+        return jnp.mean(q, axis=-1) if self.quantiles else q
 
     def q_values(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                  key: jax.Array | None = None) -> jax.Array:
         """Q-values of every critic, shape [n_critics, batch] (TQC: [n_critics, batch, n_quantiles]); with
         batch renormalisation normalised with its running statistics; with dropout, drawn from `key`."""
         return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll,
-                             self.network, self.dropout, key, self.quantiles, stats, self.batch_renorm)[0]
+                             self.network, self.dropout, key, self.quantiles or self.categorical, stats,
+                             self.batch_renorm)[0]
 
     def q_values_training(self, critic: Any, stats: Any, obs: jax.Array, actions: jax.Array,
                           renorm: jax.Array | bool) -> tuple[jax.Array, Any]:
         """Q-values normalised with this batch's statistics, and the updated running statistics."""
         return critics_apply(critic, obs, actions, self.activation, self.matmul_dtype, self.layer_norm, self.unroll,
-                             self.network, quantiles=self.quantiles, stats=stats, batch_renorm=self.batch_renorm,
-                             train=True, renorm=renorm)
+                             self.network, quantiles=self.quantiles or self.categorical, stats=stats,
+                             batch_renorm=self.batch_renorm, train=True, renorm=renorm)
 
     def for_actor(self, q: jax.Array) -> jax.Array:
-        """The value the actor climbs, per row: the smallest critic's Q (clipped double Q), or with TQC the
-        mean of every critic's quantiles (Kuznetsov et al. 2020, eq. 9: no truncation for the actor)."""
-        return jnp.mean(q, axis=(0, 2)) if self.n_quantiles else jnp.min(q, axis=0)
+        """The value the actor climbs, per row: the smallest critic's Q (clipped double Q; of categorical
+        critics, of their distributions' means, as XQC), or with TQC the mean of every critic's quantiles
+        (Kuznetsov et al. 2020, eq. 9: no truncation for the actor)."""
+        return jnp.mean(q, axis=(0, 2)) if self.n_quantiles else jnp.min(self.values(q), axis=0)
 
 
 def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, jax.Array | None]:
@@ -164,12 +194,82 @@ def quantile_huber_error(q: jax.Array, next_atoms: jax.Array, keep: jax.Array, n
     return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
 
 
+# ---- categorical critics ----------------------------------------------------------------------------
+
+def lowest_mean_distribution(next_probs: jax.Array, support: jax.Array) -> jax.Array:
+    """Clipped double Q on distributions: per row, the whole distribution [batch, atoms] of the next-state critic
+    whose mean is lowest (XQC's and FlashSAC's choice; every online critic learns toward that one)."""
+    lowest = jnp.argmin(next_probs @ support, axis=0)  # [batch]
+    return jnp.take_along_axis(next_probs, lowest[None, :, None], axis=0)[0]
+
+
+def project_onto_support(atoms: jax.Array, probs: jax.Array, support: jax.Array) -> jax.Array:
+    """C51's projection (Bellemare et al. 2017, alg. 1): each atom's probability [batch, n] split between the two
+    atoms of `support` [K] around it, in proportion to its nearness; atoms beyond the support land on its ends.
+    The split is the triangle kernel max(0, 1 - |a - z_i| / dz), which is C51's floor/ceil rule written once for
+    every atom (an atom on a support point gives it all its mass), so each row's mass is kept."""
+    spacing = support[1] - support[0]
+    atoms = jnp.clip(atoms, support[0], support[-1])
+    nearness = jnp.maximum(1.0 - jnp.abs(atoms[:, None, :] - support[None, :, None]) / spacing, 0.0)  # [batch, K, n]
+    return jnp.einsum("bkn,bn->bk", nearness, probs)
+
+
+def two_hot(values: jax.Array, support: jax.Array) -> jax.Array:
+    """Each scalar [batch] as a distribution on `support`: its mass on the two atoms around it, in proportion to
+    its nearness (the projection of a single atom); beyond the support, on its end."""
+    return project_onto_support(values[:, None], jnp.ones_like(values)[:, None], support)
+
+
+def hl_gauss(values: jax.Array, support: jax.Array, sigma: float) -> jax.Array:
+    """HL-Gauss (Imani & White 2018; Farebrother et al. 2024): each scalar [batch] as the mass a normal
+    N(value, sigma^2) puts on each atom's bin (the support's atoms at the bins' centres), renormalised to the
+    support's range so that a value near an end keeps a whole distribution."""
+    half = 0.5 * (support[1] - support[0])
+    edges = jnp.concatenate([support - half, support[-1:] + half])
+    cdf = jax.scipy.special.erf((edges[None, :] - values[:, None]) / (jnp.sqrt(2.0) * sigma))
+    mass = cdf[:, 1:] - cdf[:, :-1]
+    return mass / (cdf[:, -1:] - cdf[:, :1])
+
+
+def categorical_target_distribution(next_probs: jax.Array, next_log_prob: jax.Array, alpha: jax.Array,
+                                    batch: Batch, gamma: float, n_step: int, critics: Critics) -> jax.Array:
+    """The soft target as a distribution on the support [batch, atoms], from the lowest-mean next-state
+    distribution p: `c51` moves each atom z_j to r + gamma^steps (1 - terminated) (z_j - alpha log pi(a'|s'))
+    and projects them back with their probabilities (the entropy term shifts every atom, as XQC and FastTD3's
+    C51 critics do); `two_hot` and `hl_gauss` take the scalar soft target r + gamma^steps (1 - terminated)
+    (E_p[z] - alpha log pi) and spread it on the support."""
+    support = critics.support
+    chosen = lowest_mean_distribution(next_probs, support)
+    bootstrap = discount(batch, gamma, n_step) * (1.0 - batch.terminated)
+    if critics.categorical_target == "c51":
+        atoms = batch.rewards[:, None] + bootstrap[..., None] * (support[None, :] - alpha * next_log_prob[:, None])
+        return project_onto_support(atoms, chosen, support)
+    value = batch.rewards + bootstrap * (chosen @ support - alpha * next_log_prob)
+    if critics.categorical_target == "two_hot":
+        return two_hot(value, support)
+    return hl_gauss(value, support, critics.hl_gauss_sigma * (support[1] - support[0]))
+
+
+def categorical_error(logits: jax.Array, next_logits: jax.Array, next_log_prob: jax.Array, alpha: jax.Array,
+                      batch: Batch, gamma: float, n_step: int, critics: Critics) -> tuple[jax.Array, dict]:
+    """The categorical critics' loss: the cross-entropy -sum_i p_i log softmax(logits)_i of each critic's
+    predicted distribution [n, batch, atoms] to the target distribution p (held fixed), the mean over rows,
+    summed over critics (as XQC's loss); Q-values in the metrics are the distributions' means."""
+    target = jax.lax.stop_gradient(categorical_target_distribution(
+        jax.nn.softmax(next_logits, axis=-1), next_log_prob, alpha, batch, gamma, n_step, critics))
+    cross_entropy = -jnp.sum(target[None] * jax.nn.log_softmax(logits, axis=-1), axis=-1)  # [n, batch]
+    loss = jnp.sum(jnp.mean(cross_entropy, axis=1))
+    q = critics.values(logits)
+    return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
+
+
 def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, actor_stats: Any, alpha: jax.Array,
                 batch: Batch, key: jax.Array, policy: Policy, critics: Critics, gamma: float, n_step: int = 1,
                 renorm: jax.Array | bool = False, target_stats: Any = (),
                 target_batch: Batch | None = None) -> tuple[jax.Array, tuple[dict, Any]]:
     """Soft Bellman error with the minimum over the next-state critics (clipped double Q, Fujimoto et al.
-    2018), or with TQC quantile critics the quantile Huber loss to the truncated atoms; returns the loss and
+    2018), with TQC quantile critics the quantile Huber loss to the truncated atoms, with categorical critics the
+    cross-entropy to the lowest-mean next distribution's soft target; returns the loss and
     (metrics, the critics' new running statistics).
 
     Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps. With n-step returns
@@ -184,6 +284,8 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     if critics.n_quantiles:
         atoms, keep = truncated_target_atoms(next_q, critics.drop_per_critic)
         loss, metrics = quantile_huber_error(q, atoms, keep, next_log_prob, alpha, batch, gamma, n_step)
+    elif critics.categorical:
+        loss, metrics = categorical_error(q, next_q, next_log_prob, alpha, batch, gamma, n_step, critics)
     else:
         loss, metrics = soft_bellman_error(q, jnp.min(next_q, axis=0), next_log_prob, alpha, batch, gamma, n_step)
     return loss, (metrics, critic_stats)
@@ -203,7 +305,8 @@ def policy_loss(actor: Any, actor_stats: Any, critic: Any, critic_stats: Any, al
                 key: jax.Array, policy: Policy, critics: Critics, renorm: jax.Array | bool = False,
                 critic_obs: jax.Array | None = None) -> tuple[jax.Array, tuple[jax.Array, Any]]:
     """Maximise E[min_i Q_i(s, a) - alpha log pi(a|s)] over reparameterised actions (Haarnoja et al.
-    2018a, eq. 12; TQC: the mean of all quantiles in place of the minimum). The actor runs in training mode (with batch renormalisation: the batch's statistics),
+    2018a, eq. 12; TQC: the mean of all quantiles in place of the minimum; categorical critics: their
+    distributions' means). The actor runs in training mode (with batch renormalisation: the batch's statistics),
     the critics in evaluation mode (their running statistics), as CrossQ does. Returns the loss and (the
     actions' log-probabilities, which the alpha loss reuses; the actor's new running statistics). `critic_obs`:
     the observations as the critics read them, where they differ from the actor's (an actor's own image head)."""

@@ -60,3 +60,52 @@ class RunningObsNorm:
                               f"this agent's observations have {self.dim}")
         self.count = int(state["count"])
         self.mean, self.m2 = mean.copy(), m2.copy()
+
+
+class RunningReturnScale:
+    """Reward scaling for critics on a fixed support (`reward_scale`): rewards divided by the spread of the
+    discounted return, so that the returns fit the support whatever the env's reward units (SimbaV2's reward
+    normaliser, as XQC and FlashSAC use it). Each env's running return G <- gamma (1 - done) G + r is updated
+    with every training step (done: the step ended its episode, as those authors' code has it), and the
+    mean and variance of all the G seen are merged as RunningObsNorm merges observations; `std` divides by
+    sigma_G (+ 1e-8, XQC's), `std_max` by max(sigma_G, G_max / v_max) with G_max the largest |G| seen
+    (FlashSAC's), which keeps the largest return inside the support. Batches are scaled when sampled, with the
+    scale of that moment; the statistics are saved in every checkpoint."""
+
+    EPSILON = 1e-8
+
+    def __init__(self, n_envs: int, gamma: float, mode: str, v_max: float):
+        self.gamma, self.mode, self.v_max = float(gamma), mode, float(v_max)
+        self.returns = np.zeros(n_envs, np.float64)
+        self.stats = RunningObsNorm(1)
+        self.max_abs = 0.0
+
+    def update(self, rewards: np.ndarray, dones: np.ndarray) -> None:
+        self.returns = self.gamma * (1.0 - np.asarray(dones, np.float64)) * self.returns + np.asarray(rewards,
+                                                                                                      np.float64)
+        self.stats.update(self.returns[:, None])
+        self.max_abs = max(self.max_abs, float(np.max(np.abs(self.returns))))
+
+    @property
+    def scale(self) -> float:
+        """What rewards are divided by now (1 before any step)."""
+        if self.stats.count == 0:
+            return 1.0
+        std = float(np.sqrt(self.stats.var[0]))
+        if self.mode == "std":
+            return std + self.EPSILON
+        return max(std, self.max_abs / self.v_max, self.EPSILON)
+
+    def scale_rewards(self, rewards: np.ndarray) -> np.ndarray:
+        return (np.asarray(rewards, np.float64) / self.scale).astype(np.float32)
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {**self.stats.state_dict(), "returns": self.returns.copy(), "max_abs": np.asarray(self.max_abs)}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        returns = np.asarray(state["returns"], np.float64)
+        if returns.shape != self.returns.shape:
+            raise SoftacError(f"reward statistics are for {returns.size} envs, this run steps {self.returns.size}")
+        self.stats.load_state_dict({k: np.asarray(state[k]).reshape(-1) if k != "count" else state[k]
+                                    for k in ("count", "mean", "m2")})
+        self.returns, self.max_abs = returns.copy(), float(state["max_abs"])

@@ -24,7 +24,10 @@ policy.npz holds
                                   (bf16, if there, marks the dense layers in this order: embed, the blocks'
                                   _1 and _2, head)
     nI_mean, nI_inv_std,          float32, only for a CrossQ layer I that multiplies in bf16: its input's batch
-    nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values)
+    nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values);
+                                  for an XQC actor (network=bn_mlp) n0_* on the input, always
+    pI_mean, pI_inv_std,          float32, only for an XQC actor (network=bn_mlp): layer I's batch
+    pI_scale, pI_bias             normalisation after its matmul, before the activation
     mean_clip                     float32, only for gSDE policies: the mean is clipped to [-mean_clip, mean_clip]
                                   before tanh
     action_low, action_high       float32: the env's action bounds
@@ -144,6 +147,8 @@ def mlp_forward(params: dict, x: np.ndarray) -> np.ndarray:
         if f"n{i}_mean" in params:
             x = (x - params[f"n{i}_mean"]) * params[f"n{i}_inv_std"] * params[f"n{i}_scale"] + params[f"n{i}_bias"]
         x = dense(x, params[f"w{i}"], params[f"b{i}"], bf16[i])
+        if f"p{i}_mean" in params:
+            x = (x - params[f"p{i}_mean"]) * params[f"p{i}_inv_std"] * params[f"p{i}_scale"] + params[f"p{i}_bias"]
         if i < len(bf16) - 1:
             x = activation(x)
     return x

@@ -23,7 +23,6 @@ import optax
 
 from softac.learner.losses import Batch, Critics, alpha_loss, policy_loss, soft_q_loss
 from softac.learner.metrics import ACTOR_STEPS, CRITIC_STEPS, add_to_totals, zero_totals
-from softac.learner.networks.layers import unit_norm_hidden_units
 from softac.learner.pixels import (ImageSettings, actor_head_features, encoded_batch, policy_encoder,
                                    target_encoded_batch)
 from softac.learner.policy import Policy
@@ -148,8 +147,8 @@ def critic_step(state: SACState, batch: Batch, key: jax.Array, settings: UpdateS
         state.critic, v.encoder)
     updates, critic_opt = settings.critic_tx.update(critic_grads, state.critic_opt, state.critic)
     critic = optax.apply_updates(state.critic, scaled(updates, settings.critic_lr, lr_scale))
-    if settings.weight_norm:  # CrossQ+WN: hidden units back to unit norm
-        critic = unit_norm_hidden_units(critic)
+    if settings.weight_norm:  # CrossQ+WN: hidden units back to unit norm (XQC: every unit, by the kind)
+        critic = settings.critics.kind.unit_norm(critic)
     state = state._replace(critic=critic, critic_opt=critic_opt).with_variants(critic_stats=critic_stats)
     if image is not None:
         updates, encoder_opt = image.encoder_tx.update(encoder_grads, v.encoder_opt, v.encoder)
@@ -183,7 +182,7 @@ def actor_and_alpha_step(state: SACState, obs: Any, key: jax.Array, settings: Up
     updates, actor_opt = settings.actor_tx.update(grads, state.actor_opt, state.actor)
     actor = optax.apply_updates(state.actor, scaled(updates, settings.actor_lr, lr_scale))
     if settings.weight_norm:
-        actor = unit_norm_hidden_units(actor)
+        actor = settings.policy.kind.unit_norm(actor)
     state = state._replace(actor=actor, actor_opt=actor_opt).with_variants(actor_stats=actor_stats)
     if settings.policy_average_tau > 0:
         state = state.with_variants(policy_average=averaged_policy(state, settings))
@@ -203,7 +202,7 @@ def averaged_policy(state: SACState, settings: UpdateSettings) -> tuple[Any, Any
     actor's recent weights acts more steadily than the last of them). Under weight_norm the average is put back
     on the unit sphere, where the actor's own hidden units live."""
     actor, stats, encoder = polyak(state.variants.policy_average, acting_actor(state), settings.policy_average_tau)
-    return (unit_norm_hidden_units(actor) if settings.weight_norm else actor), stats, encoder
+    return (settings.policy.kind.unit_norm(actor) if settings.weight_norm else actor), stats, encoder
 
 
 def deployed(state: SACState) -> tuple[Any, Any, Any]:

@@ -25,7 +25,8 @@ def _common(c: SACConfig) -> dict[str, bool]:
             "log_std bounds": (c.log_std_mode, c.log_std_min, c.log_std_max) != ("clamp", -20.0, 2.0),
             "network": c.network != "mlp", "her": c.her == "on", "random_action_prob": c.random_action_prob > 0,
             "exploration_noise": c.exploration_noise != "gaussian",
-            "lr_schedule": c.lr_schedule != "constant"}  # action_repeat: the peer's env (peers.py)
+            "lr_schedule": c.lr_schedule != "constant",
+            "n_atoms (SBX has no categorical critic)": c.n_atoms > 0}  # action_repeat: the peer's env (peers.py)
 
 
 def crossq_settings(c: SACConfig) -> dict[str, Any]:

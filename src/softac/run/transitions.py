@@ -46,6 +46,7 @@ class HostTransitions:
         learner.observe(obs)  # every observation the policy acts on, warm-up included (obs_norm)
         actions, env_actions = self.explorer.actions(obs, before)
         result = self.collector.step(obs, actions, env_actions, before)
+        learner.observe_rewards(result.rewards, result.terminated | result.truncated)  # reward_scale
         rs.num_steps = after = before + learner.config.n_envs
         for episode in result.finished:
             self.explorer.episode_ended(episode.env)

@@ -1,7 +1,8 @@
 """The networks: a registry of network kinds, and the actor and the critic ensemble built on any of them.
 
 Each kind is one module with one `Network` entry (networks/entry.py: init, features, head, output mask,
-parameter count); NETWORKS names them. A config's `network` (mlp, simba) picks the kind, CrossQ's batch
+parameter count, and where it has them its batch normalisations' statistics and weight_norm's projection);
+NETWORKS names them. A config's `network` (mlp, simba, bn_mlp) picks the kind, CrossQ's batch
 renormalisation (`crossq`) turning an MLP into a batch_renorm_mlp (`network_kind`). The critic ensemble holds
 every critic's parameters stacked on a leading axis and is evaluated with one `jax.vmap` (or critic by critic,
 `unroll`), so n critics cost one batched matmul per layer.
@@ -14,26 +15,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from softac.learner.networks.batch_renorm_mlp import BATCH_RENORM_MLP
+from softac.learner.networks.bn_mlp import BN_MLP
 from softac.learner.networks.entry import Network, Params
 from softac.learner.networks.layers import BatchRenorm, dense, dropout_mask, each_critic, stack
 from softac.learner.networks.mlp import MLP
 from softac.learner.networks.simba import SIMBA
 
-NETWORKS: dict[str, Network] = {"mlp": MLP, "batch_renorm_mlp": BATCH_RENORM_MLP, "simba": SIMBA}
+NETWORKS: dict[str, Network] = {"mlp": MLP, "batch_renorm_mlp": BATCH_RENORM_MLP, "simba": SIMBA, "bn_mlp": BN_MLP}
 
 
 def network_kind(network: str, batch_renorm: bool) -> Network:
     """The registry's entry for a config's `network`: with CrossQ's batch renormalisation an MLP normalises each
     layer's input (batch_renorm_mlp; the config refuses it with other kinds)."""
     return NETWORKS["batch_renorm_mlp" if batch_renorm and network == "mlp" else network]
-
-
-def actor_sizes(obs_dim: int, act_dim: int, hidden: list[int]) -> list[int]:
-    return [obs_dim, *hidden, 2 * act_dim]
-
-
-def critic_sizes(obs_dim: int, act_dim: int, hidden: list[int], out_dim: int = 1) -> list[int]:
-    return [obs_dim + act_dim, *hidden, out_dim]
 
 
 def init_actor(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: list[int], init: str,

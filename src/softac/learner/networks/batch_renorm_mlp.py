@@ -9,7 +9,8 @@ import jax
 
 from softac.learner.networks import mlp
 from softac.learner.networks.entry import Network, Params
-from softac.learner.networks.layers import ACTIVATIONS, BatchRenorm, dense
+from softac.learner.networks.layers import (ACTIVATIONS, BatchRenorm, dense, init_norm_stats,
+                                            unit_norm_hidden_units)
 
 
 def batch_renorm_mlp(params: Params, stats: Params, x: jax.Array, activation: str, norm: BatchRenorm,
@@ -44,4 +45,6 @@ BATCH_RENORM_MLP = Network(
     init=lambda rng, in_dim, widths, out_dim, init, out_gain: mlp.init_mlp(rng, [in_dim, *widths, out_dim], init,
                                                                            out_gain, norm=True),
     features=_features, head=lambda params: params[-1], output_mask=mlp.output_layer_mask, parameters=mlp.parameters,
-    export=mlp.MLP_EXPORT)  # its batch renormalisation folded into the weights, or kept where a layer is bf16
+    init_stats=lambda in_dim, widths, out_dim: init_norm_stats([in_dim, *widths, out_dim]),
+    # the export folds its batch renormalisation into the weights, or keeps it apart where a layer is bf16
+    unit_norm=unit_norm_hidden_units, export=mlp.MLP_EXPORT)

@@ -36,3 +36,9 @@ class Network:
     # activations a hidden unit keeps for the backward pass, relative to a plain MLP's (the memory check)
     activation_factor: int = 1
     export: ActorExport | None = None  # None: `softac export` refuses the kind (one line)
+    # (in_dim, widths, out_dim) -> fresh running statistics of its batch normalisations (mean 0, variance 1), for
+    # a kind that normalises with batch statistics (crossq); None: it has none, and the config refuses crossq
+    init_stats: Callable[[int, list[int], int], Params] | None = None
+    # (params, xp) -> the parameters weight_norm keeps on the unit sphere after each optimiser step, projected
+    # there (xp: np at init, jnp in the update); None: weight_norm is refused with the kind
+    unit_norm: Callable[..., Params] | None = None

@@ -138,10 +138,12 @@ def compiled_in_bf16(weight_shape: tuple[int, ...], matmul_dtype: str) -> bool:
 
 
 def dense(x: jax.Array, layer: dict, matmul_dtype: str) -> jax.Array:
-    w = layer["w"]
-    if not multiplies_in_bf16(w.shape, matmul_dtype):
-        return x @ w + layer["b"]
-    return bf16_matmul(x, w) + layer["b"]
+    return matmul(x, layer["w"], matmul_dtype) + layer["b"]
+
+
+def matmul(x: jax.Array, w: jax.Array, matmul_dtype: str) -> jax.Array:
+    """x @ w, in bf16 where `multiplies_in_bf16` (a dense layer without its bias)."""
+    return bf16_matmul(x, w) if multiplies_in_bf16(w.shape, matmul_dtype) else x @ w
 
 
 def layer_norm(x: jax.Array, eps: float = 1e-5) -> jax.Array:

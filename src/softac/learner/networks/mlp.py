@@ -120,6 +120,11 @@ def onnx_actor(g: onnx_layers.Graph, arrays: dict[str, np.ndarray], x: str) -> s
             x = g.op("Add", g.op("Mul", x, g.const(f"n{i}_scale", arrays[f"n{i}_scale"])),
                      g.const(f"n{i}_bias", arrays[f"n{i}_bias"]))
         x = onnx_layers.dense(g, arrays, x, f"w{i}", f"b{i}", bf16[i])
+        if f"p{i}_mean" in arrays:  # a normalisation after the layer, before its activation (bn_mlp)
+            x = g.op("Mul", g.op("Sub", x, g.const(f"p{i}_mean", arrays[f"p{i}_mean"])),
+                     g.const(f"p{i}_inv_std", arrays[f"p{i}_inv_std"]))
+            x = g.op("Add", g.op("Mul", x, g.const(f"p{i}_scale", arrays[f"p{i}_scale"])),
+                     g.const(f"p{i}_bias", arrays[f"p{i}_bias"]))
         if i < len(bf16) - 1:
             x = onnx_layers.activation(g, str(arrays["activation"]), x)
     return x
