@@ -219,6 +219,48 @@ def bn_mlp_bound(actor: dict, stats: dict, x: np.ndarray, e: np.ndarray, activat
     return _rounded_dense(x, e, w[:, :out_columns], b[:out_columns], multiplies_in_bf16(w.shape, matmul_dtype))
 
 
+def flashsac_bound(actor: dict, stats: dict, x: np.ndarray, e: np.ndarray, activation: str, eps: float,
+                   matmul_dtype: str = "float32", out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of FlashSAC's network (networks.flashsac in evaluation mode): the input's batch
+    normalisation and the embedding; per block two matmuls, each followed by its batch normalisation and the
+    activation, and the residual sum (one rounding); the RMSNorm and the output layer."""
+    from softac.learner.networks.layers import multiplies_in_bf16
+    from softac.learner.numpy_forward import FLASHSAC_RMS_EPS
+
+    def matmul(x, e, w):
+        w = np.asarray(w, np.float64)
+        return _rounded_dense(x, e, w, np.zeros(w.shape[1]), multiplies_in_bf16(w.shape, matmul_dtype))
+
+    x, e = matmul(*_batch_norm(x, e, actor["input"], stats["input"], eps), actor["embed"]["w"])
+    for block, block_stats in zip(actor["blocks"], stats["blocks"]):
+        h, e_h = _activation_error(activation, *_batch_norm(*matmul(x, e, block["w1"]), block["norm1"],
+                                                            block_stats["norm1"], eps))
+        h, e_h = _activation_error(activation, *_batch_norm(*matmul(h, e_h, block["w2"]), block["norm2"],
+                                                            block_stats["norm2"], eps))
+        x, e = x + h, e + e_h + U * (np.abs(x + h) + e + e_h)
+    head = actor["head"]
+    x, e = _rms_norm(x, e, np.asarray(head["rms_scale"], np.float64), FLASHSAC_RMS_EPS)
+    w, b = _weights(head)
+    return _rounded_dense(x, e, w[:, :out_columns], b[:out_columns], multiplies_in_bf16(w.shape, matmul_dtype))
+
+
+def _rms_norm(h: np.ndarray, e: np.ndarray, scale: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, bound) of RMSNorm over the last axis, h / sqrt(mean(h^2) + eps) * scale, for inputs within e of
+    h, computed in float32 in any order: _layer_norm's analysis without the centring."""
+    n = h.shape[-1]
+    ms = (h * h).mean(axis=-1, keepdims=True)
+    e_ms = (2 * np.abs(h) * e + e**2).mean(axis=-1, keepdims=True) \
+        + gamma(n + 2) * ((np.abs(h) + e) ** 2).mean(axis=-1, keepdims=True)
+    total = ms + eps
+    e_total = e_ms + U * (total + e_ms) + U * eps
+    r = 1.0 / np.sqrt(total)
+    change = 0.5 * np.maximum(total - e_total, eps / 2) ** -1.5 * e_total
+    e_r = change + RSQRT_REL * (r + change)
+    y = h * r * scale
+    m = (np.abs(h) + e) * (r + e_r) * np.abs(scale)
+    return y, (e * r + (np.abs(h) + e) * e_r) * np.abs(scale) + 2 * U * m
+
+
 def simba_bound(actor: dict, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
                 out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of a SimBa network's outputs (networks.simba) for inputs within `e` of the float64 `x`:
@@ -349,6 +391,9 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     actor, actor_stats, _ = agent.learner.deployed_policy()  # the averaged actor with policy_average_tau
     if agent.config.network == "simba":
         x, e = simba_bound(actor, x, e, agent.config.activation, matmul_dtype, out_columns=agent.spaces.act_dim)
+    elif agent.config.network == "flashsac":
+        x, e = flashsac_bound(actor, actor_stats, x, e, agent.config.activation, norm.eps, matmul_dtype,
+                              out_columns=agent.spaces.act_dim)
     elif agent.config.network == "bn_mlp":
         x, e = bn_mlp_bound(actor, actor_stats, x, e, agent.config.activation, norm.eps, matmul_dtype,
                             out_columns=agent.spaces.act_dim)

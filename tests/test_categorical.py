@@ -188,7 +188,7 @@ def test_the_reward_scale_is_the_running_returns_spread():
         std.update(r, d)
         std_max.update(r, d)
     assert std.scale == pytest.approx(np.std(seen) + 1e-8, rel=1e-12)
-    assert std_max.scale == pytest.approx(max(np.std(seen), np.max(np.abs(seen)) / 1.0), rel=1e-12)
+    assert std_max.scale == pytest.approx(max(np.sqrt(np.var(seen) + 1e-8), np.max(np.abs(seen)) / 1.0), rel=1e-12)
     np.testing.assert_allclose(std.scale_rewards(np.asarray([2.0])), 2.0 / std.scale, rtol=1e-7)
 
     restored = RunningReturnScale(2, gamma, "std", 1.0)

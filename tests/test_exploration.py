@@ -63,7 +63,7 @@ def test_a_run_with_pink_noise_resumes_exactly(tiny, tmp_path):
 
 
 def test_bad_noise_settings_are_one_line_errors(tmp_path):
-    for setting, words in (("exploration_noise=brown", "must be gaussian, pink or gsde"),
+    for setting, words in (("exploration_noise=brown", "must be gaussian, pink, gsde or repeat"),
                            ("noise_beta=-1", "noise_beta"), ("noise_sequence_length=1", "noise_sequence_length")):
         result = run_cli("train", "--env", "Pendulum-v1", "--steps", "10", "--out", str(tmp_path / "r"),
                          "--set", setting)

@@ -205,7 +205,7 @@ def test_an_exported_gsde_policy_clips_its_mean_as_predict_does(tiny, tmp_path):
 
 
 def test_bad_gsde_settings_are_one_line_errors(tmp_path):
-    for setting, words in (("exploration_noise=brownian", "must be gaussian, pink or gsde"),
+    for setting, words in (("exploration_noise=brownian", "must be gaussian, pink, gsde or repeat"),
                            ("sde_sample_freq=0", "sde_sample_freq"), ("sde_log_std_init=5", "sde_log_std_init")):
         result = run_cli("train", "--env", "Pendulum-v1", "--steps", "10", "--out", str(tmp_path / "r"),
                          "--set", "exploration_noise=gsde", setting)

@@ -67,7 +67,7 @@ def test_the_export_refuses_a_network_it_has_no_layout_for(tiny, tmp_path, monke
     monkeypatch.setitem(NETWORKS, "sine", SINE)
     monkeypatch.setattr("softac.config.checks.NETWORK_NAMES", (*names.NETWORK_NAMES, "sine"))
     agent = SAC(tiny(network="sine"))
-    with pytest.raises(SoftacError, match="export writes the networks mlp, simba, bn_mlp; this agent's network is sine"):
+    with pytest.raises(SoftacError, match="export writes the networks mlp, simba, bn_mlp, flashsac; this agent's network is sine"):
         export_policy(agent, tmp_path / "policy.npz", "numpy")
 
 

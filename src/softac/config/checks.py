@@ -45,7 +45,10 @@ def _check_collection(config: Any) -> None:
     need(config.batch_size >= 1, "batch_size", "must be >= 1")
     need(config.learning_starts >= 0, "learning_starts", "must be >= 0")
     need(0.0 <= config.random_action_prob <= 1.0, "random_action_prob", "must be in [0, 1]")
-    need(config.exploration_noise in ("gaussian", "pink", "gsde"), "exploration_noise", "must be gaussian, pink or gsde")
+    need(config.exploration_noise in ("gaussian", "pink", "gsde", "repeat"), "exploration_noise",
+         "must be gaussian, pink, gsde or repeat")
+    need(0.0 <= config.noise_repeat_mu <= 100.0, "noise_repeat_mu", "must be in [0, 100]")
+    need(1 <= config.noise_repeat_max <= 100_000, "noise_repeat_max", "must be between 1 and 100,000")
     need(1 <= config.sde_sample_freq <= 1_000_000, "sde_sample_freq", "must be between 1 and 1,000,000")
     need(-20.0 <= config.sde_log_std_init <= 2.0, "sde_log_std_init", "must be in [-20, 2]")
     need(0.0 <= config.noise_beta <= 4.0, "noise_beta", "must be in [0, 4]")
@@ -107,12 +110,19 @@ def _check_networks(config: Any) -> None:
         for key in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
             need(len(set(getattr(config, key))) <= 1, key,
                  "with network=simba every entry is a residual block of the one width (e.g. 512,512)")
-    need(config.network != "bn_mlp" or config.crossq, "network",
-         "bn_mlp normalises with batch statistics: it needs crossq=true (the joint pass and the running statistics)")
+    need(config.network not in ("bn_mlp", "flashsac") or config.crossq, "network",
+         f"{config.network} normalises with batch statistics: it needs crossq=true (the joint pass and the running "
+         "statistics)")
+    if config.network == "flashsac":
+        for key in ("hidden_sizes", "actor_hidden_sizes", "critic_hidden_sizes"):
+            need(len(set(getattr(config, key))) <= 1, key,
+                 "with network=flashsac every entry is a residual block of the one width (e.g. 256,256)")
+    need(0.0 < config.batch_norm_eps <= 1.0, "batch_norm_eps", "must be in (0, 1]")
     for key in ("actor_hidden_sizes", "critic_hidden_sizes"):
         need(all(1 <= h <= 65_536 for h in getattr(config, key)), key, "widths must be between 1 and 65536")
     need(config.weight_decay >= 0.0, "weight_decay", "must be >= 0")
     need(config.weight_decay_layers in ("all", "output"), "weight_decay_layers", "must be all or output")
+    need(0.0 <= config.target_entropy_std <= 100.0, "target_entropy_std", "must be in [0, 100] (0: off)")
     need(config.target_entropy_scale > 0.0, "target_entropy_scale", "must be > 0 (target_entropy sets any other target)")
     need(not config.crossq or config.batch_size >= 2, "batch_size", "must be >= 2 with crossq (batch statistics)")
     need(config.crossq or not config.weight_norm, "weight_norm",

@@ -11,7 +11,7 @@ SHORT_PREFIX = "dmc:"
 BACKENDS = ("tensorboard", "wandb", "mlflow")
 # the network kinds a config may name (softac.learner.networks.NETWORKS holds each; `crossq` picks the
 # batch-renormalised MLP itself): named here so that a bad name is refused before anything is built
-NETWORK_NAMES = ("mlp", "simba", "bn_mlp")
+NETWORK_NAMES = ("mlp", "simba", "bn_mlp", "flashsac")
 
 
 def long_id(env_id: str) -> str:

@@ -116,7 +116,10 @@ def _adam(lr: float, b1: float, weight_decay: float = 0.0,
 
 
 def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
-    """`auto` is -target_entropy_scale * |A| (Haarnoja et al. 2018b: -|A|; SimBa and CrossQ+WN: -|A|/2)."""
+    """`auto` is -target_entropy_scale * |A| (Haarnoja et al. 2018b: -|A|; SimBa and CrossQ+WN: -|A|/2), or with
+    target_entropy_std the entropy of a Gaussian of that std per action dim (FlashSAC's unified target)."""
+    if config.target_entropy == "auto" and config.target_entropy_std > 0:
+        return 0.5 * act_dim * float(np.log(2.0 * np.pi * np.e * config.target_entropy_std**2))
     if config.target_entropy == "auto":
         return -config.target_entropy_scale * float(act_dim)
     return float(config.target_entropy)
@@ -125,7 +128,7 @@ def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
 def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: bool = False,
                     image_state_dim: int = 0) -> UpdateSettings:
     c = config
-    norm = BatchRenorm(c.batch_norm_momentum) if c.crossq else None
+    norm = BatchRenorm(c.batch_norm_momentum, c.batch_norm_eps) if c.crossq else None
     # critics with batch renormalisation stay vmapped: unrolled, they were no faster (docs/performance.md)
     unroll = jax.default_backend() == "cpu" and c.n_critics <= 8 and norm is None
     return UpdateSettings(

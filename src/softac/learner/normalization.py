@@ -68,7 +68,7 @@ class RunningReturnScale:
     normaliser, as XQC and FlashSAC use it). Each env's running return G <- gamma (1 - done) G + r is updated
     with every training step (done: the step ended its episode, as those authors' code has it), and the
     mean and variance of all the G seen are merged as RunningObsNorm merges observations; `std` divides by
-    sigma_G (+ 1e-8, XQC's), `std_max` by max(sigma_G, G_max / v_max) with G_max the largest |G| seen
+    sigma_G + 1e-8 (XQC's), `std_max` by max(sqrt(var_G + 1e-8), G_max / v_max) with G_max the largest |G| seen
     (FlashSAC's), which keeps the largest return inside the support. Batches are scaled when sampled, with the
     scale of that moment; the statistics are saved in every checkpoint."""
 
@@ -91,10 +91,10 @@ class RunningReturnScale:
         """What rewards are divided by now (1 before any step)."""
         if self.stats.count == 0:
             return 1.0
-        std = float(np.sqrt(self.stats.var[0]))
-        if self.mode == "std":
-            return std + self.EPSILON
-        return max(std, self.max_abs / self.v_max, self.EPSILON)
+        var = float(self.stats.var[0])
+        if self.mode == "std":  # XQC's sqrt(var) + eps, FlashSAC's sqrt(var + eps)
+            return float(np.sqrt(var)) + self.EPSILON
+        return max(float(np.sqrt(var + self.EPSILON)), self.max_abs / self.v_max)
 
     def scale_rewards(self, rewards: np.ndarray) -> np.ndarray:
         return (np.asarray(rewards, np.float64) / self.scale).astype(np.float32)

@@ -23,6 +23,17 @@ policy.npz holds
       ln_eps                      the LayerNorms' epsilon
                                   (bf16, if there, marks the dense layers in this order: embed, the blocks'
                                   _1 and _2, head)
+                                  for a FlashSAC actor (network=flashsac, Kim et al. 2026), "flashsac"; in
+                                  place of w0 ... bN it then has, float32:
+      in_mean, in_inv_std,        the input's batch normalisation ((x - mean) * inv_std * scale + bias)
+      in_scale, in_bias
+      embed_w                     the embedding (no bias)
+      blockI_1_w, blockI_n1_*,    block I: x + act(n2(act(n1(x @ blockI_1_w)) @ blockI_2_w)), n1 and n2 batch
+      blockI_2_w, blockI_n2_*       normalisations as in_* (_mean, _inv_std, _scale, _bias)
+      rms_scale, rms_eps          the RMSNorm: x / sqrt(mean(x^2) + eps) * scale
+      head_w, head_b              the output layer (the mean action before tanh)
+                                  (bf16, if there, marks the kernels in this order: embed, the blocks' _1 and
+                                  _2, head)
     nI_mean, nI_inv_std,          float32, only for a CrossQ layer I that multiplies in bf16: its input's batch
     nI_scale, nI_bias             renormalisation, kept apart (folded into w, bf16 would round other values);
                                   for an XQC actor (network=bn_mlp) n0_* on the input, always
@@ -74,18 +85,32 @@ def round_bf16(x: np.ndarray) -> np.ndarray:
     return ((bits + np.uint32(0x7FFF) + ((bits >> 16) & np.uint32(1))) & np.uint32(0xFFFF0000)).view(np.float32)
 
 
+FLASHSAC_RMS_EPS = 1e-6  # FlashSAC's RMSNorm epsilon (networks/flashsac.py)
+
+
+def network_name(params: dict) -> str:
+    return str(params.get("network", "mlp"))
+
+
 def is_simba(params: dict) -> bool:
-    return str(params.get("network", "mlp")) == "simba"
+    return network_name(params) == "simba"
 
 
 def simba_block_count(params: dict) -> int:
     return sum(1 for key in params if key.startswith("block") and key.endswith("_ln_scale"))
 
 
+def flashsac_block_count(params: dict) -> int:
+    return sum(1 for key in params if key.startswith("block") and key.endswith("_1_w"))
+
+
 def dense_bf16_flags(params: dict) -> list[bool]:
     """Whether each dense layer of the actor multiplies in bfloat16, in the order the forward pass takes them
-    (an MLP's w0 ... wN; a SimBa actor's embed, each block's _1 and _2, head): all False without `bf16`."""
-    count = 2 * simba_block_count(params) + 2 if is_simba(params) else layer_count(params)
+    (an MLP's w0 ... wN; a SimBa or FlashSAC actor's embed, each block's _1 and _2, head): all False without
+    `bf16`."""
+    name = network_name(params)
+    blocks = simba_block_count(params) if name == "simba" else flashsac_block_count(params)
+    count = 2 * blocks + 2 if name in ("simba", "flashsac") else layer_count(params)
     return [bool(flag) for flag in params.get("bf16", np.zeros(count, np.int8))]
 
 
@@ -168,6 +193,26 @@ def simba_forward(params: dict, x: np.ndarray) -> np.ndarray:
     return dense(x, params["head_w"], params["head_b"], next(bf16))
 
 
+def batch_norm(x: np.ndarray, params: dict, prefix: str) -> np.ndarray:
+    """A batch normalisation in evaluation mode: (x - mean) * inv_std * scale + bias, as softac's JAX code."""
+    return ((x - params[f"{prefix}_mean"]) * params[f"{prefix}_inv_std"] * params[f"{prefix}_scale"]
+            + params[f"{prefix}_bias"])
+
+
+def flashsac_forward(params: dict, x: np.ndarray) -> np.ndarray:
+    """The FlashSAC actor's mean action before tanh."""
+    activation = ACTIVATIONS[str(params["activation"])]
+    bf16 = iter(dense_bf16_flags(params))
+    zero = np.float32(0.0)
+    x = dense(batch_norm(x, params, "in"), params["embed_w"], zero, next(bf16))
+    for i in range(flashsac_block_count(params)):
+        h = activation(batch_norm(dense(x, params[f"block{i}_1_w"], zero, next(bf16)), params, f"block{i}_n1"))
+        h = activation(batch_norm(dense(h, params[f"block{i}_2_w"], zero, next(bf16)), params, f"block{i}_n2"))
+        x = h + x
+    inv_rms = np.float32(1.0) / np.sqrt((x * x).mean(axis=-1, keepdims=True) + params["rms_eps"])
+    return dense(x * inv_rms * params["rms_scale"], params["head_w"], params["head_b"], next(bf16))
+
+
 def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for one observation or a batch: tanh of the actor's mean, scaled to bounds."""
     images = "image_shape" in params
@@ -175,7 +220,8 @@ def policy_forward(params: dict, obs: np.ndarray) -> np.ndarray:
     if "obs_mean" in params:
         clip = params["obs_clip"]
         x = np.clip((x - params["obs_mean"]) / params["obs_std"], -clip, clip)
-    x = simba_forward(params, x) if is_simba(params) else mlp_forward(params, x)
+    forward = {"simba": simba_forward, "flashsac": flashsac_forward}.get(network_name(params), mlp_forward)
+    x = forward(params, x)
     if "mean_clip" in params:
         x = np.clip(x, -params["mean_clip"], params["mean_clip"])
     low, high = params["action_low"], params["action_high"]

@@ -26,7 +26,8 @@ def _common(c: SACConfig) -> dict[str, bool]:
             "network": c.network != "mlp", "her": c.her == "on", "random_action_prob": c.random_action_prob > 0,
             "exploration_noise": c.exploration_noise != "gaussian",
             "lr_schedule": c.lr_schedule != "constant",
-            "n_atoms (SBX has no categorical critic)": c.n_atoms > 0}  # action_repeat: the peer's env (peers.py)
+            "n_atoms (SBX has no categorical critic)": c.n_atoms > 0, "reward_scale": c.reward_scale != "off",
+            "target_entropy_std": c.target_entropy_std > 0}  # action_repeat: the peer's env (peers.py)
 
 
 def crossq_settings(c: SACConfig) -> dict[str, Any]:
@@ -37,7 +38,7 @@ def crossq_settings(c: SACConfig) -> dict[str, Any]:
                        or c.target_entropy_scale != 1.0, "initial alpha": c.alpha != 1.0,
                        "target_critics": c.target_critics == "on", "weight_norm": c.weight_norm,
                        "weight_decay": c.weight_decay > 0, "n_quantiles": c.n_quantiles > 0,
-                       "critic_dropout": c.critic_dropout > 0,
+                       "critic_dropout": c.critic_dropout > 0, "batch_norm_eps": c.batch_norm_eps != 1e-3,
                        "actor and critic widths differ": c.actor_widths != c.critic_widths})
     return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
             "learning_starts": c.learning_starts, "batch_size": c.batch_size, "gamma": c.gamma,

@@ -12,6 +12,7 @@ variance, as white noise's.
 
 gSDE (Raffin et al. 2022; softac.learner.policy has the maths) draws instead, for each env, the standard-normal weights
 of an exploration matrix, kept for `sde_sample_freq` steps; the policy scales them by its current std.
+FlashSAC's noise repetition (`RepeatedNoise`) holds white noise for a random number of steps.
 """
 
 from __future__ import annotations
@@ -127,8 +128,58 @@ class SdeNoise:
         self.since_draw = int(arrays["since_draw"])
 
 
-def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | None:
+def truncated_zeta_cdf(mu: float, largest: int) -> np.ndarray:
+    """The CDF of k on 1..largest with P(k) proportional to k^-mu (a Zeta distribution cut at `largest`)."""
+    pmf = np.arange(1, largest + 1, dtype=np.float64) ** -mu
+    return np.cumsum(pmf / pmf.sum())
+
+
+class RepeatedNoise:
+    """FlashSAC's noise repetition (Kim et al. 2026, flash_rl/agents/flashSAC/agent.py): the standard-normal
+    noise of every env's action is drawn once and held for k steps, k drawn afresh at each draw from a truncated
+    Zeta distribution (P(k) ~ k^-mu, k <= largest; mu 2, largest 16: half the draws hold one step, a few hold
+    many), so that exploration commits to a direction for a while, as action repeat does, without repeating the
+    action itself (the policy's mean and std still follow the state). As the authors' code, one count for all
+    envs, and episode ends do not cut a hold. Its state (random stream, the noise, the count) goes into
+    checkpoints."""
+
+    def __init__(self, mu: float, largest: int, n_envs: int, act_dim: int, seed: int):
+        self.cdf = truncated_zeta_cdf(mu, largest)
+        self.rng = np.random.default_rng([seed, 0x2E7A])
+        self.noise = np.zeros((n_envs, act_dim), np.float32)
+        self.count, self.hold = 0, 1  # steps the current noise was used for, and how many it is held
+
+    def next(self) -> np.ndarray:
+        """(n_envs, act_dim) float32: the held noise, drawn afresh when its hold is over (and at the first step)."""
+        if self.count == 0 or self.count >= self.hold:
+            self.noise = self.rng.standard_normal(self.noise.shape, dtype=np.float32)
+            self.hold = int(np.argmax(self.rng.random() < self.cdf)) + 1
+            self.count = 0
+        self.count += 1
+        return self.noise
+
+    def episode_ended(self, env: int) -> None:
+        pass
+
+    def checkpoint_parts(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        return ({"rng": self.rng.bit_generator.state, "kind": "repeat"},
+                {"held": self.noise.copy(), "count": np.asarray([self.count, self.hold], np.int64)})
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        if "held" not in arrays or arrays["held"].shape != self.noise.shape:
+            from softac.errors import SoftacError
+
+            raise SoftacError("the checkpoint's exploration noise is not this run's repeated noise (n_envs, action "
+                              f"dims) {self.noise.shape}")
+        self.rng.bit_generator.state = meta["rng"]
+        self.noise = np.array(arrays["held"], np.float32)
+        self.count, self.hold = (int(v) for v in arrays["count"])
+
+
+def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | RepeatedNoise | None:
     """The noise source the config's `exploration_noise` names (None: white noise from the act key)."""
+    if config.exploration_noise == "repeat":
+        return RepeatedNoise(config.noise_repeat_mu, config.noise_repeat_max, config.n_envs, act_dim, config.seed)
     if config.exploration_noise == "pink":
         return ColoredNoise(config.noise_beta, config.n_envs, act_dim, config.noise_sequence_length, config.seed)
     if config.exploration_noise == "gsde":

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from softac.errors import SoftacError
-from softac.replay.exploration import ColoredNoise, SdeNoise
+from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
 from softac.run.run_dir import check_new_run_dir, checkpoint_path, holds_run, run_of_last_checkpoint
 
 
@@ -40,10 +40,11 @@ class RunState:
     # the only run it may go on writing into; any other directory must hold no run (never overwritten)
     run_dir: Path | None = None
     restored_from: Path | None = None  # the checkpoint directory it was loaded from
-    noise: ColoredNoise | SdeNoise | None = None  # pink: each env's noise sequence; gsde: its exploration matrix (else the act_key's)
+    # pink: each env's noise sequence; gsde: its exploration matrix; repeat: the held noise (else the act_key's)
+    noise: ColoredNoise | SdeNoise | RepeatedNoise | None = None
 
     @classmethod
-    def new(cls, seed: int, noise: ColoredNoise | SdeNoise | None = None) -> "RunState":
+    def new(cls, seed: int, noise: ColoredNoise | SdeNoise | RepeatedNoise | None = None) -> "RunState":
         import jax.numpy as jnp
 
         keys = np.random.default_rng([seed, 0xAC7]).integers(0, 2**32, (2, 2), dtype=np.uint32)

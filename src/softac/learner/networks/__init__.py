@@ -2,7 +2,7 @@
 
 Each kind is one module with one `Network` entry (networks/entry.py: init, features, head, output mask,
 parameter count, and where it has them its batch normalisations' statistics and weight_norm's projection);
-NETWORKS names them. A config's `network` (mlp, simba, bn_mlp) picks the kind, CrossQ's batch
+NETWORKS names them. A config's `network` (mlp, simba, bn_mlp, flashsac) picks the kind, CrossQ's batch
 renormalisation (`crossq`) turning an MLP into a batch_renorm_mlp (`network_kind`). The critic ensemble holds
 every critic's parameters stacked on a leading axis and is evaluated with one `jax.vmap` (or critic by critic,
 `unroll`), so n critics cost one batched matmul per layer.
@@ -16,12 +16,14 @@ import numpy as np
 
 from softac.learner.networks.batch_renorm_mlp import BATCH_RENORM_MLP
 from softac.learner.networks.bn_mlp import BN_MLP
+from softac.learner.networks.flashsac import FLASHSAC
 from softac.learner.networks.entry import Network, Params
 from softac.learner.networks.layers import BatchRenorm, dense, dropout_mask, each_critic, stack
 from softac.learner.networks.mlp import MLP
 from softac.learner.networks.simba import SIMBA
 
-NETWORKS: dict[str, Network] = {"mlp": MLP, "batch_renorm_mlp": BATCH_RENORM_MLP, "simba": SIMBA, "bn_mlp": BN_MLP}
+NETWORKS: dict[str, Network] = {"mlp": MLP, "batch_renorm_mlp": BATCH_RENORM_MLP, "simba": SIMBA, "bn_mlp": BN_MLP,
+                                "flashsac": FLASHSAC}
 
 
 def network_kind(network: str, batch_renorm: bool) -> Network:

@@ -57,6 +57,11 @@ def layer_norm(g: Graph, arrays: dict[str, np.ndarray], x: str, name: str, eps: 
 
 
 def dense(g: Graph, arrays: dict[str, np.ndarray], x: str, w: str, b: str, bf16: bool) -> str:
+    return g.op("Add", matmul(g, arrays, x, w, bf16), g.const(b, arrays[b]))
+
+
+def matmul(g: Graph, arrays: dict[str, np.ndarray], x: str, w: str, bf16: bool) -> str:
+    """x @ arrays[w] (a dense layer without bias)."""
     if bf16:  # rounded to bf16 and back, as the run's bf16 matmul sees its input
         x = g.op("Cast", g.op("Cast", x, to=g.onnx.TensorProto.BFLOAT16), to=g.onnx.TensorProto.FLOAT)
-    return g.op("Add", g.op("MatMul", x, g.const(w, arrays[w])), g.const(b, arrays[b]))
+    return g.op("MatMul", x, g.const(w, arrays[w]))
