@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softac.outputs.plots import plot_aggregate, plot_comparison, plot_front
+from softac.outputs.plots import FrontPoint, plot_aggregate, plot_comparison, plot_front
 from softac.outputs.seed_stats import stratified_bootstrap_iqm
 from softac.sweep import aggregate, load_spec, markdown_table, trial_dirs, trial_rows
 
@@ -136,7 +136,9 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     from (issue 42). A table per env and one figure."""
     excluded = timing_excluded(sweeps)
     published = published_means()
-    points: dict[str, dict[str, tuple[float, float, float | None]]] = {}
+    points: dict[str, dict[str, FrontPoint]] = {}
+    labels: dict[str, str] = {}  # configuration -> its short label in the figure
+    machines: dict[str, set[str]] = {}  # configuration -> the machines its points ran on
     scores: dict[str, dict[str, tuple[float, float | None]]] = {}  # configuration -> env -> (mean final, seconds)
     lines = [f"## {FRONT}", "",
              "Gym MuJoCo v4 (the published tables' version), 100k env steps, final deterministic evaluation (10 "
@@ -145,10 +147,12 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
              "trials whose wall time is comparable (benchmarks/sweeps/timing-excluded.yaml lists the others; their "
              "returns count); a configuration with none comparable shows its disturbed trials' median, an upper "
              "estimate, in parentheses (hollow in the figure). One-core seconds compare only between rows of one machine "
-             "(the machine column, from the trials' config.yaml; the figure's legend names it too): the AMD EPYC's "
-             "update runs about 2x as fast as the Xeon's (docs/results-notes.md). "
+             "(the machine column, from the trials' config.yaml; the figure tells machines apart by the markers' "
+             "fill): the AMD EPYC's update runs about 2x as fast as the Xeon's (docs/results-notes.md); a GPU's "
+             "point (a black rim) is a run's seconds on one GPU. "
              "Published: the mean (± sd, seeds) at 100k steps of the result files of "
-             "dojeon-ai/SimbaV2 (benchmarks/published-100k.yaml), run on GPUs; best published per env in bold.", ""]
+             "dojeon-ai/SimbaV2 and Holiday-Robot/FlashSAC (benchmarks/published-100k.yaml), run on GPUs; best "
+             "published per env in bold.", ""]
     for env in SUITE_V4:
         present = env_sweeps(env, sweeps)
         rows = []
@@ -162,8 +166,14 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
             # none timed: the disturbed trials' median, an upper estimate, drawn hollow and said so in the table
             seconds = float(np.median(timed or disturbed)) if timed or disturbed else None
             sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
-            machine = short_machines(machines_of([d / r["trial"] for r in trials]))
-            points.setdefault(env, {})[f"{name} [{machine}]"] = (float(np.mean(finals)), sd, seconds, bool(timed))
+            runs = [d / r["trial"] for r in trials]
+            gpu = ran_on_gpu(runs)
+            machine = short_machines(machines_of(runs)) + (" + GPU" if gpu else "")
+            label = short_label(env, d, name)
+            labels[name] = min(labels.get(name, label), label, key=len)
+            machines.setdefault(name, set()).add(machine)
+            points.setdefault(env, {})[name] = FrontPoint(float(np.mean(finals)), sd, seconds, bool(timed), machine,
+                                                          gpu)
             scores.setdefault(name, {})[env] = (float(np.mean(finals)), seconds)
             shown_seconds = "-" if seconds is None else f"{seconds:.0f}" if timed else f"({seconds:.0f}: disturbed)"
             rows.append(f"| {name} | {len(finals)} | {np.mean(finals):.0f} ± {sd:.0f} | "
@@ -183,10 +193,55 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     if not points:
         return kept.get(FRONT, [])
     lines += against_best_published(scores, published)
-    shown = ("CrossQ", "SAC", "SimBa UTD 2", "SimBaV2 UTD 2")
-    figure = plot_front(points, {env: {m: published[m][env][0] for m in shown if env in published[m]} for env in points},
-                        figures / "front-v4.png", "Gym MuJoCo v4, 100k steps: final return against one-core wall time")
-    return lines + [f"![front](results/{figure.name})", ""]
+    labels = unique_labels(labels)
+    drawn = {env: {labels[name]: point for name, point in envs.items()} for env, envs in points.items()}
+    lines_drawn = {env: {m: published[m][env][0] for m in published if m in FRONT_METHODS or m == best_published(
+        published, env)} for env in points}
+    figure = plot_front(drawn, lines_drawn, figures / "front-v4.png",
+                        "Gym MuJoCo v4, 100k steps: final return against wall time per run")
+    key = ["", "The figure's key: each label, the configuration it stands for and the machines its points ran on "
+           "(every panel draws " + ", ".join(FRONT_METHODS) + " and the best published result of its env).", "",
+           "| label | configuration | machine |", "|---|---|---|"]
+    key += [f"| {labels[name]} | {name} | {'; '.join(sorted(machines[name]))} |"
+            for name in sorted(labels, key=lambda n: labels[n])]
+    return lines + [f"![front](results/{figure.name})", *key, ""]
+
+
+# the published methods drawn on every panel of the front (issue 66), beside each env's best
+FRONT_METHODS = ("SAC", "CrossQ", "FlashSAC", "XQC", "MR.Q")
+
+
+def best_published(published: dict[str, dict[str, tuple[float, float, int]]], env: str) -> str:
+    return max((m for m in published if env in published[m]), key=lambda m: published[m][env][0])
+
+
+def short_label(env: str, sweep: Path, name: str) -> str:
+    """A configuration's label in the front's figure: its sweep directory's name after the env (softac's own
+    without the "softac-"; softac's preset sweep by its preset's name), e.g. "crossq-avg", "tqc-2x256",
+    "sbx-simba-softac"."""
+    suffix = sweep.name[len(env) + 1:]
+    if suffix == "softac":
+        return name.split(", ", 1)[-1].split(" preset")[0]
+    return suffix[len("softac-"):] if suffix.startswith("softac-") else suffix
+
+
+def unique_labels(labels: dict[str, str]) -> dict[str, str]:
+    """Labels made unique: a label two configurations share gets a number after it."""
+    counts: dict[str, int] = {}
+    out = {}
+    for name in sorted(labels):
+        label = labels[name]
+        counts[label] = counts.get(label, 0) + 1
+        out[name] = label if counts[label] == 1 else f"{label} ({counts[label]})"
+    return out
+
+
+def ran_on_gpu(runs: list[Path]) -> bool:
+    """Whether the trials' config.yaml say they trained on a GPU (device gpu or cuda)."""
+    import yaml
+
+    return any(str((yaml.safe_load((run / "config.yaml").read_text()) or {}).get("device", "cpu")) in ("gpu", "cuda")
+               for run in runs if (run / "config.yaml").exists())
 
 
 def against_best_published(scores: dict[str, dict[str, tuple[float, float | None]]],

@@ -147,7 +147,7 @@ def test_the_front_scores_a_configuration_on_all_five_envs_against_the_best_publ
             shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / f"{env}-softac-again")
     docs.mkdir()
     assert results_doc.main([str(sweeps), "--docs", str(docs)]) == 0
-    table = (docs / "results.md").read_text().split(f"### {results_doc.AGAINST_BEST}")[1].split("\n## ")[0]
+    table = (docs / "results.md").read_text().split(f"### {results_doc.AGAINST_BEST}")[1].split("![front]")[0]
     mean = np.mean([float((run / "eval.csv").read_text().splitlines()[-1].split(",")[1])
                     for run in sorted((KEPT / "Hopper-v5-softac").glob("seed=*"))])
     published = results_doc.published_means()
@@ -415,3 +415,56 @@ def test_the_pixels_section_sets_softacs_pixel_runs_beside_sb3s_cnn_policy_runs(
     assert theirs[2:] == ["48x48, 3 stacked, action repeat 1, batch 256", "1", "-170 (-170)", "2k (120 s)", "3k", "210",
                           "CPU X"]
     assert "Pendulum-v1-softac-48px" not in text.split("## From pixels")[0]
+
+
+def test_the_fronts_configurations_each_get_a_colour_and_a_marker_of_their_own():
+    from softac.errors import SoftacError
+    from softac.outputs.plots import FRONT_COLOURS, front_styles
+
+    names = [f"configuration {i}" for i in range(len(FRONT_COLOURS))]
+    styles = front_styles(names)
+    assert len({colour for colour, _ in styles.values()}) == len(names)
+    assert len({str(marker) for _, marker in styles.values()}) == len(names)
+    with pytest.raises(SoftacError, match="at most 20 configurations"):
+        front_styles([*names, "one more"])
+
+
+@pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
+def test_the_front_figure_draws_short_labels_the_named_and_best_published_on_every_panel_and_gpu_points(
+        tmp_path, monkeypatch):
+    """Issue 66's front: configurations by short labels with a key under the figure, every panel the same named
+    published methods and its env's best, a GPU trial's point told apart from a CPU's."""
+    import yaml
+
+    sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
+    shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / "Hopper-v4-softac")
+    shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / "Ant-v4-softac-crossq-avg")
+    spec = json.loads((sweeps / "Ant-v4-softac-crossq-avg" / "sweep.json").read_text())
+    (sweeps / "Ant-v4-softac-crossq-avg" / "sweep.json").write_text(json.dumps({**spec, "preset": "crossq-avg"}))
+    for trial in (sweeps / "Ant-v4-softac-crossq-avg").glob("seed=*"):
+        config = yaml.safe_load((trial / "config.yaml").read_text())
+        (trial / "config.yaml").write_text(yaml.safe_dump({**config, "device": "gpu"}))
+    docs.mkdir()
+    results_doc = load_benchmark_script("results_doc")
+    drawn = {}
+    results_mujoco = __import__("results_mujoco")
+    original = results_mujoco.plot_front
+    monkeypatch.setattr(results_mujoco, "plot_front",
+                        lambda points, published, out, title: drawn.update(points=points, published=published)
+                        or original(points, published, out, title))
+    assert results_doc.main([str(sweeps), "--docs", str(docs)]) == 0
+    assert set(drawn["points"]) == {"Hopper-v4", "Ant-v4"}
+    assert list(drawn["points"]["Hopper-v4"]) == ["crossq"] and list(drawn["points"]["Ant-v4"]) == ["crossq-avg"]
+    assert drawn["points"]["Ant-v4"]["crossq-avg"].gpu and drawn["points"]["Ant-v4"]["crossq-avg"].machine.endswith(
+        " + GPU")
+    assert not drawn["points"]["Hopper-v4"]["crossq"].gpu
+    published = results_doc.published_means()
+    for env, lines in drawn["published"].items():
+        best = max((m for m in published if env in published[m]), key=lambda m: published[m][env][0])
+        assert set(lines) == {"SAC", "CrossQ", "FlashSAC", "XQC", "MR.Q", best}
+        assert lines[best] == published[best][env][0]
+    key = (docs / "results.md").read_text().split("The figure's key")[1].split("\n## ")[0]
+    rows = [line for line in key.splitlines() if line.startswith("| crossq")]
+    assert rows[0].startswith("| crossq | softac, crossq preset | ") and "GPU" not in rows[0]
+    assert rows[1].startswith("| crossq-avg | softac, crossq-avg preset | ") and rows[1].endswith(" + GPU |")
+    assert (docs / "results" / "front-v4.png").stat().st_size > 10_000

@@ -6,6 +6,7 @@ interrupted runs alike, with Matplotlib's non-interactive Agg backend (no displa
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import textwrap
 from pathlib import Path
@@ -344,61 +345,114 @@ def plot_aggregate(scores: dict[str, tuple[float, float, float]], out: Path, tit
     return out
 
 
-def plot_front(points: dict[str, dict[str, tuple[float, float, float | None, bool]]],
-               published: dict[str, dict[str, float]],
+# Kelly's colours of maximum contrast (1965) without white and black, the pale ones last: each configuration on the
+# front one colour of its own, none a shade of another's (matplotlib's cycle has ten, and tab20 pairs shades of a hue)
+FRONT_COLOURS = ("#BE0032", "#0067A5", "#008856", "#875692", "#F38400", "#882D17", "#E68FAC", "#848482", "#604E97",
+                 "#F6A600", "#B3446C", "#8DB600", "#654522", "#E25822", "#2B3D26", "#F3C300", "#A1CAF1", "#C2B280",
+                 "#F99379", "#DCD300")
+# matplotlib's 15 filled markers, then five filled stars and polygons (sides, style 0 polygon or 1 star, angle)
+FRONT_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "h", "<", ">", "p", "d", "H", "8", (6, 1, 0), (4, 1, 45),
+                 (8, 1, 0), (7, 0, 0), (3, 1, 0))
+# a machine's points differ by fill (a run's one-core seconds compare only on one machine); hollow is kept for
+# points whose wall time comes from disturbed trials
+FRONT_FILLS = ("full", "top", "right", "bottom", "left")
+
+
+@dataclasses.dataclass(frozen=True)
+class FrontPoint:
+    """One configuration on one env: the mean final return over its seeds and their standard deviation, its median
+    wall seconds per run (None: not drawn), whether those seconds come from undisturbed trials, the machine they
+    ran on (a short name) and whether that was a GPU (its seconds are a GPU's, not one CPU core's)."""
+    mean: float
+    sd: float
+    seconds: float | None
+    timed: bool = True
+    machine: str = ""
+    gpu: bool = False
+
+
+def front_styles(names: list[str]) -> dict[str, tuple[str, str]]:
+    """A colour and a marker of its own for each configuration (in the order given), so that no two share either;
+    past len(FRONT_COLOURS) configurations a front is unreadable, so that is refused."""
+    if len(names) > len(FRONT_COLOURS):
+        raise SoftacError(f"the front draws at most {len(FRONT_COLOURS)} configurations with a colour and marker "
+                          f"each; {len(names)} given")
+    return {name: (FRONT_COLOURS[i], FRONT_MARKERS[i]) for i, name in enumerate(names)}
+
+
+def plot_front(points: dict[str, dict[str, FrontPoint]], published: dict[str, dict[str, float]],
                out: Path, title: str) -> Path:
-    """Return against wall time, one panel per env: each configuration a point at (median wall seconds, mean final
-    return) with its spread over seeds as a vertical bar ({env: {name: (mean, sd, seconds or None, timed)}}; a
-    point without seconds is left out; one whose seconds come from disturbed trials (timed False) is drawn hollow),
-    and each published method's mean as a dashed line ({env: {method: mean}}), labelled at the right."""
+    """Return against wall time, one panel per env ({env: {configuration: FrontPoint}}): each configuration a
+    point at (median wall seconds, mean final return) with its spread over seeds as a vertical bar, in a colour and
+    a marker of its own (the legend's key; `configuration` is best a short label, with the long description
+    beside the figure); the machine by the marker's fill, a GPU's point with a black rim, a point whose seconds come
+    from disturbed trials hollow; a point without seconds is left out. Every panel shares one log time axis and
+    draws each published method's mean ({env: {method: mean}}) as a grey dashed line labelled at the right, the
+    best one there solid and black."""
     plt = _pyplot()
     from matplotlib import ticker
 
     envs = list(points)
     cols = min(3, len(envs))
     rows = (len(envs) + cols - 1) // cols
-    names = sorted({name for env in envs for name in points[env]})
-    # room below the panels for the legend's rows (one more entry for the hollow marker): two entries a row
-    # where two of the longest names fit the figure's width side by side (~14 characters an inch at the
-    # legend's font size 8), else one
-    legend_cols = 2 if max(map(len, names)) * 2 <= 14 * 5.2 * cols else 1
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.2 * -(-(len(names) + 1) // legend_cols)),
-                             squeeze=False, layout="constrained")
-    colours = {name: f"C{i % 10}" for i, name in enumerate(names)}
-    any_hollow = False
+    names = list(dict.fromkeys(name for env in envs for name in sorted(points[env])))
+    styles = front_styles(names)
+    machines = sorted({p.machine for env in envs for p in points[env].values()})
+    fills = {m: FRONT_FILLS[i % len(FRONT_FILLS)] for i, m in enumerate(machines)}
+    methods = sorted({m for lines in published.values() for m in lines})
+    dashes = {m: (0, (5, 1.5 + 1.2 * i)) for i, m in enumerate(methods)}
+    seconds = [p.seconds for env in envs for p in points[env].values() if p.seconds]
+    low_s, high_s = (min(seconds) / 1.4, max(seconds) * 1.4) if seconds else (10.0, 10_000.0)
+    legend_rows = -(-(len(names) + len(machines) + 2) // 3)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.25 * legend_rows), squeeze=False,
+                             layout="constrained")
+    flags = {"hollow": False, "gpu": False}
     for ax, env in zip(axes.flat, envs):
-        for name, (mean, sd, seconds, timed) in points[env].items():
-            if seconds is None:
+        for name, p in sorted(points[env].items()):
+            if p.seconds is None:
                 continue
-            hollow = not timed
-            any_hollow |= hollow
-            ax.errorbar(seconds, mean, yerr=sd, fmt="o", color=colours[name], capsize=4,
-                        markerfacecolor="white" if hollow else colours[name])
+            colour, marker = styles[name]
+            flags["hollow"] |= not p.timed
+            flags["gpu"] |= p.gpu
+            ax.errorbar(p.seconds, p.mean, yerr=p.sd, fmt=marker, color=colour, capsize=3, markersize=8,
+                        fillstyle="full" if not p.timed else fills[p.machine],
+                        markerfacecolor="white" if not p.timed else colour,
+                        markerfacecoloralt="white", markeredgecolor="black" if p.gpu else colour,
+                        markeredgewidth=2.0 if p.gpu else 1.0, elinewidth=1.2, alpha=0.95)
         lines = sorted(published.get(env, {}).items(), key=lambda kv: kv[1])
-        for i, (method, value) in enumerate(lines):
-            ax.axhline(value, color="grey", linestyle=(0, (4, 2 + i)), linewidth=0.9)
+        best = lines[-1][0] if lines else None
+        for method, value in lines:
+            ax.axhline(value, color="black" if method == best else "grey", linewidth=1.3 if method == best else 0.9,
+                       linestyle="-" if method == best else dashes[method], zorder=0)
         low, high = ax.get_ylim()
         label_at = -np.inf
         for method, value in lines:  # labels at the right, nudged apart where two means nearly coincide
-            label_at = max(value, label_at + 0.045 * (high - low))
-            ax.annotate(method, (1.0, label_at), xycoords=("axes fraction", "data"), xytext=(3, 0),
-                        textcoords="offset points", fontsize=7, color="dimgrey", va="center")
+            label_at = max(value, label_at + 0.05 * (high - low))
+            ax.annotate(f"{method} (best)" if method == best else method, (1.0, label_at),
+                        xycoords=("axes fraction", "data"), xytext=(3, 0), textcoords="offset points", fontsize=7,
+                        color="black" if method == best else "dimgrey", va="center")
         ax.set_xscale("log")
+        ax.set_xlim(low_s, high_s)
+        ax.xaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
-        ax.xaxis.set_minor_locator(ticker.LogLocator(subs=(2.0, 5.0)))
-        ax.xaxis.set_minor_formatter(ticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
+        ax.xaxis.set_minor_formatter(ticker.NullFormatter())
         ax.set_title(env)
-        ax.set_xlabel("one-core wall seconds per 100k-step run")
+        ax.set_xlabel("wall seconds per 100k-step run (log)")
         ax.set_ylabel("final eval return")
-        ax.grid(alpha=0.3)
+        ax.grid(alpha=0.3, which="major")
     for ax in list(axes.flat)[len(envs):]:
         ax.axis("off")
-    handles = {name: plt.Line2D([], [], marker="o", linestyle="", color=colours[name]) for name in names}
-    if any_hollow:
-        handles["hollow: wall time from disturbed trials (timing-excluded)"] = plt.Line2D(
-            [], [], marker="o", linestyle="", color="grey", markerfacecolor="white")
-    fig.legend(list(handles.values()), list(handles), loc="outside lower center",
-               ncol=min(legend_cols, len(handles)), fontsize=8)
+    handles = {name: plt.Line2D([], [], marker=styles[name][1], linestyle="", color=styles[name][0], markersize=8)
+               for name in names}
+    for machine in machines:
+        gpu = any(p.gpu for env in envs for p in points[env].values() if p.machine == machine)
+        handles[f"fill: {machine}" + (" (a GPU's seconds)" if gpu else " (one core's seconds)")] = plt.Line2D(
+            [], [], marker="o", linestyle="", color="dimgrey", fillstyle=fills[machine], markerfacecoloralt="white",
+            markeredgecolor="black" if gpu else "dimgrey", markeredgewidth=2.0 if gpu else 1.0, markersize=8)
+    if flags["hollow"]:
+        handles["hollow: wall time from disturbed trials"] = plt.Line2D(
+            [], [], marker="o", linestyle="", color="dimgrey", markerfacecolor="white", markersize=8)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=3, fontsize=8)
     fig.suptitle(title)
     fig.savefig(out, dpi=110)
     plt.close(fig)
