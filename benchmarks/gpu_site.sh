@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# .whl/site.tgz for a lent GPU machine (the device tool): the Python packages softac needs that the machine's image
+# lacks, unpacked, at this checkout's .venv versions. That image's python3 is 3.12 on x86-64 Linux with JAX (CUDA),
+# optax, NumPy, SciPy, PyYAML, tqdm, Matplotlib, imageio and filelock; nothing can be installed there from outside
+# (the device notes). Gymnasium, MuJoCo and tensorboardX go in here (absl-py and etils are there; no PyOpenGL or
+# imageio-ffmpeg: the runs render nothing, and the carry holds 64 MiB). Run it here, then name .whl in the carry:
+#   bash benchmarks/gpu_site.sh && ls -l .whl/site.tgz
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYVER=${PYVER:-3.12}
+grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo '/.whl/' >> .git/info/exclude  # never committed
+pins=$(.venv/bin/pip freeze | grep -iE '^(gymnasium|mujoco|farama-notifications|cloudpickle|tensorboardx|glfw)==')
+site=$(mktemp -d)
+.venv/bin/pip install -q --target "$site" --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
+  --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux_2_28_x86_64 $pins
+mkdir -p .whl
+tar -C "$site" -czf .whl/site.tgz .
+rm -rf "$site"
+echo "wrote .whl/site.tgz ($(du -h .whl/site.tgz | cut -f1)) for Python $PYVER:" $pins
