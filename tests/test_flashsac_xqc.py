@@ -39,15 +39,22 @@ def _float64(tree):
     return jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), tree)
 
 
-@pytest.mark.numerics
-def test_bn_mlp_is_batch_norm_on_the_input_then_dense_batch_norm_relu_per_layer():
-    rng = np.random.default_rng(0)
-    kind = NETWORKS["bn_mlp"]
+def _evaluated(network, seed):
+    """A kind's network (5 inputs, two layers of 8, 3 outputs) with its initial parameters perturbed and random
+    running statistics, and its features on 4 random rows in evaluation mode: (params, stats, x, features)."""
+    rng = np.random.default_rng(seed)
+    kind = NETWORKS[network]
     params = kind.init(rng, 5, [8, 8], 3, "orthogonal", 1.0)
     params = jax.tree_util.tree_map(lambda a: (a + rng.normal(0, 0.1, a.shape)).astype(np.float32), params)
     stats = _random_stats(rng, kind.init_stats(5, [8, 8], 3))
     x = rng.normal(size=(4, 5)).astype(np.float32)
     features, _ = kind.features(params, stats, jnp.asarray(x), "relu", "float32", batch_renorm=NORM, train=False)
+    return params, stats, x, features
+
+
+@pytest.mark.numerics
+def test_bn_mlp_is_batch_norm_on_the_input_then_dense_batch_norm_relu_per_layer():
+    params, stats, x, features = _evaluated("bn_mlp", seed=0)
     out = np.asarray(features @ params["head"]["w"] + params["head"]["b"])
 
     p, s = _float64(params), _float64(stats)
@@ -60,14 +67,8 @@ def test_bn_mlp_is_batch_norm_on_the_input_then_dense_batch_norm_relu_per_layer(
 
 @pytest.mark.numerics
 def test_flashsac_is_an_embedding_inverted_residual_blocks_and_an_rms_norm():
-    rng = np.random.default_rng(1)
-    kind = NETWORKS["flashsac"]
-    params = kind.init(rng, 5, [8, 8], 3, "orthogonal", 1.0)
-    params = jax.tree_util.tree_map(lambda a: (a + rng.normal(0, 0.1, a.shape)).astype(np.float32), params)
-    stats = _random_stats(rng, kind.init_stats(5, [8, 8], 3))
+    params, stats, x, features = _evaluated("flashsac", seed=1)
     assert params["blocks"][0]["w1"].shape == (8, 32) and params["blocks"][0]["w2"].shape == (32, 8)
-    x = rng.normal(size=(4, 5)).astype(np.float32)
-    features, _ = kind.features(params, stats, jnp.asarray(x), "relu", "float32", batch_renorm=NORM, train=False)
 
     p, s = _float64(params), _float64(stats)
     h = _bn(x.astype(np.float64), p["input"], s["input"], NORM.eps) @ p["embed"]["w"]
