@@ -175,6 +175,18 @@ def own_compile_cache(tmp_path_factory):
         os.environ["SOFTAC_COMPILE_CACHE"] = previous
 
 
+@pytest.fixture(autouse=True)
+def compiled_programs_within_the_map_limit():
+    """One pytest-xdist worker runs hundreds of tests in one process, each compiling programs whose code XLA
+    maps into regions of their own: past vm.max_map_count (65,530) the next compile fails and the worker dies
+    of a segmentation fault (issue 66's tests took a one-worker run there, in test_export). After each test, as
+    softac does before it builds an agent, JAX's compiled programs are dropped once half the limit is used."""
+    yield
+    from softac.base.device import release_compiled_programs_near_map_limit
+
+    release_compiled_programs_near_map_limit()
+
+
 @pytest.fixture(scope="session")
 def trained_run(tmp_path_factory):
     """One short InvertedPendulum-v5 run (800 steps, evaluations, checkpoints, baselines.json), trained once

@@ -467,3 +467,26 @@ def test_random_action_prob_1_makes_every_training_action_uniform(tiny):
     assert abs(actions.mean()) < 0.15 and abs(actions.var() - 1 / 3) < 0.08
     with pytest.raises(SoftacError, match="random_action_prob"):
         tiny(random_action_prob=1.5).validate()
+
+
+def test_near_the_memory_map_limit_building_an_agent_drops_jaxs_programs_and_a_live_agent_trains_on(
+        tmp_path, tiny, monkeypatch):
+    """XLA maps each compiled program's code into regions of its own; past vm.max_map_count a process can compile
+    nothing more and dies (softac.base.device.release_compiled_programs_near_map_limit). Building an agent with
+    half the limit used drops JAX's compiled programs first; an agent built before recompiles and trains on."""
+    import jax.numpy as jnp
+
+    from softac.base import device
+
+    agent = SAC(tiny(learning_starts=50))
+    agent.learn(100, run_dir=tmp_path / "run", progress=False)
+    probe = jax.jit(lambda x: x * 2.5 + 1.0)
+    probe(jnp.ones(3))
+    assert device.memory_map_count() > 0 and device.max_map_count() > 0
+    assert not device.release_compiled_programs_near_map_limit(fraction=1e9)  # far from it: kept
+    assert probe._cache_size() == 1
+    monkeypatch.setattr(device, "max_map_count", lambda: 2)  # every process holds more than one mapping
+    SAC(tiny(learning_starts=50))
+    assert probe._cache_size() == 0
+    agent.learn(100, run_dir=tmp_path / "run", progress=False)
+    assert agent.num_steps == 200 and int(read_csv(tmp_path / "run" / "progress.csv")[-1]["step"]) == 200

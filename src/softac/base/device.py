@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import importlib.util
 import os
+import sys
 
 from softac.errors import SoftacError
 
@@ -86,3 +88,40 @@ def select_device(device: str) -> str:
         raise SoftacError("device=gpu but JAX finds no GPU in this process; install jax[cuda12] "
                           "(pip install -U 'jax[cuda12]') or use --device cpu")
     return _chosen
+
+
+DEFAULT_MAX_MAP_COUNT = 65530  # Linux's vm.max_map_count unless the machine sets another
+
+
+def memory_map_count() -> int | None:
+    """How many memory mappings this process holds (/proc/self/maps' lines), or None where that is not known."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return None
+
+
+def max_map_count() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as limit:
+            return int(limit.read())
+    except (OSError, ValueError):
+        return DEFAULT_MAX_MAP_COUNT
+
+
+def release_compiled_programs_near_map_limit(fraction: float = 0.5) -> bool:
+    """XLA's CPU backend maps each compiled program's code into memory regions of its own (about 500 for the
+    programs of one small agent's training), and Linux grants a process vm.max_map_count of them (65,530 by
+    default): past that, compiling fails ("LLVM compilation error: Cannot allocate memory") and the process
+    dies of a segmentation fault. A process that builds agent after agent (a notebook's grid of settings, a test
+    session) reaches it after ~130 of them. Where this process holds more than `fraction` of the limit, JAX's
+    compiled programs are dropped (jax.clear_caches: later calls compile again, or load from the persistent
+    compile cache), which unmaps them. Returns whether it did."""
+    count = memory_map_count()
+    jax = sys.modules.get("jax")
+    if jax is None or count is None or count < fraction * max_map_count():
+        return False
+    jax.clear_caches()
+    gc.collect()
+    return True

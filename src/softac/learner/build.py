@@ -14,6 +14,7 @@ import numpy as np
 import optax
 
 from softac.base.cpus import cpu_has_bf16
+from softac.base.device import release_compiled_programs_near_map_limit
 from softac.config.sac_config import SACConfig
 from softac.learner.encoder import image_only_shape, init_encoder, init_head, stacked_image_shape
 from softac.learner.losses import Batch, Critics
@@ -215,6 +216,7 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
     """The jitted SAC functions for one config, space sizes and action bounds (default [-1, 1]). With
     `image_shape` (uint8 frame stacks [k, h, w, c]) an encoder turns them into `encoder_features` values first,
     followed by the `image_state_dim` state values the frames carry."""
+    release_compiled_programs_near_map_limit()  # an agent's programs are compiled below: room for their code
     matmul_dtype = resolve_matmul_dtype(config.matmul_dtype)
     s = update_settings(config, act_dim, matmul_dtype, images=image_shape is not None, image_state_dim=image_state_dim)
     if image_shape is not None:
