@@ -96,7 +96,8 @@ def timing_excluded(sweeps: Path) -> dict[str, str]:
 
 def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dict]:
     """The sweep's finished trials' rows, each with the day it started (None for runs from before
-    config.yaml recorded it), the env frames it ran (agent steps times action repeat) and `timed`: False for a
+    config.yaml recorded it), the env frames it ran (agent steps times action repeat), `gpu` (it trained on a GPU:
+    device gpu or cuda) and `timed`: False for a
     trial in `excluded` (sweep/trial -> why) or one that config.yaml says shared its CPUs with another pinned
     process."""
     import yaml
@@ -108,6 +109,7 @@ def finished_trials(d: Path, excluded: dict[str, str] | None = None) -> list[dic
         segments = config.get("segments") or [{}]
         row["day"] = str(segments[0].get("started") or "")[:10] or None
         row["frames"] = int(config.get("total_steps", 0)) * int(config.get("action_repeat") or 1)  # env frames
+        row["gpu"] = str(config.get("device", "cpu")) in ("gpu", "cuda")  # its seconds are a GPU's
         # a trial pinned to CPUs another pinned softac process held (softac.base.cpus.cpus_shared) ran disturbed too
         row["timed"] = (f"{d.name}/{row['trial']}" not in (excluded or {})
                         and not any(s.get("cpus_shared") for s in segments))

@@ -166,9 +166,8 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
             # none timed: the disturbed trials' median, an upper estimate, drawn hollow and said so in the table
             seconds = float(np.median(timed or disturbed)) if timed or disturbed else None
             sd = float(np.std(finals, ddof=1)) if len(finals) > 1 else 0.0
-            runs = [d / r["trial"] for r in trials]
-            gpu = ran_on_gpu(runs)
-            machine = short_machines(machines_of(runs)) + (" + GPU" if gpu else "")
+            gpu = any(r["gpu"] for r in trials)
+            machine = short_machines(machines_of([d / r["trial"] for r in trials])) + (" + GPU" if gpu else "")
             label = short_label(env, d, name)
             labels[name] = min(labels.get(name, label), label, key=len)
             machines.setdefault(name, set()).add(machine)
@@ -180,7 +179,7 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
                         f"{', '.join(f'{v:.0f}' for v in finals)} | {shown_seconds} | {machine} |")
         if not rows:
             continue
-        best = max(published, key=lambda m: published[m].get(env, (-np.inf,))[0])
+        best = best_published(published, env)
         lines += [f"### {env}", "",
                   "| configuration | seeds | final return (mean ± sd) | each seed | one-core s | machine |",
                   "|---|---|---|---|---|---|", *rows, "", "| published | mean ± sd (seeds) |", "|---|---|"]
@@ -195,8 +194,8 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     lines += against_best_published(scores, published)
     labels = unique_labels(labels)
     drawn = {env: {labels[name]: point for name, point in envs.items()} for env, envs in points.items()}
-    lines_drawn = {env: {m: published[m][env][0] for m in published if m in FRONT_METHODS or m == best_published(
-        published, env)} for env in points}
+    shown = {env: {*FRONT_METHODS, best_published(published, env)} for env in points}
+    lines_drawn = {env: {m: published[m][env][0] for m in published if m in shown[env]} for env in points}
     figure = plot_front(drawn, lines_drawn, figures / "front-v4.png",
                         "Gym MuJoCo v4, 100k steps: final return against wall time per run")
     key = ["", "The figure's key: each label, the configuration it stands for and the machines its points ran on "
@@ -212,6 +211,7 @@ FRONT_METHODS = ("SAC", "CrossQ", "FlashSAC", "XQC", "MR.Q")
 
 
 def best_published(published: dict[str, dict[str, tuple[float, float, int]]], env: str) -> str:
+    """The published method with the highest mean on `env`."""
     return max((m for m in published if env in published[m]), key=lambda m: published[m][env][0])
 
 
@@ -236,20 +236,12 @@ def unique_labels(labels: dict[str, str]) -> dict[str, str]:
     return out
 
 
-def ran_on_gpu(runs: list[Path]) -> bool:
-    """Whether the trials' config.yaml say they trained on a GPU (device gpu or cuda)."""
-    import yaml
-
-    return any(str((yaml.safe_load((run / "config.yaml").read_text()) or {}).get("device", "cpu")) in ("gpu", "cuda")
-               for run in runs if (run / "config.yaml").exists())
-
-
 def against_best_published(scores: dict[str, dict[str, tuple[float, float | None]]],
                            published: dict[str, dict[str, tuple[float, float, int]]]) -> list[str]:
     """Issue 42's goal for each configuration run on all five v4 envs: its mean final return over the best
     published 100k-step mean per env, the average of those fractions, the envs where it is at or above published
     CrossQ, and what its five runs cost (the sum of the envs' median one-core seconds)."""
-    best = {env: max(m[env][0] for m in published.values() if env in m) for env in SUITE_V4}
+    best = {env: published[best_published(published, env)][env][0] for env in SUITE_V4}
     full = {name: envs for name, envs in scores.items() if all(env in envs for env in SUITE_V4)}
     if not full:
         return []

@@ -406,14 +406,13 @@ def plot_front(points: dict[str, dict[str, FrontPoint]], published: dict[str, di
     legend_rows = -(-(len(names) + len(machines) + 2) // 3)
     fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows + 0.25 * legend_rows), squeeze=False,
                              layout="constrained")
-    flags = {"hollow": False, "gpu": False}
+    any_hollow = False
     for ax, env in zip(axes.flat, envs):
         for name, p in sorted(points[env].items()):
             if p.seconds is None:
                 continue
             colour, marker = styles[name]
-            flags["hollow"] |= not p.timed
-            flags["gpu"] |= p.gpu
+            any_hollow |= not p.timed
             ax.errorbar(p.seconds, p.mean, yerr=p.sd, fmt=marker, color=colour, capsize=3, markersize=8,
                         fillstyle="full" if not p.timed else fills[p.machine],
                         markerfacecolor="white" if not p.timed else colour,
@@ -449,7 +448,7 @@ def plot_front(points: dict[str, dict[str, FrontPoint]], published: dict[str, di
         handles[f"fill: {machine}" + (" (a GPU's seconds)" if gpu else " (one core's seconds)")] = plt.Line2D(
             [], [], marker="o", linestyle="", color="dimgrey", fillstyle=fills[machine], markerfacecoloralt="white",
             markeredgecolor="black" if gpu else "dimgrey", markeredgewidth=2.0 if gpu else 1.0, markersize=8)
-    if flags["hollow"]:
+    if any_hollow:
         handles["hollow: wall time from disturbed trials"] = plt.Line2D(
             [], [], marker="o", linestyle="", color="dimgrey", markerfacecolor="white", markersize=8)
     fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=3, fontsize=8)
