@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from softac.config.names import is_dmc_id
-from softac.envs import dmc, robotics
+from softac.envs import dmc, playground, robotics
 from softac.errors import EnvError
 
 
@@ -46,6 +46,9 @@ def resolve_gymnasium(env_id: str) -> str:
 FAMILIES = (
     EnvFamily("dmc", owns=is_dmc_id, resolve=dmc.resolve,
               entry_points=("softac.envs.dmc",), sized_rendering=("softac.envs.dmc",)),
+    EnvFamily("playground", owns=playground.is_playground_id, resolve=playground.resolve,
+              problem=playground.problem, entry_points=("softac.envs.playground",),
+              sized_rendering=("softac.envs.playground",)),
     EnvFamily("robotics", owns=robotics.is_robotics_id, resolve=robotics.resolve,
               problem=robotics.mujoco_problem,
               entry_points=("gymnasium_robotics",)),

@@ -66,6 +66,8 @@ def make_env(source: EnvSource | EnvSpec, render_mode: str | None = None, **kwar
     try:
         with contextlib.redirect_stderr(io.StringIO()):
             env = gym.make(env_id, **kwargs)
+    except EnvError:  # a family's own one line (envs.playground's missing robot models)
+        raise
     except Exception as exc:
         entry = str(getattr(gym.spec(env_id) if isinstance(env_id, str) else env_id, "entry_point", ""))
         family = family_of_entry_point(entry)
