@@ -1,5 +1,5 @@
-"""MuJoCo Playground's envs through the [playground] extra, one on the host each (issue 67's first part): ids,
-spaces, Playground's done as a termination and its episode length as a truncation, exact state mid-episode,
+"""MuJoCo Playground's envs through the [playground] extra, one on the host each (what evaluation, videos and
+collect_on=host run; issue 67): ids, spaces, Playground's done as a termination and its episode length as a truncation, exact state mid-episode,
 training, evaluation and filming from the CLI, and one-line errors for unknown ids and missing robot models."""
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def test_a_playground_env_restores_exactly_mid_episode_and_seeds_its_starts():
 @pytest.mark.exact
 def test_a_playground_agent_resumes_exactly_mid_episode(tmp_path):
     """N + M == N+M: the split at 250 falls inside the first 1000-step episode."""
-    cfg = tiny_config(ENV, learning_starts=100, n_envs=1)
+    cfg = tiny_config(ENV, learning_starts=100, n_envs=1, collect_on="host")  # the host family's own resume
     straight, resumed = straight_and_resumed(cfg, tmp_path, 250, 150)
     assert_same_training(straight, resumed)
 
@@ -80,7 +80,7 @@ def test_a_playground_agent_resumes_exactly_mid_episode(tmp_path):
 def test_the_cli_trains_evaluates_and_films_a_playground_env(tmp_path):
     run = tmp_path / "run"
     result = run_cli("train", "--env", ENV, "--steps", "300", "--out", str(run), "--no-progress", "--n-envs", "2",
-                     "--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "eval_interval=300",
+                     "--set", "collect_on=host", "hidden_sizes=32,32", "batch_size=32", "learning_starts=100", "eval_interval=300",
                      "eval_episodes=1")
     assert result.returncode == 0, result.stderr
     assert [int(float(r["step"])) for r in read_csv(run / "eval.csv")] == [300]

@@ -20,10 +20,10 @@ class ChunksOf:
     def start(self):
         self.host.start()
 
-    def chunk(self):
+    def chunk(self, until: int):
         from softac.run.transitions import Chunk
 
-        parts = [self.host.chunk() for _ in range(self.n)]
+        parts = [self.host.chunk(until) for _ in range(self.n)]
         return Chunk(parts[0].before, parts[-1].after, [e for part in parts for e in part.finished])
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from softac.run import checkpoint as ckpt
 from softac.run import checkpoint_contents as snapshot
 from softac.replay.collector import Collector
+from softac.replay.device_collector import DeviceCollector
 from softac.config.sac_config import SACConfig
 from softac.base.device import select_device
 from softac.envs.make import EnvSource, check_spaces, copy_env, env_name, training_env_source
@@ -32,6 +33,13 @@ from softac.run.run_state import RunState
 
 if TYPE_CHECKING:
     import gymnasium as gym
+
+
+def device_collector(config: SACConfig, env_source: EnvSource, spaces: Any) -> DeviceCollector:
+    from softac.envs.playground import device_env
+
+    env = device_env(config.env_id)
+    return DeviceCollector(config, env_source, spaces, env.env, env.episode_length, env.action_repeat)
 
 
 class SAC:
@@ -57,7 +65,9 @@ class SAC:
             probe.close()
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
-        self.collector = Collector(config, self.env_source, self.spaces, her)  # its training envs and replay buffer
+        # its training envs and replay buffer: on the host, or N envs on the device (MuJoCo Playground's; issue 67)
+        self.collector = (device_collector(config, self.env_source, self.spaces) if config.collects_on_device
+                          else Collector(config, self.env_source, self.spaces, her))
         # where its training stands (counters, RNGs, exploration noise, evaluations, its run)
         self.run_state = RunState.new(config.seed, exploration_noise(config, self.spaces.act_dim))
 

@@ -23,7 +23,11 @@ def _check_env_and_images(config: Any) -> None:
     need(bool(config.env_id.strip()), "env_id", "must name an environment")
     need(config.total_steps >= 0, "total_steps", "must be >= 0")
     need(config.n_envs >= 1, "n_envs", "must be >= 1")
-    need(config.n_envs <= 1024, "n_envs", "must be <= 1024")
+    need(config.collect_on in ("auto", "host", "device"), "collect_on", "must be auto, host or device")
+    device = config.collects_on_device
+    # the device's envs are vmapped arrays (FastTD3 and FastSAC run 1024-4096); the host's are objects, one by one
+    need(config.n_envs <= (65536 if device else 1024), "n_envs", f"must be <= {65536 if device else 1024}"
+         + ("" if device else " (more envs: MuJoCo Playground's on the device, collect_on=device)"))
     need(1 <= config.action_repeat <= 1000, "action_repeat", "must be between 1 and 1000")
     need(15 <= config.pixel_size <= 1024, "pixel_size", "must be between 15 (the encoder's smallest input) and 1024")
     need(1 <= config.frame_stack <= 16, "frame_stack", "must be between 1 (none) and 16")
@@ -57,6 +61,26 @@ def _check_collection(config: Any) -> None:
     need(config.her in ("auto", "on", "off"), "her", "must be auto, on or off")
     need(config.her_strategy in ("future", "final", "episode"), "her_strategy", "must be future, final or episode")
     need(1 <= config.her_k <= 1000, "her_k", "must be between 1 and 1000")
+
+
+def _check_device_collection(config: Any) -> None:
+    """What the device's collection (issue 67) runs: Playground's envs, Gaussian exploration from the policy, one-step
+    targets on raw observations and rewards; the host's parts it has no counterpart of yet are refused by name."""
+    if not config.collects_on_device:
+        return
+    need = _requirer(config)
+    from softac.config.names import is_playground_id
+
+    need(is_playground_id(config.env_id), "collect_on",
+         f"device collection steps MuJoCo Playground's envs (playground:NAME), not {config.env_id}: use collect_on=host")
+    host_only = "is not run by device collection yet (collect_on=device): set it off, or collect_on=host"
+    need(not config.obs_norm, "obs_norm", host_only)
+    need(config.reward_scale == "off", "reward_scale", host_only)
+    need(config.exploration_noise == "gaussian", "exploration_noise", host_only.replace("set it off", "use gaussian"))
+    need(config.random_action_prob == 0, "random_action_prob", host_only.replace("set it off", "set it to 0"))
+    need(config.n_step == 1, "n_step", host_only.replace("set it off", "set it to 1"))
+    need(config.env_workers == 0, "env_workers", "device collection steps its envs inside the update's jit: set 0")
+    need(not config.pixels, "pixels", host_only)
 
 
 def _check_targets_and_critics(config: Any) -> None:
@@ -166,8 +190,8 @@ def _check_outputs(config: Any) -> None:
 
 
 # in the order validate() runs them: the first failing key is the one reported
-CHECKS = (_check_env_and_images, _check_collection, _check_targets_and_critics, _check_networks,
-          _check_optimisers_and_policy, _check_outputs)
+CHECKS = (_check_env_and_images, _check_collection, _check_device_collection, _check_targets_and_critics,
+          _check_networks, _check_optimisers_and_policy, _check_outputs)
 
 
 ACTIVATIONS = ("relu", "tanh", "elu", "gelu")

@@ -8,6 +8,7 @@ from softac.errors import SoftacError
 
 DMC_PREFIX = "dm_control/"
 SHORT_PREFIX = "dmc:"
+PLAYGROUND_PREFIXES = ("playground/", "playground:")  # MuJoCo Playground's envs: collected on the device (issue 67)
 BACKENDS = ("tensorboard", "wandb", "mlflow")
 # the network kinds a config may name (softac.learner.networks.NETWORKS holds each; `crossq` picks the
 # batch-renormalised MLP itself): named here so that a bad name is refused before anything is built
@@ -23,6 +24,10 @@ def long_id(env_id: str) -> str:
 
 def is_dmc_id(env_id: str) -> bool:
     return env_id.startswith((DMC_PREFIX, SHORT_PREFIX))
+
+
+def is_playground_id(env_id: str) -> bool:
+    return env_id.startswith(PLAYGROUND_PREFIXES)
 
 
 def task_preset_name(env_id: str) -> str:

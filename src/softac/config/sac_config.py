@@ -16,7 +16,7 @@ from typing import Any
 import yaml
 
 from softac.config.checks import CHECKS
-from softac.config.names import is_dmc_id, task_preset_name
+from softac.config.names import is_dmc_id, is_playground_id, task_preset_name
 from softac.config.presets import DMC_PRESET, FALLBACK_PRESET, GENERIC_PRESETS, load_preset, preset_names
 from softac.errors import ConfigError
 
@@ -41,6 +41,7 @@ class SACConfig:
     pixels: bool = _f(False, "observe the env's rendered RGB frames (pixel_size square) instead of its observation: Gymnasium's MuJoCo envs, the DeepMind Control Suite, any env that renders rgb_array; learned through the image encoder")
     pixel_size: int = _f(84, "with pixels: the frames' side in pixels (84 as DrQ; rendered at that size where the renderer takes one, else resized)")
     frame_stack: int = _f(3, "image observations (pixels, or an env's own uint8 HxWxC or CxHxW Box): the last k frames as one observation [k, h, w, c], oldest first (3 as DrQ; the encoder reads them along the channels); 1 = the latest alone")
+    collect_on: str = _f("auto", "where the training envs step: host (Gymnasium envs, one vector step at a time), device (N envs vmapped on the device, collection, replay and the updates fused in one jitted scan a chunk; MuJoCo Playground's envs), or auto (device for envs that step in JAX: playground:NAME; host for the rest)")
     env_workers: int = _f(0, "worker processes stepping the n_envs envs (0 = in-process, the default: MuJoCo's fast envs gain nothing); for slow simulators")
     device: str = _f("cpu", "cpu, gpu or auto (gpu when jax finds one)")
     # replay
@@ -203,6 +204,11 @@ class SACConfig:
     def has_target_critics(self) -> bool:
         """`target_critics: auto` is on for SAC and off for CrossQ (Bhatt et al. 2024 drop them)."""
         return self.target_critics == "on" or (self.target_critics == "auto" and not self.crossq)
+
+    @property
+    def collects_on_device(self) -> bool:
+        """`collect_on: auto` is the device for envs that step in JAX (MuJoCo Playground's), the host otherwise."""
+        return self.collect_on == "device" or (self.collect_on == "auto" and is_playground_id(self.env_id))
 
     @property
     def critic_outputs(self) -> int:

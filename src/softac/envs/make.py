@@ -287,6 +287,7 @@ class Episode(NamedTuple):
     ret: float
     length: int
     success: float | None = None
+    step: int | None = None  # the run's env steps when it ended, where a chunk of many steps knows (else its end)
 
 
 def observation_array(obs: Any) -> np.ndarray:

@@ -26,20 +26,16 @@ import contextlib
 import importlib.util
 import io
 import warnings
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from softac.config.names import PLAYGROUND_PREFIXES, is_playground_id
 from softac.errors import EnvError
 
-PREFIX = "playground/"
-SHORT_PREFIX = "playground:"
+PREFIX, SHORT_PREFIX = PLAYGROUND_PREFIXES
 INSTALL_HINT = "pip install 'softac[playground]'"
 IMPL = "jax"  # MJX's JAX implementation (see the module's docstring)
-
-
-def is_playground_id(env_id: str) -> bool:
-    return env_id.startswith((PREFIX, SHORT_PREFIX))
 
 
 def env_name_of(env_id: str) -> str:
@@ -144,6 +140,21 @@ def _load_failure(name: str, exc: Exception, output: str) -> str:
                 f"{menagerie} && git -C {menagerie} checkout {sha}")
     first = (f"{type(exc).__name__}: {exc}".strip().splitlines() or [type(exc).__name__])[0]
     return f"cannot load MuJoCo Playground env '{name}': {first}"
+
+
+class DeviceEnv(NamedTuple):
+    """What device collection steps (softac.envs.device_envs): Playground's env itself, its episode length in its
+    own steps and its action repeat."""
+    env: Any
+    episode_length: int
+    action_repeat: int
+
+
+def device_env(env_id: str) -> DeviceEnv:
+    name = env_name_of(resolve(env_id))
+    env, config, _, _ = load(name)
+    repeat = max(1, int(getattr(config, "action_repeat", 1)))
+    return DeviceEnv(env, int(config.episode_length) // repeat, repeat)
 
 
 def make_playground_env(name: str, render_mode: str | None = None, width: int = 320, height: int = 240,

@@ -83,6 +83,17 @@ class RunWriter:
         Loggers(self.loggers).close()
 
 
+def transitions_source(learner: Learner, collector: Any, run_state: RunState) -> Any:
+    """The device's source for a collector of device envs (softac.run.device_transitions), else the host's."""
+    from softac.replay.device_collector import DeviceCollector
+
+    if isinstance(collector, DeviceCollector):
+        from softac.run.device_transitions import DeviceTransitions
+
+        return DeviceTransitions(learner, collector, run_state)
+    return HostTransitions(learner, collector, run_state)
+
+
 def train(learner: Learner, collector: Collector, run: RunState, steps: int, run_dir: str | Path | None = None,
           target_return: float | None = None, progress: bool | None = None, callbacks: list | None = None,
           loggers: list | None = None, target_success: float | None = None) -> dict[str, Any]:
@@ -109,7 +120,7 @@ class TrainingLoop:
         self.run_path = Path(run_dir) if run_dir is not None else None
         check_backends_installed(parse_backends(learner.config.loggers) if self.run_path is not None else [])
         self.learner, self.collector, self.run_state = learner, collector, run_state
-        self.source = HostTransitions(learner, collector, run_state)
+        self.source = transitions_source(learner, collector, run_state)
         self.start_step = self.run_state.num_steps
         self.end_step = self.start_step + steps
         self.target_return, self.target_success = target_return, target_success
@@ -165,7 +176,7 @@ class TrainingLoop:
                     if self.stop.requested:
                         raise TrainingInterrupted(self.run_state.num_steps, self.save_checkpoint("last"))
                     self.reset_if_due()
-                    chunk = self.source.chunk()
+                    chunk = self.source.chunk(self.end_step)
                     self.chunk_started_at = chunk.before
                     self.count_episodes(chunk)
                     self.stop_reason = self.on_intervals(chunk.before, chunk.after)
@@ -287,7 +298,7 @@ class TrainingLoop:
                 values = {"return": round(episode.ret, 6), "length": episode.length}
                 if episode.success is not None:
                     values["success"] = episode.success
-                self.logs.log("rollout", values, chunk.after)
+                self.logs.log("rollout", values, chunk.after if episode.step is None else episode.step)
 
     def on_intervals(self, before: int, after: int) -> str | None:
         """The work due every log, eval and checkpoint interval, and the callbacks' on_step; why training

@@ -3,12 +3,12 @@ training loop's one seam for its sources (issue 65). The loop calls `chunk()` un
 does the host's work between chunks (log rows, evaluations, checkpoints, callbacks, progress); a source does
 the env steps, the replay writes and the gradient steps of each chunk.
 
-Today's source is the host's: envs stepped on the host one vector step at a time (the collector's pool and
-its NumPy buffer), so a chunk is one vector-env step and its `gradient_steps` updates. A source whose envs
-step on the device, inside the update's jit, runs many env steps a chunk and reports them the same way
-(issue 67). The host's work then falls at chunk ends: a log row, evaluation or checkpoint at the end of the
-chunk that crosses its interval, periodic resets before the chunk after it, a callback's on_step once a
-chunk, and a chunk's episodes logged at its last step.
+The host's source (here): envs stepped on the host one vector step at a time (the collector's pool and its
+NumPy buffer), so a chunk is one vector-env step and its `gradient_steps` updates. The device's
+(softac.run.device_transitions, issue 67; the loop picks it for a DeviceCollector): envs stepped inside the
+update's jit, many vector steps a chunk, reported the same way. The host's work then falls at chunk ends: a log
+row, evaluation or checkpoint at the end of the chunk that crosses its interval, periodic resets before the
+chunk after it, a callback's on_step once a chunk, and each episode logged at the step it ended.
 """
 
 from __future__ import annotations
@@ -40,7 +40,8 @@ class HostTransitions:
         """Envs ready to step from the run's current step (fresh, or as a checkpoint left them)."""
         self.collector.start(self.run_state.num_steps)
 
-    def chunk(self) -> Chunk:
+    def chunk(self, until: int) -> Chunk:
+        """One vector step (`until`, the budget's end, is the device source's bound; one step never passes it)."""
         learner, rs = self.learner, self.run_state
         before, obs = rs.num_steps, self.collector.obs
         learner.observe(obs)  # every observation the policy acts on, warm-up included (obs_norm)
@@ -59,3 +60,4 @@ class HostTransitions:
         if after >= cfg.learning_starts and cfg.gradient_steps > 0 and self.collector.can_sample():
             batch = self.collector.sample(self.run_state.rng, cfg.batch_size, cfg.gradient_steps)
             self.learner.update(batch, after)
+

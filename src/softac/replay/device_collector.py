@@ -1,0 +1,139 @@
+"""`DeviceCollector`: the training envs and the replay buffer of a run that collects on the device (issue 67).
+
+It holds what the device's chunks carry from one to the next (softac.run.device_transitions runs them): the N
+envs' batch (`envs.device_envs.EnvBatch`: their state pytree, the observations to act on, episode counters, the
+reset key), the replay buffer of device arrays (`replay.device_buffer`) and the key its chunks draw actions and
+batches from. To the training loop it is a collector like the host's: a host copy of the env for evaluation and
+videos (`make_env`), the bytes a transition takes, its parts of a checkpoint and their restore. Its memory is
+stated and checked before anything is allocated.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+
+from softac.base.memory import available_memory_bytes, human_bytes
+from softac.config.sac_config import SACConfig
+from softac.envs.device_envs import DeviceEnvs, EnvBatch
+from softac.envs.make import EnvSource, SpaceInfo, copy_env
+from softac.errors import CheckpointError, SoftacError
+from softac.replay import device_buffer
+from softac.replay.buffer import BufferMemoryError
+from softac.replay.device_buffer import DeviceReplay
+
+BUFFER_PREFIX, ENVS_PREFIX = "buffer/", "envs/"  # checkpoint array names, as the host collector's
+KEY_NAME = "collect_key"
+
+
+def device_memory_bytes() -> int:
+    """What the default device can still allocate: a GPU's limit less what is in use, else the host's memory."""
+    import jax
+
+    stats = getattr(jax.devices()[0], "memory_stats", lambda: None)() or {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+    return available_memory_bytes()
+
+
+class DeviceCollector:
+    """N envs on the device and their replay buffer, made on first use (`start`)."""
+
+    def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, device_env: Any,
+                 episode_length: int, env_action_repeat: int = 1):
+        self.config, self.env_source, self.spaces = config, env_source, spaces
+        repeat = config.action_repeat  # softac's own repeat on top of the env's: agent steps as on the host
+        self.envs = DeviceEnvs(device_env, config.n_envs, -(-episode_length // repeat), env_action_repeat * repeat)
+        self.capacity = device_buffer.capacity_for(config.buffer_size, config.n_envs)
+        self.check_memory()
+        self.replay: DeviceReplay | None = None
+        self.batch: EnvBatch | None = None
+        self.key: Any = None
+        self.started = False
+
+    @property
+    def bytes_per_transition(self) -> float:
+        return float(device_buffer.bytes_per_row(self.spaces.obs_dim, self.spaces.act_dim))
+
+    def check_memory(self, fraction: float = 0.8) -> None:
+        need, have = self.capacity * self.bytes_per_transition, device_memory_bytes()
+        if need > fraction * have:
+            raise BufferMemoryError(f"replay buffer of {self.capacity:,} transitions needs {human_bytes(need)} on the "
+                                    f"device but only {human_bytes(have)} is available; lower buffer_size "
+                                    "(--set buffer_size=N)")
+
+    def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
+        """A host copy of the training env (evaluation and videos run on it)."""
+        return copy_env(self.env_source, render_mode, **kwargs)
+
+    def start(self, num_steps: int) -> None:
+        """The buffer and the envs, when not there: fresh envs reset from a key of the seed and `num_steps`."""
+        import jax
+
+        if self.replay is None:
+            self.replay = device_buffer.empty(self.capacity, self.spaces.obs_dim, self.spaces.act_dim)
+        if not self.started:
+            key = jax.random.PRNGKey(self.config.seed)
+            env_key, self.key = jax.random.split(jax.random.fold_in(key, num_steps))
+            self.batch = jax.jit(self.envs.reset)(env_key)
+            self.started = True
+
+    def close_workers(self) -> None:
+        """No worker processes: the envs live on the device."""
+
+    def can_sample(self) -> bool:
+        return self.replay is not None and int(self.replay.size) > 0
+
+    def apply(self, fn: Callable[[Any], Any]) -> list[Any]:
+        raise SoftacError("the training envs of a run that collects on the device are arrays inside its jitted "
+                          "steps, not env objects: call the function on make_env()'s copy instead")
+
+    # ---- checkpoints -------------------------------------------------------------------------------
+
+    def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The replay's rows held and its position, the envs' batch and the key (a `last` checkpoint, to resume)."""
+        meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.replay is not None),
+                                "has_envs": bool(include_buffer and self.started)}
+        arrays: dict[str, np.ndarray] = {}
+        if meta["has_buffer"]:
+            size = int(self.replay.size)
+            arrays.update({BUFFER_PREFIX + name: np.asarray(getattr(self.replay, name))[:size]
+                           for name in ("obs", "actions", "rewards", "next_obs", "terminated")})
+            arrays[BUFFER_PREFIX + "position"] = np.asarray(self.replay.position)
+        if meta["has_envs"]:
+            import jax
+
+            leaves = jax.tree_util.tree_leaves((self.batch, self.key))
+            meta["envs"] = {"kind": "device", "leaves": len(leaves), "n_envs": self.config.n_envs}
+            arrays.update({f"{ENVS_PREFIX}{i}": np.asarray(leaf) for i, leaf in enumerate(leaves)})
+        return meta, arrays
+
+    def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], num_steps: int) -> None:
+        import jax
+        import jax.numpy as jnp
+
+        if meta.get("has_buffer"):
+            replay = device_buffer.empty(self.capacity, self.spaces.obs_dim, self.spaces.act_dim)
+            rows = {name: arrays[BUFFER_PREFIX + name] for name in ("obs", "actions", "rewards", "next_obs",
+                                                                    "terminated")}
+            size = len(rows["rewards"])
+            if size > self.capacity:
+                raise CheckpointError(f"its replay buffer holds {size:,} transitions, more than buffer_size allows "
+                                      f"({self.capacity:,})")
+            filled = {name: getattr(replay, name).at[:size].set(jnp.asarray(value)) for name, value in rows.items()}
+            self.replay = replay._replace(**filled, size=jnp.asarray(size, jnp.int32),
+                                          position=jnp.asarray(arrays[BUFFER_PREFIX + "position"], jnp.int32))
+        if meta.get("has_envs"):
+            envs = meta.get("envs", {})
+            if envs.get("kind") != "device" or envs.get("n_envs") != self.config.n_envs:
+                raise CheckpointError("its envs were not collected on the device with these n_envs")
+            template = jax.eval_shape(lambda k: (self.envs.reset(k), k), jax.random.PRNGKey(0))
+            leaves, tree = jax.tree_util.tree_flatten(template)
+            saved = [arrays.get(f"{ENVS_PREFIX}{i}") for i in range(len(leaves))]
+            if envs.get("leaves") != len(leaves) or any(
+                    s is None or s.shape != t.shape or s.dtype != t.dtype for s, t in zip(saved, leaves)):
+                raise CheckpointError("its device envs' state does not match this env")
+            self.batch, self.key = jax.tree_util.tree_unflatten(tree, [jnp.array(s, copy=True) for s in saved])
+            self.started = True

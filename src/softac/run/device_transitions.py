@@ -1,0 +1,168 @@
+"""The device's source of transitions (issue 67), the training loop's other source beside the host's
+(softac.run.transitions): a chunk is many vector steps of N envs in one jitted `lax.scan`, each step the policy's
+actions (uniform ones before learning_starts), the envs stepped and auto-reset (softac.envs.device_envs), the
+transitions written into the device's replay buffer and `gradient_steps` updates on batches drawn from it, as
+Brax's SAC training step fuses them. The host sees the chunk's end only: the episodes that ended in it (each at
+its own step), for the loop's logs, evaluations, checkpoints and callbacks.
+
+Each vector step follows the host's rules: uniform actions while the steps before it are under learning_starts,
+updates once the steps after it reach it, a linear learning-rate schedule at the steps after it. A chunk spans
+the shortest of the log, eval and checkpoint intervals (so each interval's work falls at the chunk that crosses
+it, as with the host's one-step chunks) or what is left of the budget: one compiled program of that many steps
+per run setting, shared by every agent of the process, its steps past the budget skipped, so that a run split
+anywhere and resumed computes what a straight one does.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from softac.envs.make import Episode
+from softac.learner.learner import Learner
+from softac.replay.device_collector import DeviceCollector
+from softac.run.run_state import RunState
+from softac.run.transitions import Chunk
+
+MAX_CHUNK = 1000  # vector steps in one call at most: the host comes back for the progress bar and Ctrl-C
+
+
+def chunk_length(config: Any) -> int:
+    """Vector steps per chunk: the shortest positive interval of host work, in vector steps, at most MAX_CHUNK."""
+    intervals = [i for i in (config.log_interval, config.eval_interval, config.checkpoint_interval) if i > 0]
+    return max(1, min([MAX_CHUNK] + [i // config.n_envs for i in intervals]))
+
+
+class ChunkSpec(NamedTuple):
+    """What shapes a chunk's program (a static argument: equal specs share it)."""
+    program: Any  # learner.build.Program: the update's settings
+    policy: Any  # learner.policy.Policy
+    envs: Any  # envs.device_envs.DeviceEnvs
+    act_dim: int
+    gradient_steps: int
+    batch_size: int
+    learning_starts: int
+    linear_lr: bool
+    length: int  # vector steps
+
+
+class DeviceTransitions:
+    """N envs on the device, their replay and the updates, a chunk of vector steps per jitted call."""
+
+    def __init__(self, learner: Learner, collector: DeviceCollector, run_state: RunState) -> None:
+        from softac.learner.build import Program, numbers_of, update_settings
+
+        self.learner, self.collector, self.run_state = learner, collector, run_state
+        cfg = learner.config
+        settings = update_settings(cfg, learner.spaces.act_dim, learner.matmul_dtype)
+        self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
+                              cfg.gradient_steps, cfg.batch_size, cfg.learning_starts, cfg.lr_schedule == "linear",
+                              chunk_length(cfg))
+        self.numbers = numbers_of(settings)
+
+    def start(self) -> None:
+        self.collector.start(self.run_state.num_steps)
+
+    def chunk(self, until: int) -> Chunk:
+        """The chunk's vector steps, or fewer where `until` (the budget's end, in env steps) comes first."""
+        import jax.numpy as jnp
+
+        from softac.learner.metrics import zero_totals
+
+        learner, collector, rs, cfg = self.learner, self.collector, self.run_state, self.learner.config
+        n, before = cfg.n_envs, rs.num_steps
+        count = max(1, min(self.spec.length, -(-(until - before) // n)))
+        totals = learner.totals if learner.totals is not None else zero_totals()
+        carry = (learner.state, totals, collector.replay, collector.batch, collector.key)
+        schedule = (jnp.float32(max(cfg.total_steps, 1)), jnp.float32(cfg.lr_end_fraction))
+        carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
+                                                   jnp.int32(count), schedule)
+        learner.state, learner.totals, collector.replay, collector.batch, collector.key = carry
+        rs.num_steps = after = before + count * n
+        return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
+                                                      before, n))
+
+
+def finished_episodes(lengths: np.ndarray, returns: np.ndarray, before: int, n: int) -> list[Episode]:
+    """The episodes that ended in a chunk ([steps, N] lengths and returns, 0 where none ended) in step order, each
+    with the run's env steps when it ended."""
+    steps, envs = np.nonzero(lengths)
+    return [Episode(int(e), float(returns[s, e]), int(lengths[s, e]), step=before + (int(s) + 1) * n)
+            for s, e in zip(steps, envs)]
+
+
+def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, count: Any,
+                  schedule: tuple) -> tuple[tuple, tuple]:
+    """`count` (at most spec.length) vector steps from env step `start`: carry (SACState, metric totals, replay,
+    envs' batch, key) -> the carry after, and each step's ended episodes' returns and lengths [length, N]."""
+    import jax
+    import jax.numpy as jnp
+
+    from softac.learner.build import update_program
+    from softac.learner.losses import Batch
+    from softac.learner.pixels import features_of
+    from softac.learner.sac import acting_actor
+    from softac.replay import device_buffer
+
+    envs, n = spec.envs, spec.envs.n
+    total, end_fraction = schedule
+
+    def step(carry, before):
+        state, totals, replay, batch, key = carry
+        key, act_key, sample_key = jax.random.split(key, 3)
+
+        def policy_actions():
+            actor, actor_stats, encoder = acting_actor(state)
+            return spec.policy.sample(actor, actor_stats, features_of(encoder, batch.obs), act_key)[0]
+
+        actions = jax.lax.cond(before < spec.learning_starts,
+                               lambda: jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0),
+                               policy_actions)
+        batch, s = envs.step(batch, actions)
+        replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated)
+        after = before + n
+
+        def learn(state, totals):
+            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size)
+            batches = Batch(drawn.obs, drawn.actions, drawn.rewards, drawn.next_obs, drawn.terminated,
+                            jnp.ones_like(drawn.rewards))
+            scale = (1.0 - (1.0 - end_fraction) * jnp.minimum(after / total, 1.0)).astype(jnp.float32) \
+                if spec.linear_lr else None
+            return update_program(spec.program, numbers, state, batches, totals, scale)
+
+        if spec.gradient_steps > 0:
+            state, totals = jax.lax.cond(after >= spec.learning_starts, learn, lambda s, t: (s, t), state, totals)
+        return (state, totals, replay, batch, key), (s.episode_returns, s.episode_lengths)
+
+    def maybe_step(carry, i):
+        # the steps past `count` (the budget's end inside this chunk) leave everything as it is
+        return jax.lax.cond(i < count, lambda c: step(c, start + i * n), lambda c: (c, _no_episodes(n)), carry)
+
+    return jax.lax.scan(maybe_step, carry, jnp.arange(spec.length, dtype=jnp.int32))
+
+
+def _no_episodes(n: int) -> tuple:
+    import jax.numpy as jnp
+
+    return jnp.zeros(n, jnp.float32), jnp.zeros(n, jnp.int32)
+
+
+def _compile():
+    import jax
+
+    # the carry donated (the device's replay and the networks updated in place)
+    return jax.jit(chunk_program, static_argnums=0, donate_argnums=(2,))
+
+
+class _Lazy:
+    """`compiled_chunk`: jitted on first use (this module imports without JAX)."""
+    fn = None
+
+    def __call__(self, *args):
+        if _Lazy.fn is None:
+            _Lazy.fn = _compile()
+        return _Lazy.fn(*args)
+
+
+compiled_chunk = _Lazy()

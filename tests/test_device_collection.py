@@ -1,0 +1,86 @@
+"""Training with the envs on the device (issue 67): MuJoCo Playground's envs collected N at a time inside the
+update's jit by default, the training loop's host work between chunks, exact resume mid-episode (the envs' state
+pytree, the device's replay buffer, the keys), and the settings it does not run yet refused in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import assert_clean_error, assert_same_learner, assert_same_run_state, run_cli, tiny_config
+from softac.config.sac_config import SACConfig
+from softac.errors import ConfigError
+from softac.run.csv_logs import read_csv
+
+ENV = "playground:CartpoleSwingup"
+
+
+def device_config(**extra) -> SACConfig:
+    # action repeat 10: 100-step episodes, so that some end inside a short test
+    return tiny_config(ENV, **{**dict(n_envs=4, action_repeat=10, learning_starts=200, buffer_size=2000), **extra})
+
+
+def test_the_device_choice_and_what_it_refuses():
+    assert device_config().collects_on_device
+    assert not device_config(collect_on="host").collects_on_device
+    assert not tiny_config("Pendulum-v1").collects_on_device
+    assert device_config(n_envs=4096).n_envs == 4096  # vmapped arrays: thousands of envs
+    with pytest.raises(ConfigError, match=r"n_envs=4096: must be <= 1024 \(more envs: MuJoCo Playground's"):
+        device_config(n_envs=4096, collect_on="host")
+    with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
+        tiny_config("Pendulum-v1", collect_on="device")
+    for key, value in (("obs_norm", True), ("reward_scale", "std"), ("exploration_noise", "pink"),
+                       ("n_step", 3), ("random_action_prob", 0.1)):
+        with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
+            device_config(**{key: value})
+
+
+pytestmark = pytest.mark.playground
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _playground():
+    pytest.importorskip("mujoco_playground")
+
+
+@pytest.mark.exact
+def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
+    """N + M == N+M: 320 + 280 env steps against 600 in one go, the split inside the envs' second episodes and
+    inside a chunk of the straight run; the episodes that ended are logged alike."""
+    from softac import SAC
+
+    cfg = device_config()
+    straight = SAC(cfg)
+    straight.learn(600, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(320, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    assert resumed.num_steps == 320 and type(resumed.collector).__name__ == "DeviceCollector"
+    resumed.learn(280, run_dir=tmp_path / "split", progress=False)
+
+    assert_same_learner(straight, resumed)
+    assert_same_run_state(straight, resumed)
+    (meta_a, arrays_a), (meta_b, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
+    assert meta_a == meta_b and arrays_a.keys() == arrays_b.keys()
+    for name in arrays_a:
+        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    assert len(arrays_a["buffer/rewards"]) == 600
+    episodes = [read_csv(tmp_path / run / "episodes.csv") for run in ("straight", "split")]
+    assert episodes[0] == episodes[1] and [int(float(e["length"])) for e in episodes[0]] == [100] * 4
+    assert straight.num_episodes == resumed.num_episodes == 4
+
+
+def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_path):
+    run = tmp_path / "run"
+    # device_config()'s settings (and so its compiled chunk, from the compile cache where the test above ran first)
+    result = run_cli("train", "--env", ENV, "--steps", "400", "--out", str(run), "--no-progress", "--n-envs", "4",
+                     "--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "eval_interval=400",
+                     "eval_episodes=1", "log_interval=100", "action_repeat=10", "buffer_size=2000")
+    assert result.returncode == 0, result.stderr
+    assert [int(float(r["step"])) for r in read_csv(run / "progress.csv")] == [100, 200, 300, 400]
+    assert [int(float(r["step"])) for r in read_csv(run / "eval.csv")] == [400]
+    rows = read_csv(run / "progress.csv")
+    assert rows[-1]["critic_loss"] not in ("", None) and np.isfinite(float(rows[-1]["critic_loss"]))
+    assert "obs_norm" not in result.stderr
+    refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set", "obs_norm=true")
+    assert_clean_error(refused, "obs_norm=True: is not run by device collection yet")
+    assert not (tmp_path / "r").exists()
