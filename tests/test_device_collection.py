@@ -68,6 +68,12 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     assert episodes[0] == episodes[1] and [int(float(e["length"])) for e in episodes[0]] == [100] * 4
     assert straight.num_episodes == resumed.num_episodes == 4
 
+    # evaluation on the device: all episodes at once, deterministic, each counted to its end (100 agent steps)
+    from softac.run.device_transitions import evaluate_on_device
+
+    a, b = (evaluate_on_device(agent.learner, agent.collector, 3, seed=7) for agent in (straight, resumed))
+    assert a == b and a["episodes"] == 3 and a["lengths"] == [100] * 3 and len(set(a["returns"])) == 3
+
 
 def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_path):
     run = tmp_path / "run"

@@ -3,7 +3,8 @@
 actions (uniform ones before learning_starts), the envs stepped and auto-reset (softac.envs.device_envs), the
 transitions written into the device's replay buffer and `gradient_steps` updates on batches drawn from it, as
 Brax's SAC training step fuses them. The host sees the chunk's end only: the episodes that ended in it (each at
-its own step), for the loop's logs, evaluations, checkpoints and callbacks.
+its own step), for the loop's logs, evaluations, checkpoints and callbacks. Evaluation runs its episodes at once on
+device envs of its own (`evaluate_on_device`).
 
 Each vector step follows the host's rules: uniform actions while the steps before it are under learning_starts,
 updates once the steps after it reach it, a linear learning-rate schedule at the steps after it. A chunk spans
@@ -64,6 +65,9 @@ class DeviceTransitions:
     def start(self) -> None:
         self.collector.start(self.run_state.num_steps)
 
+    def evaluate(self, episodes: int, seed: int) -> dict[str, Any]:
+        return evaluate_on_device(self.learner, self.collector, episodes, seed)
+
     def chunk(self, until: int) -> Chunk:
         """The chunk's vector steps, or fewer where `until` (the budget's end, in env steps) comes first."""
         import jax.numpy as jnp
@@ -82,6 +86,54 @@ class DeviceTransitions:
         rs.num_steps = after = before + count * n
         return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
                                                       before, n))
+
+
+class EvalSpec(NamedTuple):
+    """What shapes an evaluation's program: the policy, the env, how many episodes at once and their length."""
+    policy: Any
+    env: Any  # the env object (DeviceEnvs hashes it by identity)
+    episodes: int
+    episode_length: int
+    action_repeat: int
+
+
+def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: int, seed: int) -> dict[str, Any]:
+    """`episodes` deterministic episodes of the deployed policy at once, each on its own device env, in one jitted
+    scan of the episode length (the host's evaluation's statistics: softac.run.evaluation.summarize); each
+    evaluation starts from the same states, drawn from `seed`."""
+    import jax
+
+    from softac.run.evaluation import summarize
+
+    envs = collector.envs
+    spec = EvalSpec(learner.functions.policy, envs.env, episodes, envs.episode_length, envs.action_repeat)
+    returns, lengths = compiled_evaluation(spec, learner.deployed_policy(), jax.random.PRNGKey(seed))
+    return summarize(np.asarray(returns, np.float64), np.asarray(lengths))
+
+
+def evaluation_program(spec: EvalSpec, networks: tuple, key: Any) -> tuple[Any, Any]:
+    """Returns and lengths of `spec.episodes` episodes, one per env, each counted until it first ends."""
+    import jax
+    import jax.numpy as jnp
+
+    from softac.envs.device_envs import DeviceEnvs
+    from softac.learner.pixels import features_of
+
+    actor, actor_stats, encoder = networks
+    envs = DeviceEnvs(spec.env, spec.episodes, spec.episode_length, spec.action_repeat)
+
+    def step(carry, _):
+        batch, returns, lengths, running = carry
+        actions = spec.policy.deterministic(actor, actor_stats, features_of(encoder, batch.obs))
+        batch, s = envs.step(batch, actions)
+        returns = returns + jnp.where(running, s.rewards, 0.0)
+        lengths = lengths + running.astype(jnp.int32)
+        return (batch, returns, lengths, running & ~(s.terminated | s.truncated)), None
+
+    zeros = jnp.zeros(spec.episodes, jnp.float32)
+    carry = (envs.reset(key), zeros, zeros.astype(jnp.int32), jnp.ones(spec.episodes, bool))
+    (_, returns, lengths, _), _ = jax.lax.scan(step, carry, None, length=spec.episode_length)
+    return returns, lengths
 
 
 def finished_episodes(lengths: np.ndarray, returns: np.ndarray, before: int, n: int) -> list[Episode]:
@@ -156,13 +208,16 @@ def _compile():
 
 
 class _Lazy:
-    """`compiled_chunk`: jitted on first use (this module imports without JAX)."""
-    fn = None
+    """A function jitted on first use (this module imports without JAX)."""
+
+    def __init__(self, make):
+        self.make, self.fn = make, None
 
     def __call__(self, *args):
-        if _Lazy.fn is None:
-            _Lazy.fn = _compile()
-        return _Lazy.fn(*args)
+        if self.fn is None:
+            self.fn = self.make()
+        return self.fn(*args)
 
 
-compiled_chunk = _Lazy()
+compiled_chunk = _Lazy(_compile)
+compiled_evaluation = _Lazy(lambda: __import__("jax").jit(evaluation_program, static_argnums=0))

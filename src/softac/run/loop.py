@@ -30,6 +30,7 @@ from softac.learner.learner import Learner
 from softac.run.run_dir import checkpoint_path, holds_run, versions, write_config, write_summary
 from softac.run.run_state import RunState
 from softac.run.stopping import check_success_rate, target_reached
+from softac.run.device_transitions import DeviceTransitions
 from softac.run.transitions import Chunk, HostTransitions
 from softac.run.checkpoint_contents import checkpoint_parts
 from softac.base.stop_signal import StopSignal
@@ -88,8 +89,6 @@ def transitions_source(learner: Learner, collector: Any, run_state: RunState) ->
     from softac.replay.device_collector import DeviceCollector
 
     if isinstance(collector, DeviceCollector):
-        from softac.run.device_transitions import DeviceTransitions
-
         return DeviceTransitions(learner, collector, run_state)
     return HostTransitions(learner, collector, run_state)
 
@@ -335,10 +334,13 @@ class TrainingLoop:
 
     def evaluate(self, step: int) -> dict[str, Any] | None:
         cfg, rs, make_env = self.config, self.run_state, self.collector.make_env
-        if self.eval_envs is None:
-            self.eval_envs = [make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
-        stats = run_episodes(self.learner.predict, make_env, cfg.eval_episodes,
-                             cfg.seed + EVAL_SEED_OFFSET, envs=self.eval_envs, should_stop=lambda: self.stop.requested)
+        if isinstance(self.source, DeviceTransitions):  # all episodes at once on the device's envs (issue 67)
+            stats = self.source.evaluate(cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET)
+        else:
+            if self.eval_envs is None:
+                self.eval_envs = [make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
+            stats = run_episodes(self.learner.predict, make_env, cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET,
+                                 envs=self.eval_envs, should_stop=lambda: self.stop.requested)
         if self.stop.requested:  # cut short by Ctrl-C/SIGTERM: a partial evaluation is not a result
             return None
         rs.last_eval, rs.last_eval_step, rs.last_success = stats["mean_return"], step, stats["success_rate"]
