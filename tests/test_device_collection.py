@@ -17,7 +17,9 @@ ENV = "playground:CartpoleSwingup"
 
 def device_config(**extra) -> SACConfig:
     # action repeat 10: 100-step episodes, so that some end inside a short test
-    return tiny_config(ENV, **{**dict(n_envs=4, action_repeat=10, learning_starts=200, buffer_size=2000), **extra})
+    # and obs_norm, whose running statistics the chunks carry
+    return tiny_config(ENV, **{**dict(n_envs=4, action_repeat=10, learning_starts=200, buffer_size=2000,
+                                      obs_norm=True), **extra})
 
 
 def test_the_device_choice_and_what_it_refuses():
@@ -29,7 +31,7 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("obs_norm", True), ("reward_scale", "std"), ("exploration_noise", "pink"),
+    for key, value in (("reward_scale", "std"), ("exploration_noise", "pink"),
                        ("n_step", 3), ("random_action_prob", 0.1)):
         with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
             device_config(**{key: value})
@@ -67,6 +69,8 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     episodes = [read_csv(tmp_path / run / "episodes.csv") for run in ("straight", "split")]
     assert episodes[0] == episodes[1] and [int(float(e["length"])) for e in episodes[0]] == [100] * 4
     assert straight.num_episodes == resumed.num_episodes == 4
+    assert straight.learner.obs_norm.count == 600  # every observation acted on, the warm-up's too
+    np.testing.assert_array_equal(straight.learner.obs_norm.m2, resumed.learner.obs_norm.m2)
 
     # evaluation on the device: all episodes at once, deterministic, each counted to its end (100 agent steps)
     from softac.run.device_transitions import evaluate_on_device
@@ -80,13 +84,12 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     # device_config()'s settings (and so its compiled chunk, from the compile cache where the test above ran first)
     result = run_cli("train", "--env", ENV, "--steps", "400", "--out", str(run), "--no-progress", "--n-envs", "4",
                      "--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "eval_interval=400",
-                     "eval_episodes=1", "log_interval=100", "action_repeat=10", "buffer_size=2000")
+                     "eval_episodes=1", "log_interval=100", "action_repeat=10", "buffer_size=2000", "obs_norm=true")
     assert result.returncode == 0, result.stderr
     assert [int(float(r["step"])) for r in read_csv(run / "progress.csv")] == [100, 200, 300, 400]
     assert [int(float(r["step"])) for r in read_csv(run / "eval.csv")] == [400]
     rows = read_csv(run / "progress.csv")
     assert rows[-1]["critic_loss"] not in ("", None) and np.isfinite(float(rows[-1]["critic_loss"]))
-    assert "obs_norm" not in result.stderr
-    refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set", "obs_norm=true")
-    assert_clean_error(refused, "obs_norm=True: is not run by device collection yet")
+    refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set", "n_step=3")
+    assert_clean_error(refused, "n_step=3: is not run by device collection yet")
     assert not (tmp_path / "r").exists()

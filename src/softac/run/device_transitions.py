@@ -46,6 +46,7 @@ class ChunkSpec(NamedTuple):
     learning_starts: int
     linear_lr: bool
     length: int  # vector steps
+    obs_clip: float  # > 0: obs_norm's clip, the observations normalised by running statistics; 0: raw
 
 
 class DeviceTransitions:
@@ -59,7 +60,7 @@ class DeviceTransitions:
         settings = update_settings(cfg, learner.spaces.act_dim, learner.matmul_dtype)
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts, cfg.lr_schedule == "linear",
-                              chunk_length(cfg))
+                              chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0)
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
@@ -78,11 +79,12 @@ class DeviceTransitions:
         n, before = cfg.n_envs, rs.num_steps
         count = max(1, min(self.spec.length, -(-(until - before) // n)))
         totals = learner.totals if learner.totals is not None else zero_totals()
-        carry = (learner.state, totals, collector.replay, collector.batch, collector.key)
+        carry = (learner.state, totals, collector.replay, collector.batch, collector.key, obs_stats(learner))
         schedule = (jnp.float32(max(cfg.total_steps, 1)), jnp.float32(cfg.lr_end_fraction))
         carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
                                                    jnp.int32(count), schedule)
-        learner.state, learner.totals, collector.replay, collector.batch, collector.key = carry
+        learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats = carry
+        keep_obs_stats(learner, stats)
         rs.num_steps = after = before + count * n
         return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
                                                       before, n))
@@ -95,6 +97,7 @@ class EvalSpec(NamedTuple):
     episodes: int
     episode_length: int
     action_repeat: int
+    obs_clip: float  # as ChunkSpec's
 
 
 def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: int, seed: int) -> dict[str, Any]:
@@ -106,12 +109,14 @@ def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: i
     from softac.run.evaluation import summarize
 
     envs = collector.envs
-    spec = EvalSpec(learner.functions.policy, envs.env, episodes, envs.episode_length, envs.action_repeat)
-    returns, lengths = compiled_evaluation(spec, learner.deployed_policy(), jax.random.PRNGKey(seed))
+    spec = EvalSpec(learner.functions.policy, envs.env, episodes, envs.episode_length, envs.action_repeat,
+                    float(learner.config.obs_norm_clip) if learner.obs_norm is not None else 0.0)
+    returns, lengths = compiled_evaluation(spec, learner.deployed_policy(), obs_stats(learner),
+                                           jax.random.PRNGKey(seed))
     return summarize(np.asarray(returns, np.float64), np.asarray(lengths))
 
 
-def evaluation_program(spec: EvalSpec, networks: tuple, key: Any) -> tuple[Any, Any]:
+def evaluation_program(spec: EvalSpec, networks: tuple, stats: tuple, key: Any) -> tuple[Any, Any]:
     """Returns and lengths of `spec.episodes` episodes, one per env, each counted until it first ends."""
     import jax
     import jax.numpy as jnp
@@ -124,7 +129,8 @@ def evaluation_program(spec: EvalSpec, networks: tuple, key: Any) -> tuple[Any, 
 
     def step(carry, _):
         batch, returns, lengths, running = carry
-        actions = spec.policy.deterministic(actor, actor_stats, features_of(encoder, batch.obs))
+        obs = normalized(stats, batch.obs, spec.obs_clip)  # frozen: evaluation does not count its observations
+        actions = spec.policy.deterministic(actor, actor_stats, features_of(encoder, obs))
         batch, s = envs.step(batch, actions)
         returns = returns + jnp.where(running, s.rewards, 0.0)
         lengths = lengths + running.astype(jnp.int32)
@@ -134,6 +140,53 @@ def evaluation_program(spec: EvalSpec, networks: tuple, key: Any) -> tuple[Any, 
     carry = (envs.reset(key), zeros, zeros.astype(jnp.int32), jnp.ones(spec.episodes, bool))
     (_, returns, lengths, _), _ = jax.lax.scan(step, carry, None, length=spec.episode_length)
     return returns, lengths
+
+
+def obs_stats(learner: Learner) -> tuple:
+    """obs_norm's running statistics (count, mean, m2) as the chunk carries them (float32), or () without."""
+    import jax.numpy as jnp
+
+    norm = learner.obs_norm
+    if norm is None:
+        return ()
+    return jnp.int32(norm.count), jnp.asarray(norm.mean, jnp.float32), jnp.asarray(norm.m2, jnp.float32)
+
+
+def keep_obs_stats(learner: Learner, stats: tuple) -> None:
+    """The chunk's statistics back into the learner's obs_norm (what evaluation, predict and checkpoints use)."""
+    if stats:
+        count, mean, m2 = stats
+        learner.obs_norm.count = int(count)
+        learner.obs_norm.mean, learner.obs_norm.m2 = np.asarray(mean, np.float64), np.asarray(m2, np.float64)
+
+
+def merged_stats(stats: tuple, obs: Any) -> tuple:
+    """The running statistics with a batch of observations merged in (RunningObsNorm.update's formula, in float32
+    on the device, as Brax's running statistics are)."""
+    import jax.numpy as jnp
+
+    count, mean, m2 = stats
+    n = obs.shape[0]
+    batch_mean = obs.mean(axis=0)
+    before = count.astype(jnp.float32)  # (count * n in int32 would overflow past 2^31)
+    total = before + n
+    delta = batch_mean - mean
+    mean = mean + delta * (n / total)
+    m2 = m2 + jnp.square(obs - batch_mean).sum(axis=0) + jnp.square(delta) * (before * n / total)
+    return count + n, mean, m2
+
+
+def normalized(stats: tuple, obs: Any, clip: float) -> Any:
+    """RunningObsNorm.normalize with these statistics."""
+    import jax.numpy as jnp
+
+    if not stats:
+        return obs
+    count, mean, m2 = stats
+    from softac.learner.normalization import EPSILON
+
+    var = jnp.where(count > 0, m2 / jnp.maximum(count, 1), 1.0)
+    return jnp.clip((obs - mean) / jnp.sqrt(var + EPSILON), -clip, clip)
 
 
 def finished_episodes(lengths: np.ndarray, returns: np.ndarray, before: int, n: int) -> list[Episode]:
@@ -161,12 +214,15 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
     total, end_fraction = schedule
 
     def step(carry, before):
-        state, totals, replay, batch, key = carry
+        state, totals, replay, batch, key, stats = carry
         key, act_key, sample_key = jax.random.split(key, 3)
+        if stats:  # every observation the policy acts on counts, the warm-up's too (as the host's learner.observe)
+            stats = merged_stats(stats, batch.obs)
 
         def policy_actions():
             actor, actor_stats, encoder = acting_actor(state)
-            return spec.policy.sample(actor, actor_stats, features_of(encoder, batch.obs), act_key)[0]
+            obs = normalized(stats, batch.obs, spec.obs_clip)
+            return spec.policy.sample(actor, actor_stats, features_of(encoder, obs), act_key)[0]
 
         actions = jax.lax.cond(before < spec.learning_starts,
                                lambda: jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0),
@@ -177,7 +233,9 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
 
         def learn(state, totals):
             drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size)
-            batches = Batch(drawn.obs, drawn.actions, drawn.rewards, drawn.next_obs, drawn.terminated,
+            # raw observations in the buffer, normalised when drawn with the statistics of that moment (as the host's)
+            batches = Batch(normalized(stats, drawn.obs, spec.obs_clip), drawn.actions, drawn.rewards,
+                            normalized(stats, drawn.next_obs, spec.obs_clip), drawn.terminated,
                             jnp.ones_like(drawn.rewards))
             scale = (1.0 - (1.0 - end_fraction) * jnp.minimum(after / total, 1.0)).astype(jnp.float32) \
                 if spec.linear_lr else None
@@ -185,7 +243,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
 
         if spec.gradient_steps > 0:
             state, totals = jax.lax.cond(after >= spec.learning_starts, learn, lambda s, t: (s, t), state, totals)
-        return (state, totals, replay, batch, key), (s.episode_returns, s.episode_lengths)
+        return (state, totals, replay, batch, key, stats), (s.episode_returns, s.episode_lengths)
 
     def maybe_step(carry, i):
         # the steps past `count` (the budget's end inside this chunk) leave everything as it is
