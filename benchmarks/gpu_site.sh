@@ -4,12 +4,17 @@
 # optax, NumPy, SciPy, PyYAML, tqdm, Matplotlib, imageio and filelock; nothing can be installed there from outside
 # (the device notes). Gymnasium, MuJoCo and tensorboardX go in here (absl-py and etils are there; no PyOpenGL or
 # imageio-ffmpeg: the runs render nothing, and the carry holds 64 MiB). Run it here, then name .whl in the carry:
-#   bash benchmarks/gpu_site.sh && ls -l .whl/site.tgz
+#   bash benchmarks/gpu_site.sh && ls -l .whl/site.tgz          (PLAYGROUND=1 for benchmarks/gpu_playground.sh)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYVER=${PYVER:-3.12}
 grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo '/.whl/' >> .git/info/exclude  # never committed
 pins=$(.venv/bin/pip freeze | grep -iE '^(gymnasium|mujoco|farama-notifications|cloudpickle|tensorboardx|glfw)==')
+# PLAYGROUND=1: also MuJoCo Playground and what importing it loads (issue 67; not NVIDIA Warp, 392 MB unpacked, which
+# MJX imports only if present: the runs use MJX's JAX implementation)
+if [ "${PLAYGROUND:-0}" = 1 ]; then
+  pins="$pins $(.venv/bin/pip freeze | grep -iE '^(playground|mujoco-mjx|brax|flax|jaxopt|ml.collections|lxml|trimesh|mediapy|msgpack|treescope)==' | tr '\n' ' ')"
+fi
 site=$(mktemp -d)
 .venv/bin/pip install -q --target "$site" --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
   --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux_2_28_x86_64 $pins

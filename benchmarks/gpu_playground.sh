@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Issue 67 on a lent GPU machine (the device tool): MuJoCo Playground's envs collected on the device, softac's
+# device source (collect_on=device) at the brax-sac preset's settings, for the steps per second that thousands of
+# envs give and the first part of a learning curve:
+#   the RUNS (PRESET:ENV:N_ENVS:SEED, default brax-sac on CheetahRun with 128 and 1024 envs, fresh seed 0) one after
+#   the other, each capped at LIMIT s (a run cut short still brings back its log rows and evaluations).
+# Everything comes back in $OUT: devices.txt, runs.txt (each run's exit and last rows) and runs.tgz (config.yaml,
+# eval.csv, progress.csv, episodes.csv, summary.json; unpack into benchmarks/gpu/DATE-playground).
+# Packages travel in .whl/site.tgz: PLAYGROUND=1 bash benchmarks/gpu_site.sh, here, first.
+#   device run: bash benchmarks/gpu_playground.sh   (carry .whl; timeout_s 540)
+#   here, on a CPU, tiny: DEVICE=cpu LIMIT=200 STEPS=4096 RUNS=brax-sac:CartpoleSwingup:64:0 EXTRA='learning_starts=1024
+#     buffer_size=50000 eval_interval=2048 eval_episodes=4 log_interval=1024 checkpoint_interval=2048' bash benchmarks/gpu_playground.sh
+set -u
+OUT=${OUT:-/tmp/gpu-playground-out}
+WORK=${WORK:-/tmp/gpu-playground}
+DEVICE=${DEVICE:-gpu}
+mkdir -p "$OUT"
+rm -rf "$WORK" && mkdir -p "$WORK/runs"
+if [ "$DEVICE" = gpu ]; then
+  mkdir -p /tmp/site && tar -C /tmp/site -xzf .whl/site.tgz || exit 1
+  export PYTHONPATH=/tmp/site:$PWD/src
+  PY=python3
+  nvidia-smi -L
+else
+  export PYTHONPATH=$PWD/src
+  PY=${PY:-.venv/bin/python}
+fi
+export PYTHONUNBUFFERED=1
+read -r -a extra <<< "${EXTRA:-log_interval=102400 eval_interval=512000 checkpoint_interval=512000 eval_episodes=128}"
+$PY -c "import jax; print('jax', jax.__version__, jax.devices())" 2>&1 | tee "$OUT/devices.txt"
+for run in ${RUNS:-brax-sac:CheetahRun:128:0 brax-sac:CheetahRun:1024:0}; do
+  IFS=: read -r preset env n seed <<< "$run"
+  dir=$WORK/runs/$env-$preset-n$n/seed=$seed
+  start=$SECONDS
+  timeout "${LIMIT:-200}" $PY -m softac train --env "playground:$env" --preset "$preset" --n-envs "$n" --seed "$seed" \
+    --steps "${STEPS:-5000000}" --device "$DEVICE" --out "$dir" --no-progress \
+    --set loggers=none ${extra[@]+"${extra[@]}"} > "$WORK/$preset-$env-$n.log" 2>&1
+  code=$?
+  echo "$run: exit $code after $((SECONDS - start)) s; last row: $(tail -n 1 "$dir/progress.csv" 2>/dev/null | cut -d, -f1-4);" \
+    "last evaluation: $(tail -n 1 "$dir/eval.csv" 2>/dev/null)" | tee -a "$OUT/runs.txt"
+  tail -n 3 "$WORK/$preset-$env-$n.log"
+  (cd "$WORK/runs" && find . \( -name config.yaml -o -name eval.csv -o -name progress.csv -o -name episodes.csv \
+    -o -name summary.json \) -print0 | tar -czf "$OUT/runs.tgz" --null -T -)
+done
