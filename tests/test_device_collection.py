@@ -4,6 +4,8 @@ pytree, the device's replay buffer, the keys), and the settings it does not run 
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -90,6 +92,11 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     assert [int(float(r["step"])) for r in read_csv(run / "eval.csv")] == [400]
     rows = read_csv(run / "progress.csv")
     assert rows[-1]["critic_loss"] not in ("", None) and np.isfinite(float(rows[-1]["critic_loss"]))
+    # softac eval of a device run evaluates on the device: its last checkpoint gives the final evaluation again
+    again = run_cli("eval", str(run), "--checkpoint", "last", "--episodes", "1", "--json")
+    assert again.returncode == 0, again.stderr
+    assert json.loads(again.stdout)["mean_return"] == pytest.approx(float(read_csv(run / "eval.csv")[-1]["mean_return"]),
+                                                                   rel=1e-5)
     refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set", "n_step=3")
     assert_clean_error(refused, "n_step=3: is not run by device collection yet")
     assert not (tmp_path / "r").exists()

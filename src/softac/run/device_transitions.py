@@ -100,10 +100,11 @@ class EvalSpec(NamedTuple):
     obs_clip: float  # as ChunkSpec's
 
 
-def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: int, seed: int) -> dict[str, Any]:
-    """`episodes` deterministic episodes of the deployed policy at once, each on its own device env, in one jitted
-    scan of the episode length (the host's evaluation's statistics: softac.run.evaluation.summarize); each
-    evaluation starts from the same states, drawn from `seed`."""
+def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: int, seed: int,
+                       policy: str = "deployed") -> dict[str, Any]:
+    """`episodes` deterministic episodes of `policy` (Learner.policy_networks) at once, each on its own device env,
+    in one jitted scan of the episode length (the host's evaluation's statistics: softac.run.evaluation.summarize);
+    each evaluation starts from the same states, drawn from `seed`."""
     import jax
 
     from softac.run.evaluation import summarize
@@ -111,7 +112,7 @@ def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: i
     envs = collector.envs
     spec = EvalSpec(learner.functions.policy, envs.env, episodes, envs.episode_length, envs.action_repeat,
                     float(learner.config.obs_norm_clip) if learner.obs_norm is not None else 0.0)
-    returns, lengths = compiled_evaluation(spec, learner.deployed_policy(), obs_stats(learner),
+    returns, lengths = compiled_evaluation(spec, learner.policy_networks(policy), obs_stats(learner),
                                            jax.random.PRNGKey(seed))
     return summarize(np.asarray(returns, np.float64), np.asarray(lengths))
 

@@ -137,14 +137,23 @@ def acting(agent: Evaluable, deterministic: bool = True,
 
 def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, seed: int | None = None,
              env: Any = None, policy: str = "deployed") -> dict[str, Any]:
-    """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env. The default seed is the
-    one training's evaluations use, so the `last` checkpoint of a finished run gives its final evaluation again.
+    """Mean/std return of `agent` over `episodes` episodes on fresh copies of its env (deterministic ones of an
+    agent that collects on the device: on device envs, at once). The default seed is the one training's
+    evaluations use, so the `last` checkpoint of a finished run gives its final evaluation again.
     `policy`: "deployed", "actor" or "average" (SAC.predict)."""
     if episodes < 1:
         raise EnvError("episodes must be >= 1")
     seed = agent.config.seed + EVAL_SEED_OFFSET if seed is None else seed
     source = env if env is not None else agent.env_source
-    stats = run_on_copies(acting(agent, deterministic, policy), source, episodes, seed)
+    from softac.replay.device_collector import DeviceCollector
+
+    if deterministic and env is None and isinstance(getattr(agent, "collector", None), DeviceCollector):
+        # a run collected on the device evaluates there, all episodes at once, as its training's evaluations did
+        from softac.run.device_transitions import evaluate_on_device
+
+        stats = evaluate_on_device(agent.learner, agent.collector, episodes, seed, policy)
+    else:
+        stats = run_on_copies(acting(agent, deterministic, policy), source, episodes, seed)
     stats["deterministic"] = deterministic
     stats["policy"] = policy
     stats["env_id"] = env_name(source)
