@@ -75,9 +75,10 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     np.testing.assert_array_equal(straight.learner.obs_norm.m2, resumed.learner.obs_norm.m2)
 
     # evaluation on the device: all episodes at once, deterministic, each counted to its end (100 agent steps)
-    from softac.run.device_transitions import evaluate_on_device
+    from softac.run.device_transitions import device_episodes
+    from softac.run.evaluation import summarize
 
-    a, b = (evaluate_on_device(agent.learner, agent.collector, 3, seed=7) for agent in (straight, resumed))
+    a, b = (summarize(*device_episodes(agent.learner, agent.collector, 3, seed=7)) for agent in (straight, resumed))
     assert a == b and a["episodes"] == 3 and a["lengths"] == [100] * 3 and len(set(a["returns"])) == 3
 
 

@@ -4,7 +4,7 @@ actions (uniform ones before learning_starts), the envs stepped and auto-reset (
 transitions written into the device's replay buffer and `gradient_steps` updates on batches drawn from it, as
 Brax's SAC training step fuses them. The host sees the chunk's end only: the episodes that ended in it (each at
 its own step), for the loop's logs, evaluations, checkpoints and callbacks. Evaluation runs its episodes at once on
-device envs of its own (`evaluate_on_device`).
+device envs of its own (`device_episodes`).
 
 Each vector step follows the host's rules: uniform actions while the steps before it are under learning_starts,
 updates once the steps after it reach it, a linear learning-rate schedule at the steps after it. A chunk spans
@@ -66,8 +66,9 @@ class DeviceTransitions:
     def start(self) -> None:
         self.collector.start(self.run_state.num_steps)
 
-    def evaluate(self, episodes: int, seed: int) -> dict[str, Any]:
-        return evaluate_on_device(self.learner, self.collector, episodes, seed)
+    def episodes(self, episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Evaluation's episodes on the device (`device_episodes`): their returns and lengths."""
+        return device_episodes(self.learner, self.collector, episodes, seed)
 
     def chunk(self, until: int) -> Chunk:
         """The chunk's vector steps, or fewer where `until` (the budget's end, in env steps) comes first."""
@@ -100,21 +101,19 @@ class EvalSpec(NamedTuple):
     obs_clip: float  # as ChunkSpec's
 
 
-def evaluate_on_device(learner: Learner, collector: DeviceCollector, episodes: int, seed: int,
-                       policy: str = "deployed") -> dict[str, Any]:
-    """`episodes` deterministic episodes of `policy` (Learner.policy_networks) at once, each on its own device env,
-    in one jitted scan of the episode length (the host's evaluation's statistics: softac.run.evaluation.summarize);
-    each evaluation starts from the same states, drawn from `seed`."""
+def device_episodes(learner: Learner, collector: DeviceCollector, episodes: int, seed: int,
+                    policy: str = "deployed") -> tuple[np.ndarray, np.ndarray]:
+    """The returns and lengths of `episodes` deterministic episodes of `policy` (Learner.policy_networks) run at
+    once, each on its own device env, in one jitted scan of the episode length (softac.run.evaluation.summarize
+    makes the host's statistics of them); each evaluation starts from the same states, drawn from `seed`."""
     import jax
-
-    from softac.run.evaluation import summarize
 
     envs = collector.envs
     spec = EvalSpec(learner.functions.policy, envs.env, episodes, envs.episode_length, envs.action_repeat,
                     float(learner.config.obs_norm_clip) if learner.obs_norm is not None else 0.0)
     returns, lengths = compiled_evaluation(spec, learner.policy_networks(policy), obs_stats(learner),
                                            jax.random.PRNGKey(seed))
-    return summarize(np.asarray(returns, np.float64), np.asarray(lengths))
+    return np.asarray(returns, np.float64), np.asarray(lengths)
 
 
 def evaluation_program(spec: EvalSpec, networks: tuple, stats: tuple, key: Any) -> tuple[Any, Any]:

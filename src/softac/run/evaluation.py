@@ -149,9 +149,9 @@ def evaluate(agent: Evaluable, episodes: int = 10, deterministic: bool = True, s
 
     if deterministic and env is None and isinstance(getattr(agent, "collector", None), DeviceCollector):
         # a run collected on the device evaluates there, all episodes at once, as its training's evaluations did
-        from softac.run.device_transitions import evaluate_on_device
+        from softac.run.device_transitions import device_episodes
 
-        stats = evaluate_on_device(agent.learner, agent.collector, episodes, seed, policy)
+        stats = summarize(*device_episodes(agent.learner, agent.collector, episodes, seed, policy))
     else:
         stats = run_on_copies(acting(agent, deterministic, policy), source, episodes, seed)
     stats["deterministic"] = deterministic

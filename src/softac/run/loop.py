@@ -21,7 +21,7 @@ from softac.run.callbacks import CallbackList, TrainingInfo
 from softac.replay.collector import Collector
 from softac.base.cpus import usable_cpus
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
-from softac.run.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes
+from softac.run.evaluation import EVAL_SEED_OFFSET, MAX_PARALLEL, run_episodes, summarize
 from softac.config.names import parse_backends
 from softac.config.sac_config import SACConfig
 from softac.run.loggers import Loggers, check_backends_installed, run_loggers
@@ -335,7 +335,7 @@ class TrainingLoop:
     def evaluate(self, step: int) -> dict[str, Any] | None:
         cfg, rs, make_env = self.config, self.run_state, self.collector.make_env
         if isinstance(self.source, DeviceTransitions):  # all episodes at once on the device's envs (issue 67)
-            stats = self.source.evaluate(cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET)
+            stats = summarize(*self.source.episodes(cfg.eval_episodes, cfg.seed + EVAL_SEED_OFFSET))
         else:
             if self.eval_envs is None:
                 self.eval_envs = [make_env() for _ in range(min(cfg.eval_episodes, MAX_PARALLEL))]
