@@ -16,6 +16,18 @@ from softac.errors import SoftacError
 EPSILON = 1e-8  # added to the variance, as VecNormalize does: a constant feature maps to 0, not to inf
 
 
+def merged_moments(count, mean, m2, batch):
+    """(count, mean, m2) with a batch of rows merged in (Chan, Golub & LeVeque 1979): NumPy's float64 here, and
+    JAX's float32 arrays inside device collection's jitted chunks (softac.run.device_transitions), one formula."""
+    n = batch.shape[0]
+    batch_mean = batch.mean(axis=0)
+    weight = count * 1.0  # a float: on the device count * n would overflow int32 past 2^31
+    total = weight + n
+    delta = batch_mean - mean
+    return (count + n, mean + delta * (n / total),
+            m2 + ((batch - batch_mean) ** 2).sum(axis=0) + delta ** 2 * (weight * n / total))
+
+
 class RunningObsNorm:
     """Running mean/variance of observation vectors, merged batch by batch (Chan, Golub & LeVeque 1979),
     in float64 so that a long run's statistics do not drift with rounding."""
@@ -33,16 +45,9 @@ class RunningObsNorm:
 
     def update(self, batch: np.ndarray) -> None:
         batch = np.asarray(batch, np.float64).reshape(-1, self.dim)
-        n = batch.shape[0]
-        if n == 0:
+        if batch.shape[0] == 0:
             return
-        batch_mean = batch.mean(axis=0)
-        batch_m2 = np.square(batch - batch_mean).sum(axis=0)
-        total = self.count + n
-        delta = batch_mean - self.mean
-        self.mean = self.mean + delta * (n / total)
-        self.m2 = self.m2 + batch_m2 + np.square(delta) * (self.count * n / total)
-        self.count = total
+        self.count, self.mean, self.m2 = merged_moments(self.count, self.mean, self.m2, batch)
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         """float32 observations (any leading shape) in normalised units."""

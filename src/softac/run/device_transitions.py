@@ -160,22 +160,6 @@ def keep_obs_stats(learner: Learner, stats: tuple) -> None:
         learner.obs_norm.mean, learner.obs_norm.m2 = np.asarray(mean, np.float64), np.asarray(m2, np.float64)
 
 
-def merged_stats(stats: tuple, obs: Any) -> tuple:
-    """The running statistics with a batch of observations merged in (RunningObsNorm.update's formula, in float32
-    on the device, as Brax's running statistics are)."""
-    import jax.numpy as jnp
-
-    count, mean, m2 = stats
-    n = obs.shape[0]
-    batch_mean = obs.mean(axis=0)
-    before = count.astype(jnp.float32)  # (count * n in int32 would overflow past 2^31)
-    total = before + n
-    delta = batch_mean - mean
-    mean = mean + delta * (n / total)
-    m2 = m2 + jnp.square(obs - batch_mean).sum(axis=0) + jnp.square(delta) * (before * n / total)
-    return count + n, mean, m2
-
-
 def normalized(stats: tuple, obs: Any, clip: float) -> Any:
     """RunningObsNorm.normalize with these statistics."""
     import jax.numpy as jnp
@@ -206,6 +190,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
 
     from softac.learner.build import update_program
     from softac.learner.losses import Batch
+    from softac.learner.normalization import merged_moments
     from softac.learner.pixels import features_of
     from softac.learner.sac import acting_actor
     from softac.replay import device_buffer
@@ -217,7 +202,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
         state, totals, replay, batch, key, stats = carry
         key, act_key, sample_key = jax.random.split(key, 3)
         if stats:  # every observation the policy acts on counts, the warm-up's too (as the host's learner.observe)
-            stats = merged_stats(stats, batch.obs)
+            stats = merged_moments(*stats, batch.obs)
 
         def policy_actions():
             actor, actor_stats, encoder = acting_actor(state)
