@@ -14,23 +14,8 @@
 #   here, on a CPU, tiny: DEVICE=cpu LIMIT=120 STEPS=600 UPDATE_LIMIT=60 EXTRA='learning_starts=200 batch_size=32
 #     critic_hidden_sizes=16,16 actor_hidden_sizes=16,16 eval_interval=300 eval_episodes=1' bash benchmarks/gpu_flashsac.sh
 set -u
-OUT=${OUT:-/tmp/gpu-flashsac-out}
-WORK=${WORK:-/tmp/gpu-flashsac}
-DEVICE=${DEVICE:-gpu}
-mkdir -p "$OUT"
-rm -rf "$WORK" && mkdir -p "$WORK/runs"
-if [ "$DEVICE" = gpu ]; then
-  mkdir -p /tmp/site && tar -C /tmp/site -xzf .whl/site.tgz || exit 1
-  export PYTHONPATH=/tmp/site:$PWD/src
-  PY=python3
-  nvidia-smi -L
-else
-  export PYTHONPATH=$PWD/src
-  PY=${PY:-.venv/bin/python}
-fi
-export PYTHONUNBUFFERED=1
-read -r -a extra <<< "${EXTRA:-}"
-$PY -c "import jax; print('jax', jax.__version__, jax.devices())" 2>&1 | tee "$OUT/devices.txt"
+source "$(dirname "$0")/gpu_common.sh"
+gpu_setup flashsac
 for preset in ${PRESETS:-flashsac xqc}; do
   timeout "${UPDATE_LIMIT:-100}" $PY benchmarks/update_time.py --preset "$preset" --obs 17 --act 6 --rounds 3 \
     --updates 50 ${extra[@]+--set "${extra[@]}"} 2>&1 | tail -n 1 | tee -a "$OUT/update_time.txt"
@@ -45,6 +30,5 @@ for run in ${RUNS:-flashsac:HalfCheetah-v4:0}; do
   echo "$run: exit $code after $((SECONDS - start)) s; last evaluation: $(tail -n 1 "$dir/eval.csv" 2>/dev/null)" \
     | tee -a "$OUT/runs.txt"
   tail -n 3 "$WORK/$preset-$seed.log"
-  (cd "$WORK/runs" && find . \( -name config.yaml -o -name eval.csv -o -name progress.csv -o -name episodes.csv \
-    -o -name summary.json \) -print0 | tar -czf "$OUT/runs.tgz" --null -T -)
+  pack_runs
 done

@@ -11,23 +11,8 @@
 #   here, on a CPU, tiny: DEVICE=cpu LIMIT=200 STEPS=4096 RUNS=brax-sac:CartpoleSwingup:64:0 EXTRA='learning_starts=1024
 #     buffer_size=50000 eval_interval=2048 eval_episodes=4 log_interval=1024 checkpoint_interval=2048' bash benchmarks/gpu_playground.sh
 set -u
-OUT=${OUT:-/tmp/gpu-playground-out}
-WORK=${WORK:-/tmp/gpu-playground}
-DEVICE=${DEVICE:-gpu}
-mkdir -p "$OUT"
-rm -rf "$WORK" && mkdir -p "$WORK/runs"
-if [ "$DEVICE" = gpu ]; then
-  mkdir -p /tmp/site && tar -C /tmp/site -xzf .whl/site.tgz || exit 1
-  export PYTHONPATH=/tmp/site:$PWD/src
-  PY=python3
-  nvidia-smi -L
-else
-  export PYTHONPATH=$PWD/src
-  PY=${PY:-.venv/bin/python}
-fi
-export PYTHONUNBUFFERED=1
-read -r -a extra <<< "${EXTRA:-log_interval=102400 eval_interval=512000 checkpoint_interval=512000 eval_episodes=128}"
-$PY -c "import jax; print('jax', jax.__version__, jax.devices())" 2>&1 | tee "$OUT/devices.txt"
+source "$(dirname "$0")/gpu_common.sh"
+gpu_setup playground "log_interval=102400 eval_interval=512000 checkpoint_interval=512000 eval_episodes=128"
 for run in ${RUNS:-brax-sac:CheetahRun:128:0 brax-sac:CheetahRun:1024:0}; do
   IFS=: read -r preset env n seed <<< "$run"
   dir=$WORK/runs/$env-$preset-n$n/seed=$seed
@@ -39,6 +24,5 @@ for run in ${RUNS:-brax-sac:CheetahRun:128:0 brax-sac:CheetahRun:1024:0}; do
   echo "$run: exit $code after $((SECONDS - start)) s; last row: $(tail -n 1 "$dir/progress.csv" 2>/dev/null | cut -d, -f1-4);" \
     "last evaluation: $(tail -n 1 "$dir/eval.csv" 2>/dev/null)" | tee -a "$OUT/runs.txt"
   tail -n 3 "$WORK/$preset-$env-$n.log"
-  (cd "$WORK/runs" && find . \( -name config.yaml -o -name eval.csv -o -name progress.csv -o -name episodes.csv \
-    -o -name summary.json \) -print0 | tar -czf "$OUT/runs.tgz" --null -T -)
+  pack_runs
 done
