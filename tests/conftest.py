@@ -88,6 +88,19 @@ def run_cli(*args: str, timeout: float = 300, cwd: Path | None = None, env_extra
                           timeout=timeout, env=env, cwd=cwd, **popen)
 
 
+def filmed_frames(run: Path, out: Path, frames: tuple[int, ...] = (0,)) -> list:
+    """`softac video RUN --out OUT --max-steps 20` as a user runs it, and those frames of the MP4 it wrote; the test
+    is skipped where headless rendering has neither EGL nor OSMesa."""
+    video = run_cli("video", str(run), "--out", str(out), "--max-steps", "20")
+    if video.returncode != 0 and "headless rendering found neither" in video.stderr:
+        pytest.skip("no EGL or OSMesa here (make system-deps installs libosmesa6)")
+    assert video.returncode == 0, video.stderr
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(out, format="FFMPEG") as reader:
+        return [reader.get_data(i) for i in frames]
+
+
 def run_cli_in_process(*args: str) -> subprocess.CompletedProcess:
     """`softac ARGS` as softac.cli.main.main runs it in this process (a notebook's or a script's call), its exit code
     and its stdout and stderr captured: for tests of what a command does with many configurations (every preset
