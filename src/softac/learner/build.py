@@ -208,6 +208,7 @@ class SACFunctions(NamedTuple):
     target_entropy: float
     scaler: ActionScaler
     matmul_dtype: str  # as resolved (`auto` becomes float32 or bfloat16 here)
+    settings: UpdateSettings  # what the update runs with (device collection compiles it into its chunks)
 
 
 def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None = None,
@@ -258,4 +259,5 @@ def build(config: SACConfig, obs_dim: int, act_dim: int, low: np.ndarray | None 
         target_entropy=s.target_entropy,
         scaler=scaler,
         matmul_dtype=matmul_dtype,
+        settings=s,
     )

@@ -27,6 +27,9 @@ class DeviceReplay(NamedTuple):
     size: jax.Array  # int32: rows held
 
 
+ROWS = ("obs", "actions", "rewards", "next_obs", "terminated")  # DeviceReplay's per-row arrays
+
+
 class Sampled(NamedTuple):
     """Batches drawn for `n` gradient steps: each field with a leading axis [n, batch_size]."""
     obs: jax.Array

@@ -100,7 +100,7 @@ class DeviceCollector:
         if meta["has_buffer"]:
             size = int(self.replay.size)
             arrays.update({BUFFER_PREFIX + name: np.asarray(getattr(self.replay, name))[:size]
-                           for name in ("obs", "actions", "rewards", "next_obs", "terminated")})
+                           for name in device_buffer.ROWS})
             arrays[BUFFER_PREFIX + "position"] = np.asarray(self.replay.position)
         if meta["has_envs"]:
             import jax
@@ -116,8 +116,7 @@ class DeviceCollector:
 
         if meta.get("has_buffer"):
             replay = device_buffer.empty(self.capacity, self.spaces.obs_dim, self.spaces.act_dim)
-            rows = {name: arrays[BUFFER_PREFIX + name] for name in ("obs", "actions", "rewards", "next_obs",
-                                                                    "terminated")}
+            rows = {name: arrays[BUFFER_PREFIX + name] for name in device_buffer.ROWS}
             size = len(rows["rewards"])
             if size > self.capacity:
                 raise CheckpointError(f"its replay buffer holds {size:,} transitions, more than buffer_size allows "

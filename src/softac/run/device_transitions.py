@@ -53,11 +53,10 @@ class DeviceTransitions:
     """N envs on the device, their replay and the updates, a chunk of vector steps per jitted call."""
 
     def __init__(self, learner: Learner, collector: DeviceCollector, run_state: RunState) -> None:
-        from softac.learner.build import Program, numbers_of, update_settings
+        from softac.learner.build import Program, numbers_of
 
         self.learner, self.collector, self.run_state = learner, collector, run_state
-        cfg = learner.config
-        settings = update_settings(cfg, learner.spaces.act_dim, learner.matmul_dtype)
+        cfg, settings = learner.config, learner.functions.settings
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts, cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0)
