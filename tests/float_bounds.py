@@ -84,13 +84,15 @@ def _activation(name: str, x: np.ndarray) -> np.ndarray:
         return np.where(x > 0, x, np.expm1(np.minimum(x, 0.0)))
     if name == "gelu":  # jax.nn.gelu's default tanh form, with the float32 constants the programs multiply by
         return x * 0.5 * (1.0 + np.tanh(GELU_C1 * (x + GELU_C2 * x**3)))
+    if name == "silu":  # x * sigmoid(x)
+        return x * 0.5 * (1.0 + np.tanh(0.5 * x))
     raise ValueError(name)
 
 
-def _gelu_minimum() -> float:
-    """Where gelu's tanh form turns (its minimum, x ~ -0.75): bisection on the sign of its slope, in float64."""
-    lo, hi = -1.5, -0.25
-    slope = lambda x: (_activation("gelu", x + 1e-7) - _activation("gelu", x - 1e-7))
+def _minimum(name: str, lo: float, hi: float) -> float:
+    """Where gelu's tanh form (x ~ -0.75) or silu (x ~ -1.28) turns, their minimum: bisection on the sign of the
+    slope, in float64."""
+    slope = lambda x: (_activation(name, x + 1e-7) - _activation(name, x - 1e-7))
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if slope(mid) < 0 else (lo, mid)
@@ -100,13 +102,14 @@ def _gelu_minimum() -> float:
 def _propagated(name: str, x_ref: np.ndarray, e: np.ndarray, y: np.ndarray) -> np.ndarray:
     """A bound on |f(x) - f(x_ref)| for every |x - x_ref| <= e: relu, tanh, elu and clips are monotone, so f(x) lies
     between f(x_ref - e) and f(x_ref + e) (exact: an inactive relu or a saturated tanh passes no error on);
-    gelu is monotone on either side of its minimum, which joins the candidates where the interval holds it.
-    (float64's own rounding of these values, 2^-52 relative, is covered by the 2^-50 term.)"""
+    gelu and silu are monotone on either side of their minimum, which joins the candidates where the interval
+    holds it. (float64's own rounding of these values, 2^-52 relative, is covered by the 2^-50 term.)"""
     lo, hi = _activation(name, x_ref - e), _activation(name, x_ref + e)
     spread = np.maximum(np.abs(hi - y), np.abs(y - lo))
-    if name == "gelu":
-        inside = (x_ref - e <= GELU_MIN_AT) & (GELU_MIN_AT <= x_ref + e)
-        spread = np.where(inside, np.maximum(spread, np.abs(y - _activation("gelu", GELU_MIN_AT))), spread)
+    if name in MINIMUM_AT:
+        at = MINIMUM_AT[name]
+        inside = (x_ref - e <= at) & (at <= x_ref + e)
+        spread = np.where(inside, np.maximum(spread, np.abs(y - _activation(name, at))), spread)
     return spread + 2.0**-50 * (np.abs(y) + np.abs(lo) + np.abs(hi))
 
 
@@ -122,7 +125,7 @@ def _activation_error(name: str, x_ref: np.ndarray, e: np.ndarray) -> tuple[np.n
     return y, propagated + ACT_ABS + ACT_REL * (np.abs(y) + propagated)
 
 
-GELU_MIN_AT = _gelu_minimum()
+MINIMUM_AT = {"gelu": _minimum("gelu", -1.5, -0.25), "silu": _minimum("silu", -2.0, -0.5)}
 
 
 def _bf16_inputs(x_ref: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,10 +158,13 @@ def _rounded_dense(x: np.ndarray, e: np.ndarray, w: np.ndarray, b: np.ndarray, b
 
 
 def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
-                  norm=None, stats: list | None = None,
-                  out_columns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  norm=None, stats: list | None = None, out_columns: int | None = None,
+                  layer_norm: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of an MLP's outputs (networks.mlp, or networks.batch_renorm_mlp in evaluation mode with
-    `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only."""
+    `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only;
+    `layer_norm`: a LayerNorm without scale or bias before each hidden activation (actor_layer_norm)."""
+    from softac.learner.networks.layers import LAYER_NORM_EPS
+
     from softac.learner.networks.layers import multiplies_in_bf16
 
     stats = stats if stats is not None else [None] * len(layers)
@@ -185,6 +191,8 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
         rounding = np.maximum(gamma(n + 1) * magnitude, folded_rounding)
         e = e + rounding + TINY * (n + 1) * (1.0 + np.abs(w).max())
         x = z
+        if i < len(layers) - 1 and layer_norm:
+            x, e = _layer_norm(x, e, np.ones(x.shape[-1]), np.zeros(x.shape[-1]), LAYER_NORM_EPS)
         if i < len(layers) - 1:
             x, e = _activation_error(activation, x, e)
     return x, e
@@ -400,7 +408,8 @@ def action_bound(agent, obs: np.ndarray, matmul_dtype: str | None = None) -> tup
     else:
         x, e = network_bound(actor, x, e, agent.config.activation, matmul_dtype, norm,
                              actor_stats if norm is not None else None,
-                             out_columns=agent.spaces.act_dim)  # only the mean action's columns (not the log-std)
+                             out_columns=agent.spaces.act_dim,  # only the mean action's columns (not the log-std)
+                             layer_norm=agent.learner.functions.policy.layer_norm)
     if agent.learner.functions.policy.sde:  # gSDE's mean clip: monotone and 1-Lipschitz, as the obs clip above
         from softac.learner.policy import SDE_CLIP_MEAN
 

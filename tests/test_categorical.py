@@ -8,6 +8,8 @@ Float bounds as in test_sac_losses: the losses run in float32, the hand computat
 ~170 float32 roundings of the result for a few dozen operations on terms no larger than it; the
 projections' masses, sums of a few products of numbers in [0, 1], are held to 1e-6."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -140,6 +142,41 @@ def test_categorical_critic_loss_is_the_cross_entropy_to_the_soft_target_distrib
         b, key, POLICY, critics, gamma)[0])(constant_categorical_critics(*online))
     g = np.asarray(grads[-1]["b"])
     np.testing.assert_allclose(g, softmax(online) - target.mean(axis=0)[None], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.numerics
+def test_with_target_q_each_every_critic_learns_toward_its_own_target_critics_projection():
+    """FastSAC's form: critic i's C51 target is target critic i's distribution moved and projected (no lowest-mean
+    choice), and the loss sums the critics' cross-entropies."""
+    key = jax.random.PRNGKey(5)
+    mean, log_std = [0.3, -0.2], [-0.5, 0.1]
+    rewards, terminated, alpha, gamma = [0.5, -1.0, 0.2, 1.5], [0.0, 1.0, 0.0, 0.0], 0.1, 0.9
+    online = [[0.0, 1.0, 2.0, 0.5, -1.0], [1.0, 0.0, 0.0, 0.0, 3.0]]
+    target_logits = [[0.0, 0.0, 2.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0, 2.0]]
+    critics = dataclasses.replace(CRITICS, target_q="each")
+    loss, _ = losses.soft_q_loss(
+        constant_categorical_critics(*online), (), constant_categorical_critics(*target_logits),
+        constant_actor(mean, log_std), (), jnp.float32(alpha), batch(rewards, terminated), key, POLICY, critics, gamma)
+    _, next_log_prob = hand_sample(key, mean, log_std)
+    bootstrap = gamma * (1.0 - np.asarray(terminated))
+    atoms = np.asarray(rewards)[:, None] + bootstrap[:, None] * (SUPPORT[None] - alpha * next_log_prob[:, None])
+    log_q = np.log(softmax(online))
+    want = sum(float(np.mean(-(hand_projection(atoms, np.broadcast_to(softmax(target_logits[i]), (BATCH, K)))
+                               * log_q[i]).sum(axis=1))) for i in range(2))
+    assert float(loss) == pytest.approx(want, rel=1e-5)
+
+
+@pytest.mark.numerics
+def test_with_actor_q_mean_the_actor_climbs_the_mean_of_the_critics_distributions_means():
+    key = jax.random.PRNGKey(3)
+    mean, log_std, alpha = [0.3, -0.2], [-0.5, 0.1], 0.2
+    logits = [[0.0, 0.0, 0.0, 3.0, 0.0], [1.0, 0.0, 0.0, 0.0, 0.0]]
+    obs = batch([0.0] * BATCH, [0.0] * BATCH).obs
+    loss, _ = losses.policy_loss(constant_actor(mean, log_std), (), constant_categorical_critics(*logits), (),
+                                 jnp.float32(alpha), obs, key, POLICY, dataclasses.replace(CRITICS, actor_q="mean"))
+    _, want_log_prob = hand_sample(key, mean, log_std)
+    average = np.mean([float(softmax(row) @ SUPPORT) for row in logits])
+    assert float(loss) == pytest.approx(alpha * np.mean(want_log_prob) - average, rel=1e-5)
 
 
 @pytest.mark.numerics

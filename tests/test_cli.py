@@ -390,6 +390,16 @@ def test_presets_lists_every_preset_a_line_each_and_shows_one_whole():
     assert_clean_error(run_cli("train", "--preset", "dmc", "--steps", "10"), "preset 'dmc' is for DeepMind Control")
 
 
+def test_a_reader_that_stops_early_gets_no_error():
+    """`softac presets | head`: the pipe's reader is gone when softac writes (here closed before softac starts
+    writing); softac stops quietly with the shell's SIGPIPE status (141) instead of an internal error."""
+    child = subprocess.Popen([sys.executable, "-m", "softac", "presets"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=child_env())
+    child.stdout.close()
+    stderr = child.stderr.read()
+    assert child.wait(timeout=120) == 141 and stderr == "", stderr
+
+
 def test_gpu_without_a_gpu_is_a_clean_error(tmp_path):
     import jax
 

@@ -88,11 +88,26 @@ def test_overrides_parse_types():
     ("n_envs=2.5", "n_envs"),
     ("autotune_alpha=maybe", "autotune_alpha"),
     ("target_entropy=high", "target_entropy"),
+    ("target_q=max", "target_q"),
+    ("actor_q=median", "actor_q"),
+    ("adam_b2=1", "adam_b2"),
+    ("activation=swish", "silu"),
     ("novalue", "KEY=VALUE"),
 ])
 def test_bad_overrides_name_the_key(pair, fragment):
     with pytest.raises(ConfigError, match=fragment):
         SACConfig().with_overrides([pair])
+
+
+@pytest.mark.parametrize("values,fragment", [
+    (["n_quantiles=25", "target_q=each"], "TQC's quantile critics pool"),
+    (["crossq=true", "actor_layer_norm=true"], "actor_layer_norm"),
+    (["network=simba", "actor_layer_norm=true"], "actor_layer_norm"),
+    (["crossq=true", "weight_norm=true", "zero_actor_head=true"], "zero_actor_head"),
+])
+def test_combinations_that_cannot_work_are_refused(values, fragment):
+    with pytest.raises(ConfigError, match=fragment):
+        SACConfig().with_overrides(values)
 
 
 def test_unknown_preset_suggests():

@@ -155,6 +155,19 @@ def test_adam_b1_sets_the_first_moment_decay():
     np.testing.assert_allclose(moments[0.5], 5.0 * moments[0.9], rtol=1e-4, atol=1e-9)
 
 
+@pytest.mark.numerics
+def test_adam_b2_sets_the_second_moment_decay():
+    """After one step Adam's second moment is (1 - b2) * gradient^2: b2 0.95 (FastSAC's) keeps 50x what 0.999 keeps,
+    for the alpha optimiser too."""
+    moments = {}
+    for b2 in (0.95, 0.999):
+        fns = build.build(SACConfig().replace(hidden_sizes=[16], batch_size=8, adam_b2=b2), 3, 2)
+        state, _ = fns.update(fns.init(0), _batches(np.random.default_rng(0), 1, 8))
+        moments[b2] = (np.asarray(state.critic_opt[0].nu[0]["w"]), np.asarray(state.alpha_opt[0].nu))
+    for fast, slow in zip(moments[0.95], moments[0.999]):
+        np.testing.assert_allclose(fast, 50.0 * slow, rtol=1e-4, atol=1e-12)
+
+
 @pytest.mark.exact
 def test_crossq_reset_renews_the_statistics(tiny):
     agent = SAC(tiny(crossq=True))

@@ -55,6 +55,9 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
                                     batch_norm_eps=1e-5, reward_scale="std_max"),
     "flashsac-bf16": lambda: tiny_config("Pusher-v5", learning_starts=100, crossq=True, network="flashsac",
                                          hidden_sizes=[32], weight_norm=True, matmul_dtype="bfloat16"),
+    # FastSAC's actor (issue 67): LayerNorm (no scale or bias) before each SiLU, a zero-initialised output layer
+    "fastsac": lambda: tiny_config("Pusher-v5", learning_starts=100, activation="silu", actor_layer_norm=True,
+                                   zero_actor_head=True, log_std_mode="tanh", log_std_min=-5.0, log_std_max=0.0),
 }
 
 
@@ -222,7 +225,7 @@ def test_bf16_layers_are_marked_and_float32_runs_have_no_marks(tmp_path):
     assert not np.any(w & 0xFFFF)  # bf16 weights: the low 16 bits of each float32 are zero
 
 
-@pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "gelu"])
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "gelu", "silu"])
 @pytest.mark.numerics
 def test_every_activation_matches_jax(activation, tmp_path):
     """Untrained agents (PyTorch's default init: outputs well away from zero); gelu is JAX's tanh form."""

@@ -91,4 +91,7 @@ def test_an_old_checkpoint_resumes_to_what_its_own_code_trained(case, tmp_path):
         assert a.num_episodes == b.num_episodes and a.rng.bit_generator.state == b.rng.bit_generator.state
         for key in ("act_key", "predict_key"):
             np.testing.assert_array_equal(np.asarray(getattr(a, key)), np.asarray(getattr(b, key)))
-        np.testing.assert_allclose(a.recent_returns, b.recent_returns, rtol=1e-3, atol=1e-3)
+        # the episodes' returns come from the policy these 150 steps trained, so they carry its float differences
+        # as the leaves do (pinned to one CPU, XLA's other split of the sums moved the last returns by 0.1%)
+        x, y = np.asarray(a.recent_returns), np.asarray(b.recent_returns)
+        assert x.shape == y.shape and np.linalg.norm(x - y) <= RELATIVE * np.linalg.norm(y) + 1e-6, (x, y)

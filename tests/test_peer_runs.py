@@ -116,7 +116,7 @@ def test_the_crossq_settings_carry_every_setting_or_refuse():
     preset = SACConfig.preset("crossq")
     settings = crossq_settings(preset)
     assert settings["policy_kwargs"]["net_arch"] == {"pi": preset.hidden_sizes, "qf": preset.hidden_sizes}
-    assert settings["policy_kwargs"]["optimizer_kwargs"] == {"b1": preset.adam_b1}
+    assert settings["policy_kwargs"]["optimizer_kwargs"] == {"b1": preset.adam_b1, "b2": preset.adam_b2}
     assert crossq_settings(preset.replace(hidden_sizes=[64, 64], batch_size=32))["batch_size"] == 32
     for change in ({"n_step": 3}, {"obs_norm": True}, {"critic_layer_norm": True}, {"crossq": False},
                    {"activation": "tanh"}, {"alpha_lr": 3e-4}, {"gradient_steps": 2}):

@@ -5,6 +5,8 @@ The losses run in float32, the hand computations in float64: rel=1e-5 is ~170 fl
 the result, for a few dozen operations on terms no larger than the result; the log-probabilities, which can
 be ten times smaller than their terms, get a bound from the terms' sizes."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -88,6 +90,31 @@ def test_critic_loss_is_the_soft_bellman_error_to_the_smaller_target(n_step, ste
                                                n_step)[0])(critic)
     np.testing.assert_allclose(np.asarray(grads[-1]["b"])[:, 0], [np.mean(1.0 - target), np.mean(2.0 - target)],
                                rtol=1e-5)
+
+
+def test_each_critic_learns_toward_its_own_target_critic_with_target_q_each():
+    """FastSAC's critics (target_q=each): critic i's soft target comes from target critic i, no minimum."""
+    key = jax.random.PRNGKey(7)
+    mean, log_std = [0.3, -0.2], [-0.5, 0.1]
+    rewards, terminated, alpha, gamma = [1.0, -2.0, 0.5, 3.0], [0.0, 1.0, 0.0, 0.0], 0.5, 0.9
+    critics = dataclasses.replace(CRITICS, target_q="each")
+    loss, _ = losses.critic_loss(constant_critics(1.0, 2.0), constant_critics(3.0, 5.0), constant_actor(mean, log_std),
+                                 jnp.float32(alpha), batch(rewards, terminated), key, POLICY, critics, gamma)
+    _, next_log_prob = hand_sample(key, mean, log_std)
+    bootstrap = gamma * (1 - np.asarray(terminated))
+    targets = [np.asarray(rewards) + bootstrap * (v - alpha * next_log_prob) for v in (3.0, 5.0)]
+    want = 0.5 * (np.mean((1.0 - targets[0]) ** 2) + np.mean((2.0 - targets[1]) ** 2))
+    assert float(loss) == pytest.approx(want, rel=1e-5)
+
+
+def test_the_actor_climbs_the_critics_mean_with_actor_q_mean():
+    key = jax.random.PRNGKey(3)
+    mean, log_std, alpha = [0.3, -0.2], [-0.5, 0.1], 0.2
+    obs = batch([0.0] * BATCH, [0.0] * BATCH).obs
+    loss, _ = losses.actor_loss(constant_actor(mean, log_std), constant_critics(2.0, -1.0), jnp.float32(alpha), obs,
+                                key, POLICY, dataclasses.replace(CRITICS, actor_q="mean"))
+    _, want_log_prob = hand_sample(key, mean, log_std)
+    assert float(loss) == pytest.approx(alpha * np.mean(want_log_prob) - 0.5, rel=1e-5)  # mean of 2 and -1
 
 
 def test_actor_loss_trades_entropy_against_the_smaller_q():

@@ -264,17 +264,39 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
     dict(network="simba", hidden_sizes=[16], n_quantiles=5, n_critics=3),
     dict(critic_dropout=0.05, critic_layer_norm=True, n_quantiles=5, gradient_steps=2),
     dict(target_critics="off", weight_decay=0.01),
+    # FastSAC's parts (issue 67): C51 critics each toward its own target, the actor on their mean, LayerNorm and
+    # SiLU in both networks, a zero actor head, AdamW with b2 0.95, two actor steps in eight critic steps
+    dict(n_atoms=11, v_min=-20.0, v_max=20.0, target_q="each", actor_q="mean", critic_layer_norm=True,
+         actor_layer_norm=True, activation="silu", zero_actor_head=True, adam_b2=0.95, weight_decay=0.001,
+         gradient_steps=8, policy_delay=4, log_std_mode="tanh", log_std_min=-5.0, log_std_max=0.0),
+    dict(crossq=True, target_q="each", actor_q="mean"),
 ])
 def test_variants_compose_where_the_maths_allows(keys):
     """TQC's quantile critics with CrossQ (with and without target critics), with SimBa networks and with DroQ's
-    dropout; SAC without target critics with AdamW: each builds and updates to finite values."""
+    dropout; SAC without target critics with AdamW; FastSAC's parts: each builds and updates to finite values."""
     cfg = SACConfig().replace(**{"hidden_sizes": [16, 16], "batch_size": 8, **keys})
     fns = build.build(cfg, 3, 2)
     state, totals = fns.update(fns.init(0), _batches(np.random.default_rng(0), cfg.gradient_steps, 8))
     means = metric_means(totals)
     assert set(means) >= {"critic_loss", "actor_loss", "q1_mean"} and all(np.isfinite(v) for v in means.values())
     leaf = jax.tree_util.tree_leaves(state.critic)[-1]
-    assert leaf.shape[-1] == (cfg.n_quantiles or 1) and leaf.shape[0] == cfg.n_critics
+    assert leaf.shape[-1] == (cfg.n_quantiles or cfg.n_atoms or 1) and leaf.shape[0] == cfg.n_critics
+
+
+@pytest.mark.numerics
+def test_a_zero_actor_head_starts_every_state_at_the_mean_action_zero_and_one_log_std():
+    """FastSAC's init (zero_actor_head): the output layer's weights and biases are 0, so the mean before tanh is 0
+    and the log std is the middle of its tanh-squashed range, -2.5 in [-5, 0], whatever the observation."""
+    cfg = SACConfig().replace(hidden_sizes=[16, 16], zero_actor_head=True, actor_layer_norm=True, activation="silu",
+                              log_std_mode="tanh", log_std_min=-5.0, log_std_max=0.0)
+    fns = build.build(cfg, 3, 2)
+    state = fns.init(0)
+    obs = jnp.asarray(np.random.default_rng(1).normal(scale=3.0, size=(6, 3)), jnp.float32)
+    mean, log_std = fns.policy.mean_and_log_std(state.actor, (), obs)
+    np.testing.assert_array_equal(np.asarray(mean), 0.0)
+    np.testing.assert_allclose(np.asarray(log_std), -2.5, rtol=1e-6)
+    hidden = np.asarray(state.actor[0]["w"])
+    assert np.abs(hidden).max() > 0  # the hidden layers keep their usual init
 
 
 # ---- SimBa ---------------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from typing import Any
 from softac.errors import SoftacError, TrainingInterrupted
 
 EXIT_OK, EXIT_INTERNAL, EXIT_BAD_INPUT, EXIT_RUN_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a Unix tool whose reader went away
 
 
 # train's flags that set a config key, by key, each read from its argparse destination (--env is not one: it picks
@@ -25,19 +26,18 @@ FLAG_OF_KEY = {"total_steps": "--steps", "seed": "--seed", "n_envs": "--n-envs",
 def _resolve_train_config(args: argparse.Namespace):
     from softac.config.sac_config import SACConfig, parse_overrides
 
-    if args.config:
-        config = SACConfig.from_yaml(args.config)
-        if args.env:
-            config = config.replace(env_id=args.env)
-    elif args.preset:
-        config = SACConfig.preset(args.preset, env_id=args.env)
-    else:
-        config = SACConfig.for_env(args.env)
     overrides = parse_overrides([pair for group in args.overrides for pair in group])
     direct = {key: getattr(args, flag.removeprefix("--").replace("-", "_")) for key, flag in FLAG_OF_KEY.items()}
     _refuse_flags_that_disagree_with_set(overrides, direct)
-    # one replace, checked once: `--set env_workers=4 --n-envs 4` is valid though neither half is alone
-    return config.replace(**{**overrides, **{k: v for k, v in direct.items() if v is not None}})
+    # one replace, checked once: `--set env_workers=4 --n-envs 4` is valid though neither half is alone, and so is
+    # `--preset fastsac --env Pendulum-v1 --n-envs 2` though the preset's 4096 envs are not on a host env
+    changes = {**overrides, **{k: v for k, v in direct.items() if v is not None}}
+    if args.config:
+        config = SACConfig.from_yaml(args.config)
+        return config.replace(**{**({"env_id": args.env} if args.env else {}), **changes})
+    if args.preset:
+        return SACConfig.preset(args.preset, env_id=args.env, overrides=changes)
+    return SACConfig.for_env(args.env, overrides=changes)
 
 
 def _refuse_flags_that_disagree_with_set(overrides: dict, flags: dict) -> None:

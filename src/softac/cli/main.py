@@ -15,7 +15,7 @@ import sys
 from softac.errors import RunFailed, SoftacError, TrainingInterrupted
 from softac.peers import PEERS
 
-from softac.cli.commands import (EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_RUN_FAILED,
+from softac.cli.commands import (EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_RUN_FAILED,
                              cmd_baselines, cmd_bench, cmd_eval, cmd_export, cmd_plot, cmd_presets, cmd_report,
                              cmd_sweep, cmd_train, cmd_video)
 
@@ -251,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("softac: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:  # the reader stopped early (`softac presets | head`): quiet, as Unix tools are
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so that the exit's flush cannot fail too
+        return EXIT_BROKEN_PIPE
     except Exception as exc:  # a bug of ours: say so in one line, keep the traceback for SOFTAC_DEBUG
         if os.environ.get("SOFTAC_DEBUG"):
             raise

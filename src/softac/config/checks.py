@@ -100,6 +100,10 @@ def _check_targets_and_critics(config: Any) -> None:
     need(not (config.crossq and config.critic_layer_norm), "critic_layer_norm",
          "cannot be combined with crossq, which normalises with batch renormalisation")
     need(config.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
+    need(config.target_q in ("min", "each"), "target_q", "must be min or each")
+    need(config.actor_q in ("min", "mean"), "actor_q", "must be min or mean")
+    need(not (config.n_quantiles and config.target_q != "min"), "target_q",
+         "TQC's quantile critics pool their atoms for the target (n_quantiles > 0): leave target_q at min")
     need(not (config.target_encoder and not config.has_target_critics), "target_encoder",
          "copies the encoder for the target critics, and these critics have none (target_critics=on gives them)")
     need(0 <= config.n_quantiles <= 1000, "n_quantiles", "must be between 0 (SAC's critics) and 1000")
@@ -154,6 +158,11 @@ def _check_networks(config: Any) -> None:
     need(0.0 < config.batch_norm_momentum < 1.0, "batch_norm_momentum", "must be in (0, 1)")
     need(config.batch_renorm_warmup >= 0, "batch_renorm_warmup", "must be >= 0")
     need(0.0 <= config.adam_b1 < 1.0, "adam_b1", "must be in [0, 1)")
+    need(0.0 <= config.adam_b2 < 1.0, "adam_b2", "must be in [0, 1)")
+    need(not (config.zero_actor_head and config.weight_norm), "zero_actor_head",
+         "cannot be combined with weight_norm, which keeps the weights on the unit sphere")
+    need(not config.actor_layer_norm or (config.network == "mlp" and not config.crossq), "actor_layer_norm",
+         "applies to plain MLP actors (network=mlp without crossq, which normalises with batch renormalisation)")
     need(len(config.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
     need(all(1 <= h <= 65_536 for h in config.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
     need(config.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
@@ -194,4 +203,4 @@ CHECKS = (_check_env_and_images, _check_collection, _check_device_collection, _c
           _check_networks, _check_optimisers_and_policy, _check_outputs)
 
 
-ACTIVATIONS = ("relu", "tanh", "elu", "gelu")
+ACTIVATIONS = ("relu", "tanh", "elu", "gelu", "silu")

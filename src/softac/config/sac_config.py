@@ -78,7 +78,9 @@ class SACConfig:
     actor_encoder_head: bool = _f(False, "image observations: the actor reads the shared convolutions' output, stopped, through a head of its own (Linear, LayerNorm, tanh, as the encoder's), trained by the actor loss (DrQ's actor); false: the critic-trained encoder's features, stopped")
     augment_pad: int = _f(4, "image observations: DrQ's random shift, each image padded by this many edge pixels and cropped back at a random offset in every update (0 = no augmentation)")
     pixel_range: str = _f("unit", "image observations: what the encoder scales pixels to: unit, [0, 1] (DrQ's obs / 255, SB3's; a black background reads as zero); centered, [-0.5, 0.5] (DrQ-v2's; softac's only scaling before 2026-11-29, which checkpoints from then keep)")
-    n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (TQC: pools their quantiles)")
+    n_critics: int = _f(2, "critics in the ensemble; the target takes their minimum (target_q; TQC: pools their quantiles)")
+    target_q: str = _f("min", "the next-state value the critics learn toward: min (the lowest critic's, clipped double Q, Fujimoto et al. 2018; categorical critics: the distribution with the lowest mean) or each (every critic toward its own next-state critic's value or distribution, as FastSAC)")
+    actor_q: str = _f("min", "the value the actor climbs: min (the lowest critic's Q, SAC's) or mean (the critics' mean, as FastSAC, REDQ and RLPD); TQC's quantile critics always take the mean of every quantile")
     target_critics: str = _f("auto", "Polyak-averaged target critics for the next-state value: auto (on, off with crossq), on or off; with crossq, on is CrossQ+WN's form (Palenicek et al. 2025): the targets make the joint pass in training mode with their own statistics")
     n_quantiles: int = _f(0, "TQC (Kuznetsov et al. 2020): quantiles each critic predicts (25 in the paper), trained with the quantile Huber loss on the pooled, truncated next-state atoms; 0 = one Q-value per critic (SAC)")
     top_quantiles_to_drop_per_net: int = _f(2, "with n_quantiles: the largest next-state atoms dropped, per critic (TQC's d: n_critics * d of the pool)")
@@ -89,6 +91,7 @@ class SACConfig:
     hl_gauss_sigma: float = _f(0.75, "with categorical_target hl_gauss: the Gaussian's standard deviation in atom spacings (0.75 as Farebrother et al. 2024)")
     reward_scale: str = _f("off", "the critics' rewards divided by the spread of the running discounted return G (each env's G <- gamma (1 - done) G + r, SimbaV2's normaliser), so that returns fit a fixed support: std (by sigma_G, as XQC), std_max (by max(sigma_G, G_max / v_max), as FlashSAC), or off; the statistics are saved in checkpoints; evaluation returns stay in the env's units")
     critic_layer_norm: bool = _f(False, "LayerNorm before each hidden activation of the critics (RLPD; for high gradient_steps)")
+    actor_layer_norm: bool = _f(False, "LayerNorm before each hidden activation of the actor (FastSAC; network=mlp without crossq)")
     critic_dropout: float = _f(0.0, "dropout rate on the critics' hidden units in every critic pass (DroQ, Hiraoka et al. 2022: 0.01, with critic_layer_norm, at high gradient_steps)")
     network: str = _f("mlp", "actor and critic networks: mlp; simba (Lee et al. 2024): a linear embedding, one pre-LayerNorm residual block (inner width 4x) per hidden width, a final LayerNorm, use with obs_norm; bn_mlp (XQC, Palenicek et al. 2026; needs crossq): batch normalisation of the input, then per hidden width a dense layer without bias, batch normalisation and the activation (with weight_norm every kernel's units at unit norm, the output layer's too); or flashsac (Kim et al. 2026; needs crossq): batch normalisation of the input, a linear embedding, one inverted residual block x + relu(BN(relu(BN(x W1)) W2)) (inner width 4x) per hidden width, an RMSNorm (with weight_norm kernels' units at unit norm, the normalisations' parameters at norm sqrt(width))")
     actor_hidden_sizes: list = _f([], "the actor's hidden widths when they differ from hidden_sizes (empty: hidden_sizes)")
@@ -99,11 +102,13 @@ class SACConfig:
     batch_renorm_warmup: int = _f(100_000, "with crossq: gradient steps of plain batch normalisation before batch renormalisation's corrections (Ioffe 2017)")
     weight_norm: bool = _f(False, "with crossq: each hidden unit's weights and bias kept at unit norm after every optimiser step (CrossQ+WN, Palenicek et al. 2025): batch renormalisation makes the next layer blind to their scale, whose growth would shrink the effective learning rate")
     adam_b1: float = _f(0.9, "Adam's first-moment decay, for actor, critics and alpha (CrossQ uses 0.5)")
+    adam_b2: float = _f(0.999, "Adam's second-moment decay, for actor, critics and alpha (FastTD3 and FastSAC use 0.95)")
     weight_decay: float = _f(0.0, "AdamW's decoupled weight decay for actor and critics (Loshchilov & Hutter 2019); 0 = Adam")
     weight_decay_layers: str = _f("all", "with weight_decay: all (every parameter, as SimBa) or output (the output layers only, as CrossQ+WN)")
     hidden_sizes: list = _f([256, 256], "hidden layer widths of actor and critics, e.g. 256,256")
-    activation: str = _f("relu", "hidden activation: relu, tanh, elu or gelu")
+    activation: str = _f("relu", "hidden activation: relu, tanh, elu, gelu or silu (FastSAC)")
     init: str = _f("default", "weight init: default (fan-in uniform, as PyTorch) or orthogonal")
+    zero_actor_head: bool = _f(False, "the actor's output layer starts at zero, weights and biases (FastSAC): in every state the mean action 0 and one log std (the middle of its range with log_std_mode tanh) until it learns")
     matmul_dtype: str = _f("float32", "matmul inputs: float32, bfloat16 (f32 accumulation and parameters; fast on AMX/AVX-512 BF16 CPUs and GPUs), or auto (bfloat16 where it is fast, else float32)")
     actor_lr: float = _f(3e-4, "Adam learning rate of the actor")
     critic_lr: float = _f(3e-4, "Adam learning rate of the critics")
@@ -132,8 +137,10 @@ class SACConfig:
         return {f.name: f.metadata["doc"] for f in fields(cls)}
 
     @classmethod
-    def preset(cls, name: str, env_id: str | None = None) -> "SACConfig":
-        """The named preset (an env id or `sb3`, `cleanrl`, `default`)."""
+    def preset(cls, name: str, env_id: str | None = None, overrides: dict[str, Any] | None = None) -> "SACConfig":
+        """The named preset (an env id or `sb3`, `cleanrl`, `default`), with `overrides` (parsed KEY: value) applied
+        in the same replace and checked once with it: `fastsac` (4096 envs, for device envs) on a host env with
+        `n_envs=2` is valid though the preset alone on that env is not."""
         values = load_preset(name)
         cfg = cls()
         if name == DMC_PRESET and not is_dmc_id(env_id or ""):
@@ -143,16 +150,16 @@ class SACConfig:
             values["env_id"] = env_id
         elif "env_id" not in values and name in preset_names() and name not in GENERIC_PRESETS:
             values["env_id"] = name
-        return cfg.replace(**values)
+        return cfg.replace(**{**values, **(overrides or {})})
 
     @classmethod
-    def for_env(cls, env_id: str | None) -> "SACConfig":
+    def for_env(cls, env_id: str | None, overrides: dict[str, Any] | None = None) -> "SACConfig":
         """The env's own preset when there is one (`dmc-DOMAIN-TASK` for a DeepMind Control task), else `dmc`
-        for a DeepMind Control task, else the fallback preset."""
+        for a DeepMind Control task, else the fallback preset; `overrides` as in `preset`."""
         env_id = env_id or DEFAULT_ENV
         own = task_preset_name(env_id) if is_dmc_id(env_id) else env_id
         name = own if own in preset_names() else DMC_PRESET if is_dmc_id(env_id) else FALLBACK_PRESET
-        return cls.preset(name, env_id=env_id)
+        return cls.preset(name, env_id=env_id, overrides=overrides)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SACConfig":

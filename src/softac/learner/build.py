@@ -36,6 +36,8 @@ def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random
     critic = init_critics(rng, obs_dim, act_dim, c.critic_widths, c.init, c.n_critics, norm=norm, network=c.network,
                           out_dim=c.critic_outputs)
     kind = network_kind(c.network, norm)
+    if c.zero_actor_head:  # FastSAC: zero mean and one log std in every state to start
+        kind.head(actor).update(w=np.zeros_like(kind.head(actor)["w"]), b=np.zeros_like(kind.head(actor)["b"]))
     if c.weight_norm:  # on the sphere from the start, so the running statistics see one scale throughout
         actor, critic = kind.unit_norm(actor, np), kind.unit_norm(critic, np)
     if not norm:
@@ -103,17 +105,17 @@ def optimizer(config: SACConfig, lr: float) -> optax.GradientTransformation:
     """Adam, or AdamW (Loshchilov & Hutter 2019) with weight_decay: on every parameter (SimBa) or on the
     output layers only (CrossQ+WN, whose hidden units weight_norm keeps on the unit sphere)."""
     mask = network_kind(config.network, config.crossq).output_mask if config.weight_decay_layers == "output" else None
-    return _adam(lr, config.adam_b1, config.weight_decay, mask)
+    return _adam(lr, config.adam_b1, config.adam_b2, config.weight_decay, mask)
 
 
 @lru_cache(maxsize=None)
-def _adam(lr: float, b1: float, weight_decay: float = 0.0,
+def _adam(lr: float, b1: float, b2: float = 0.999, weight_decay: float = 0.0,
           mask: Callable[[Any], Any] | None = None) -> optax.GradientTransformation:
     # one object per setting, so that two builds of one config have equal UpdateSettings and share the compiled
     # update within a process, not only through the compile cache
     if weight_decay == 0:
-        return optax.adam(lr, b1=b1)
-    return optax.adamw(lr, b1=b1, weight_decay=weight_decay, mask=mask)
+        return optax.adam(lr, b1=b1, b2=b2)
+    return optax.adamw(lr, b1=b1, b2=b2, weight_decay=weight_decay, mask=mask)
 
 
 def resolve_target_entropy(config: SACConfig, act_dim: int) -> float:
@@ -134,14 +136,14 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
     unroll = jax.default_backend() == "cpu" and c.n_critics <= 8 and norm is None
     return UpdateSettings(
         policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm, c.network,
-                      sde=c.exploration_noise == "gsde"),
+                      sde=c.exploration_noise == "gsde", layer_norm=c.actor_layer_norm),
         critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
                         drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics,
                         n_atoms=c.n_atoms, v_min=c.v_min, v_max=c.v_max, categorical_target=c.categorical_target,
-                        hl_gauss_sigma=c.hl_gauss_sigma),
+                        hl_gauss_sigma=c.hl_gauss_sigma, target_q=c.target_q, actor_q=c.actor_q),
         # the optimisers at rate 1, `scaled` applying each rate (AdamW's decay lr * weight_decay * p with the rest)
-        actor_tx=optimizer(c, 1.0), critic_tx=optimizer(c, 1.0), alpha_tx=_adam(1.0, c.adam_b1),
+        actor_tx=optimizer(c, 1.0), critic_tx=optimizer(c, 1.0), alpha_tx=_adam(1.0, c.adam_b1, c.adam_b2),
         actor_lr=c.actor_lr, critic_lr=c.critic_lr, alpha_lr=c.alpha_lr,
         target_entropy=resolve_target_entropy(c, act_dim),
         gamma=c.gamma, n_step=c.n_step, tau=c.tau, target_update_interval=c.target_update_interval,
@@ -154,11 +156,11 @@ def image_settings(config: SACConfig, state_dim: int) -> ImageSettings:
     c = config
     return ImageSettings(
         # the encoder learns at the critics' rate (DrQ's and DrQ-v2's one encoder optimiser at the critic's lr)
-        encoder_tx=_adam(1.0, c.adam_b1), augment_pad=c.augment_pad, state_dim=state_dim,
+        encoder_tx=_adam(1.0, c.adam_b1, c.adam_b2), augment_pad=c.augment_pad, state_dim=state_dim,
         pixel_offset=c.pixel_offset, target_encoder=c.target_encoder,
         # on a CPU the convolutions run faster in pieces of 8 images (encoder.chunked_encode); a GPU wants the batch
         chunk=8 if jax.default_backend() == "cpu" else 0,
-        actor_head_tx=_adam(1.0, c.adam_b1) if c.actor_encoder_head else None)
+        actor_head_tx=_adam(1.0, c.adam_b1, c.adam_b2) if c.actor_encoder_head else None)
 
 
 # ---- the compiled update: one program per shape, its numbers traced (issue 64) ------------------

@@ -55,6 +55,8 @@ class Critics:
     hl_gauss_sigma: float = 0.75  # hl_gauss: the Gaussian's standard deviation, in atom spacings
     # Polyak-averaged target critics give the next-state value (off: the online ones); None: SAC's yes, CrossQ's no
     targets: bool | None = None
+    target_q: str = "min"  # min: every critic toward the lowest next-state critic; each: each toward its own
+    actor_q: str = "min"  # min: the actor climbs the lowest critic; mean: the critics' mean
 
     @property
     def has_targets(self) -> bool:
@@ -102,9 +104,18 @@ class Critics:
 
     def for_actor(self, q: jax.Array) -> jax.Array:
         """The value the actor climbs, per row: the smallest critic's Q (clipped double Q; of categorical
-        critics, of their distributions' means, as XQC), or with TQC the mean of every critic's quantiles
-        (Kuznetsov et al. 2020, eq. 9: no truncation for the actor)."""
-        return jnp.mean(q, axis=(0, 2)) if self.n_quantiles else jnp.min(self.values(q), axis=0)
+        critics, of their distributions' means, as XQC), or with actor_q=mean the critics' mean (FastSAC, REDQ),
+        or with TQC the mean of every critic's quantiles (Kuznetsov et al. 2020, eq. 9: no truncation for the
+        actor)."""
+        if self.n_quantiles:
+            return jnp.mean(q, axis=(0, 2))
+        values = self.values(q)
+        return jnp.mean(values, axis=0) if self.actor_q == "mean" else jnp.min(values, axis=0)
+
+    def next_value(self, next_q: jax.Array) -> jax.Array:
+        """The next-state Q the critics learn toward: the lowest critic's per row [batch] (clipped double Q,
+        Fujimoto et al. 2018), or with target_q=each every critic's own [n_critics, batch] (FastSAC)."""
+        return next_q if self.target_q == "each" else jnp.min(next_q, axis=0)
 
 
 def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, jax.Array | None]:
@@ -150,7 +161,8 @@ def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batc
 def soft_bellman_error(q: jax.Array, next_q: jax.Array, next_log_prob: jax.Array, alpha: jax.Array, batch: Batch,
                        gamma: float, n_step: int) -> tuple[jax.Array, dict]:
     """0.5 * sum over critics of the mean squared error of q [n_critics, batch] to the soft target
-    r + gamma^steps (1 - terminated) (next_q - alpha log pi(a'|s')), held fixed."""
+    r + gamma^steps (1 - terminated) (next_q - alpha log pi(a'|s')), held fixed; next_q [batch] is every
+    critic's target, [n_critics, batch] one per critic."""
     next_v = next_q - alpha * next_log_prob
     target = jax.lax.stop_gradient(batch.rewards + discount(batch, gamma, n_step) * (1.0 - batch.terminated) * next_v)
     loss = 0.5 * jnp.sum(jnp.mean((q - target) ** 2, axis=1))
@@ -203,6 +215,13 @@ def lowest_mean_distribution(next_probs: jax.Array, support: jax.Array) -> jax.A
     return jnp.take_along_axis(next_probs, lowest[None, :, None], axis=0)[0]
 
 
+def target_distributions(next_probs: jax.Array, critics: Critics) -> jax.Array:
+    """The next-state distributions the targets are made from: the lowest-mean one [batch, atoms] (target_q=min),
+    or every critic's own [n_critics, batch, atoms] (target_q=each: FastSAC's critics, each toward its own
+    target critic's projection)."""
+    return next_probs if critics.target_q == "each" else lowest_mean_distribution(next_probs, critics.support)
+
+
 def project_onto_support(atoms: jax.Array, probs: jax.Array, support: jax.Array) -> jax.Array:
     """C51's projection (Bellemare et al. 2017, alg. 1): each atom's probability [batch, n] split between the two
     atoms of `support` [K] around it, in proportion to its nearness; atoms beyond the support land on its ends.
@@ -233,21 +252,26 @@ def hl_gauss(values: jax.Array, support: jax.Array, sigma: float) -> jax.Array:
 
 def categorical_target_distribution(next_probs: jax.Array, next_log_prob: jax.Array, alpha: jax.Array,
                                     batch: Batch, gamma: float, n_step: int, critics: Critics) -> jax.Array:
-    """The soft target as a distribution on the support [batch, atoms], from the lowest-mean next-state
-    distribution p: `c51` moves each atom z_j to r + gamma^steps (1 - terminated) (z_j - alpha log pi(a'|s'))
-    and projects them back with their probabilities (the entropy term shifts every atom, as XQC and FastTD3's
-    C51 critics do); `two_hot` and `hl_gauss` take the scalar soft target r + gamma^steps (1 - terminated)
-    (E_p[z] - alpha log pi) and spread it on the support."""
+    """The soft target as a distribution on the support [batch, atoms] (target_q=each: one per critic,
+    [n_critics, batch, atoms]), from the next-state distribution p (`target_distributions`): `c51` moves each
+    atom z_j to r + gamma^steps (1 - terminated) (z_j - alpha log pi(a'|s')) and projects them back with their
+    probabilities (the entropy term shifts every atom, as XQC, FastTD3 and FastSAC's C51 critics do); `two_hot`
+    and `hl_gauss` take the scalar soft target r + gamma^steps (1 - terminated) (E_p[z] - alpha log pi) and
+    spread it on the support."""
     support = critics.support
-    chosen = lowest_mean_distribution(next_probs, support)
     bootstrap = discount(batch, gamma, n_step) * (1.0 - batch.terminated)
-    if critics.categorical_target == "c51":
-        atoms = batch.rewards[:, None] + bootstrap[..., None] * (support[None, :] - alpha * next_log_prob[:, None])
-        return project_onto_support(atoms, chosen, support)
-    value = batch.rewards + bootstrap * (chosen @ support - alpha * next_log_prob)
-    if critics.categorical_target == "two_hot":
-        return two_hot(value, support)
-    return hl_gauss(value, support, critics.hl_gauss_sigma * (support[1] - support[0]))
+
+    def from_distribution(chosen: jax.Array) -> jax.Array:
+        if critics.categorical_target == "c51":
+            atoms = batch.rewards[:, None] + bootstrap[..., None] * (support[None, :] - alpha * next_log_prob[:, None])
+            return project_onto_support(atoms, chosen, support)
+        value = batch.rewards + bootstrap * (chosen @ support - alpha * next_log_prob)
+        if critics.categorical_target == "two_hot":
+            return two_hot(value, support)
+        return hl_gauss(value, support, critics.hl_gauss_sigma * (support[1] - support[0]))
+
+    chosen = target_distributions(next_probs, critics)
+    return jax.vmap(from_distribution)(chosen) if critics.target_q == "each" else from_distribution(chosen)
 
 
 def categorical_error(logits: jax.Array, next_logits: jax.Array, next_log_prob: jax.Array, alpha: jax.Array,
@@ -257,7 +281,8 @@ def categorical_error(logits: jax.Array, next_logits: jax.Array, next_log_prob: 
     summed over critics (as XQC's loss); Q-values in the metrics are the distributions' means."""
     target = jax.lax.stop_gradient(categorical_target_distribution(
         jax.nn.softmax(next_logits, axis=-1), next_log_prob, alpha, batch, gamma, n_step, critics))
-    cross_entropy = -jnp.sum(target[None] * jax.nn.log_softmax(logits, axis=-1), axis=-1)  # [n, batch]
+    per_critic = target if target.ndim == 3 else target[None]  # target_q=each: one target per critic
+    cross_entropy = -jnp.sum(per_critic * jax.nn.log_softmax(logits, axis=-1), axis=-1)  # [n, batch]
     loss = jnp.sum(jnp.mean(cross_entropy, axis=1))
     q = critics.values(logits)
     return loss, {"critic_loss": loss, "q1_mean": jnp.mean(q[0]), "q2_mean": jnp.mean(q[min(1, q.shape[0] - 1)])}
@@ -268,8 +293,9 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
                 renorm: jax.Array | bool = False, target_stats: Any = (),
                 target_batch: Batch | None = None) -> tuple[jax.Array, tuple[dict, Any]]:
     """Soft Bellman error with the minimum over the next-state critics (clipped double Q, Fujimoto et al.
-    2018), with TQC quantile critics the quantile Huber loss to the truncated atoms, with categorical critics the
-    cross-entropy to the lowest-mean next distribution's soft target; returns the loss and
+    2018; target_q=each: each critic's own), with TQC quantile critics the quantile Huber loss to the truncated
+    atoms, with categorical critics the cross-entropy to the lowest-mean (or each critic's own) next
+    distribution's soft target; returns the loss and
     (metrics, the critics' new running statistics).
 
     Only `terminated` stops the bootstrap; a time-limit truncation still bootstraps. With n-step returns
@@ -287,7 +313,7 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     elif critics.categorical:
         loss, metrics = categorical_error(q, next_q, next_log_prob, alpha, batch, gamma, n_step, critics)
     else:
-        loss, metrics = soft_bellman_error(q, jnp.min(next_q, axis=0), next_log_prob, alpha, batch, gamma, n_step)
+        loss, metrics = soft_bellman_error(q, critics.next_value(next_q), next_log_prob, alpha, batch, gamma, n_step)
     return loss, (metrics, critic_stats)
 
 

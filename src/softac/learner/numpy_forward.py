@@ -42,7 +42,9 @@ policy.npz holds
     mean_clip                     float32, only for gSDE policies: the mean is clipped to [-mean_clip, mean_clip]
                                   before tanh
     action_low, action_high       float32: the env's action bounds
-    activation                    the hidden activation's name: relu, tanh, elu or gelu
+    activation                    the hidden activation's name: relu, tanh, elu, gelu or silu
+    hidden_ln_eps                 float32, only for an MLP actor with LayerNorm (actor_layer_norm): the epsilon
+                                  of the LayerNorm (no scale or bias) before each hidden activation
     obs_keys, obs_key_sizes       only for envs that observe a dict (goal envs): its keys in the order the
                                   flat observation concatenates them, and each one's size (beside an image:
                                   the state keys, after the encoder's features)
@@ -71,7 +73,13 @@ def elu(x: np.ndarray) -> np.ndarray:
     return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
 
 
-ACTIVATIONS = {"relu": lambda x: np.maximum(x, 0), "tanh": np.tanh, "elu": elu, "gelu": gelu}
+def silu(x: np.ndarray) -> np.ndarray:
+    """x * sigmoid(x), as jax.nn.silu, the sigmoid from exp(-|x|) so that no exp overflows."""
+    e = np.exp(-np.abs(x))
+    return x * np.where(x >= 0, np.float32(1.0), e) / (np.float32(1.0) + e)
+
+
+ACTIVATIONS = {"relu": lambda x: np.maximum(x, 0), "tanh": np.tanh, "elu": elu, "gelu": gelu, "silu": silu}
 
 
 def layer_count(params: dict) -> int:
@@ -174,6 +182,8 @@ def mlp_forward(params: dict, x: np.ndarray) -> np.ndarray:
         x = dense(x, params[f"w{i}"], params[f"b{i}"], bf16[i])
         if f"p{i}_mean" in params:
             x = (x - params[f"p{i}_mean"]) * params[f"p{i}_inv_std"] * params[f"p{i}_scale"] + params[f"p{i}_bias"]
+        if i < len(bf16) - 1 and "hidden_ln_eps" in params:
+            x = layer_norm(x, np.float32(1.0), np.float32(0.0), params["hidden_ln_eps"])
         if i < len(bf16) - 1:
             x = activation(x)
     return x

@@ -85,6 +85,7 @@ class Policy:
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
     network: str = "mlp"  # a config's network (mlp, simba); with batch_renorm an MLP is a batch_renorm_mlp
     sde: bool = False  # gSDE: the actor outputs the mean; its head holds the exploration matrix's log std
+    layer_norm: bool = False  # LayerNorm before each hidden activation (MLP actors; FastSAC)
 
     @property
     def kind(self) -> Network:
@@ -94,7 +95,7 @@ class Policy:
     def _features(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,
                   renorm: jax.Array | bool = False) -> tuple[jax.Array, Any]:
         """The input of the actor's output layer, and the running statistics (new ones in training mode)."""
-        return self.kind.features(actor, stats, obs, self.activation, self.matmul_dtype, False, None,
+        return self.kind.features(actor, stats, obs, self.activation, self.matmul_dtype, self.layer_norm, None,
                                   self.batch_renorm, train, renorm)
 
     def _outputs(self, actor: Any, stats: Any, obs: jax.Array, train: bool = False,

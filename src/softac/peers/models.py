@@ -113,8 +113,10 @@ def sweep_config(env_id: str, preset: str | None, overrides: list[str] | None) -
     settings are "sweep" runs at."""
     from softac.config.sac_config import SACConfig
 
-    config = SACConfig.preset(preset, env_id=env_id) if preset else SACConfig.for_env(env_id)
-    return config.with_overrides(list(overrides or []))
+    from softac.config.sac_config import parse_overrides
+
+    changes = parse_overrides(list(overrides or []))
+    return SACConfig.preset(preset, env_id=env_id, overrides=changes) if preset else SACConfig.for_env(env_id, changes)
 
 
 def peer_settings(framework: str, config: SACConfig | None, act_dim: int, env_id: str = "") -> dict[str, Any]:

@@ -27,7 +27,9 @@ def _common(c: SACConfig) -> dict[str, bool]:
             "exploration_noise": c.exploration_noise != "gaussian",
             "lr_schedule": c.lr_schedule != "constant",
             "n_atoms (SBX has no categorical critic)": c.n_atoms > 0, "reward_scale": c.reward_scale != "off",
-            "target_entropy_std": c.target_entropy_std > 0}  # action_repeat: the peer's env (peers.py)
+            "target_entropy_std": c.target_entropy_std > 0, "target_q": c.target_q != "min",
+            "actor_q": c.actor_q != "min", "actor_layer_norm": c.actor_layer_norm,
+            "zero_actor_head": c.zero_actor_head}  # action_repeat: the peer's env (peers.py)
 
 
 def crossq_settings(c: SACConfig) -> dict[str, Any]:
@@ -45,7 +47,7 @@ def crossq_settings(c: SACConfig) -> dict[str, Any]:
             "policy_delay": c.policy_delay,
             "policy_kwargs": {"net_arch": {"pi": list(c.hidden_sizes), "qf": list(c.hidden_sizes)},
                               "n_critics": c.n_critics, "batch_norm_momentum": c.batch_norm_momentum,
-                              "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1}}}
+                              "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1, "b2": c.adam_b2}}}
 
 
 def tqc_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
@@ -68,9 +70,10 @@ def _sac_family(c: SACConfig, act_dim: int) -> dict[str, Any]:
     """The keywords SBX's SAC and TQC share: rates, buffer, batch, UTD, delay, tau, gamma, entropy, optimiser."""
     import optax
 
-    optimizer: dict[str, Any] = {"optimizer_kwargs": {"b1": c.adam_b1}}
+    optimizer: dict[str, Any] = {"optimizer_kwargs": {"b1": c.adam_b1, "b2": c.adam_b2}}
     if c.weight_decay > 0:
-        optimizer = {"optimizer_class": optax.adamw, "optimizer_kwargs": {"b1": c.adam_b1, "weight_decay": c.weight_decay}}
+        optimizer = {"optimizer_class": optax.adamw,
+                     "optimizer_kwargs": {"b1": c.adam_b1, "b2": c.adam_b2, "weight_decay": c.weight_decay}}
     target_entropy = (-c.target_entropy_scale * act_dim if c.target_entropy == "auto" else float(c.target_entropy))
     return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
             "learning_starts": c.learning_starts, "batch_size": c.batch_size, "tau": c.tau, "gamma": c.gamma,

@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from softac.config.sac_config import ConfigError, SACConfig, override_key
+from softac.config.sac_config import ConfigError, SACConfig, override_key, parse_overrides
 from softac.errors import SoftacError
 from softac.peers import PEERS
 
@@ -82,8 +82,10 @@ class SweepSpec:
 
     def preset_config(self) -> SACConfig:
         """The preset (or the env's own) with the overrides, before the sweep's step budget."""
-        config = SACConfig.preset(self.preset, env_id=self.env_id) if self.preset else SACConfig.for_env(self.env_id)
-        return config.with_overrides(self.overrides)
+        overrides = parse_overrides(self.overrides)  # checked with the preset at once (SACConfig.preset)
+        if self.preset:
+            return SACConfig.preset(self.preset, env_id=self.env_id, overrides=overrides)
+        return SACConfig.for_env(self.env_id, overrides=overrides)
 
     def base_config(self) -> SACConfig:
         return self.preset_config().replace(total_steps=self.steps)

@@ -20,6 +20,7 @@ ACTIVATIONS: dict[str, Callable[[jax.Array], jax.Array]] = {
     "tanh": jnp.tanh,
     "elu": jax.nn.elu,
     "gelu": jax.nn.gelu,
+    "silu": jax.nn.silu,
 }
 
 
@@ -146,7 +147,10 @@ def matmul(x: jax.Array, w: jax.Array, matmul_dtype: str) -> jax.Array:
     return bf16_matmul(x, w) if multiplies_in_bf16(w.shape, matmul_dtype) else x @ w
 
 
-def layer_norm(x: jax.Array, eps: float = 1e-5) -> jax.Array:
+LAYER_NORM_EPS = 1e-5  # torch.nn.LayerNorm's
+
+
+def layer_norm(x: jax.Array, eps: float = LAYER_NORM_EPS) -> jax.Array:
     mean = jnp.mean(x, axis=-1, keepdims=True)
     var = jnp.mean(jnp.square(x - mean), axis=-1, keepdims=True)
     return (x - mean) * jax.lax.rsqrt(var + eps)

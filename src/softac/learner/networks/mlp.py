@@ -125,6 +125,8 @@ def onnx_actor(g: onnx_layers.Graph, arrays: dict[str, np.ndarray], x: str) -> s
                      g.const(f"p{i}_inv_std", arrays[f"p{i}_inv_std"]))
             x = g.op("Add", g.op("Mul", x, g.const(f"p{i}_scale", arrays[f"p{i}_scale"])),
                      g.const(f"p{i}_bias", arrays[f"p{i}_bias"]))
+        if i < len(bf16) - 1 and "hidden_ln_eps" in arrays:
+            x = onnx_layers.layer_norm(g, arrays, x, f"ln{i}", float(arrays["hidden_ln_eps"]))
         if i < len(bf16) - 1:
             x = onnx_layers.activation(g, str(arrays["activation"]), x)
     return x

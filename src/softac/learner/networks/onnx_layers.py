@@ -44,14 +44,19 @@ def activation(g: Graph, name: str, x: str) -> str:
         tanh = g.op("Tanh", g.op("Mul", g.const("sqrt_2_over_pi", np.sqrt(2.0 / np.pi)), inner))
         cdf = g.op("Mul", g.const("half", 0.5), g.op("Add", g.const("one", 1.0), tanh))
         return g.op("Mul", x, cdf)
+    if name == "silu":
+        return g.op("Mul", x, g.op("Sigmoid", x))
     raise SoftacError(f"cannot export activation '{name}'")
 
 
 def layer_norm(g: Graph, arrays: dict[str, np.ndarray], x: str, name: str, eps: float) -> str:
-    """LayerNorm over the last axis as networks.layer_norm computes it, then the arrays NAME_scale, NAME_bias."""
+    """LayerNorm over the last axis as networks.layer_norm computes it, then the arrays NAME_scale, NAME_bias
+    where `arrays` has them (none: no affine, as an MLP's hidden LayerNorm)."""
     centred = g.op("Sub", x, g.op("ReduceMean", x, axes=[-1], keepdims=1))
     variance = g.op("ReduceMean", g.op("Mul", centred, centred), axes=[-1], keepdims=1)
     inv_std = g.op("Reciprocal", g.op("Sqrt", g.op("Add", variance, g.const(f"{name}_eps", eps))))
+    if f"{name}_scale" not in arrays:
+        return g.op("Mul", centred, inv_std)
     return g.op("Add", g.op("Mul", g.op("Mul", centred, inv_std), g.const(f"{name}_scale", arrays[f"{name}_scale"])),
                 g.const(f"{name}_bias", arrays[f"{name}_bias"]))
 
