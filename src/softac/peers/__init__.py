@@ -7,8 +7,9 @@ this module's entry point:
 
 which prints one JSON line (`python -m softac.peers.bench ...`, the older form, still works). PEER is one of
 `PEERS`: Stable-Baselines3's SAC and SBX's SAC at their defaults, SBX's CrossQ at its defaults, SBX's
-CrossQ at the settings of softac's `crossq` preset (like for like with the suite's presets), and for goal envs
-SB3's and SBX's SAC with SB3's HerReplayBuffer. Needs the `[bench]` extra."""
+CrossQ at the settings of softac's `crossq` preset (like for like with the suite's presets), for goal envs
+SB3's and SBX's SAC with SB3's HerReplayBuffer (these need the `[bench]` extra), and Brax's own SAC trainer on
+MuJoCo Playground's envs (`brax-sac`, brax_sac.py; the `[playground]` extra)."""
 
 
 from __future__ import annotations

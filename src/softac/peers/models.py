@@ -24,6 +24,7 @@ class Peer:
     label: str  # the configuration's name in tables and legends
     her: bool = False  # with SB3's HerReplayBuffer: for goal envs only
     policy: str = "MlpPolicy"  # the policy class's name in the library (MultiInputPolicy for dict observations)
+    extra: str = "bench"  # softac's extra that installs it
 
 
 PEERS = {
@@ -54,6 +55,11 @@ PEERS = {
     "sb3-her": Peer("stable_baselines3", "stable-baselines3", "SAC", "defaults",
                     "Stable-Baselines3's SAC at its defaults with its HerReplayBuffer (future, 4 goals) and "
                     "learning_starts 1000, for goal envs", "SB3 SAC + HER, its defaults", her=True),
+    "brax-sac": Peer("brax", "brax", "SAC", "sweep",
+                     "Brax's SAC trainer (brax.training.agents.sac) at the sweep's own settings (its --preset and "
+                     "--set, e.g. --preset brax-sac) on a MuJoCo Playground env, its whole loop on the device; what "
+                     "Brax cannot take is refused (softac.peers.brax_sac)", "Brax SAC, same settings",
+                     extra="playground"),
     "sbx-her": Peer("sbx", "sbx-rl", "SAC", "defaults",
                     "SBX's SAC at its defaults with SB3's HerReplayBuffer (future, 4 goals) and learning_starts "
                     "1000, for goal envs", "SBX SAC + HER, its defaults", her=True),

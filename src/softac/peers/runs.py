@@ -76,10 +76,20 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
     action, as softac's do; steps count the agent's actions, as softac's. With `target_return` the run stops
     after the first evaluation whose mean reaches it (softac train's --target-return); with `target_success`,
     a goal env's, after the first whose success rate reaches it (--target-success)."""
-    from softac.errors import TrainingInterrupted
+    from softac.errors import SoftacError, TrainingInterrupted
     from softac.run.run_dir import run_lock
 
     sweep = {"preset": preset, "overrides": list(overrides or [])}
+    if PEERS[framework].package == "brax":  # Brax's trainer runs its own loop (softac.peers.brax_sac)
+        from softac.peers.brax_sac import BraxSACRun
+
+        config = sweep_config(env_id, **sweep)
+        if action_repeat not in (1, config.action_repeat):
+            raise SoftacError(f"--action-repeat {action_repeat} and the setting action_repeat="
+                              f"{config.action_repeat} differ: give one")
+        with run_lock(out):
+            return BraxSACRun(env_id, seed, steps, out, eval_interval, eval_episodes, log_interval, config, sweep,
+                              target_return).run()
     with run_lock(out):
         try:
             return PeerRun(framework, env_id, seed, steps, out, eval_interval, eval_episodes, log_interval,

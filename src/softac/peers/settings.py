@@ -11,14 +11,16 @@ from typing import Any
 from softac.config.sac_config import SACConfig
 
 
-def _refuse(algorithm: str, untranslatable: dict[str, bool]) -> None:
+def refuse_settings(peer: str, untranslatable: dict[str, bool]) -> None:
+    """ValueError naming each setting `peer` cannot take (those whose test is true)."""
     bad = [name for name, differs in untranslatable.items() if differs]
     if bad:
-        raise ValueError(f"settings SBX's {algorithm} cannot take: {', '.join(bad)}")
+        raise ValueError(f"settings {peer} cannot take: {', '.join(bad)}")
 
 
-def _common(c: SACConfig) -> dict[str, bool]:
-    """What none of SBX's SAC family takes: SBX's own is on the right of each test."""
+def untranslatable_common(c: SACConfig) -> dict[str, bool]:
+    """What none of SBX's SAC family takes (nor Brax's SAC, but for those brax_sac_settings lifts): SBX's own is on
+    the right of each test."""
     return {"actor_lr != alpha_lr": c.actor_lr != c.alpha_lr, "obs_norm": c.obs_norm, "n_step": c.n_step != 1,
             "policy_frequency": c.policy_frequency != 1, "reset_interval": c.reset_interval > 0,
             "activation": c.activation != "relu", "fixed alpha": not c.autotune_alpha, "n_envs": c.n_envs != 1,
@@ -35,7 +37,8 @@ def _common(c: SACConfig) -> dict[str, bool]:
 def crossq_settings(c: SACConfig) -> dict[str, Any]:
     """SBX's CrossQ keywords (ReLU, autotuned alpha from 1.0, target entropy -act_dim, one update per env step,
     one env are SBX's own)."""
-    _refuse("CrossQ", {**_common(c), "critic_layer_norm": c.critic_layer_norm, "not crossq": not c.crossq,
+    refuse_settings("SBX's CrossQ", {**untranslatable_common(c), "critic_layer_norm": c.critic_layer_norm,
+                                     "not crossq": not c.crossq,
                        "gradient_steps": c.gradient_steps != 1, "target_entropy": c.target_entropy != "auto"
                        or c.target_entropy_scale != 1.0, "initial alpha": c.alpha != 1.0,
                        "target_critics": c.target_critics == "on", "weight_norm": c.weight_norm,
@@ -54,7 +57,7 @@ def tqc_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
     """SBX's TQC keywords: two critics (SBX's TQC has two), their quantiles and the atoms dropped, the widths,
     rates, batch, UTD, policy delay, tau, gamma, the entropy target and initial alpha, Adam's b1 and AdamW's
     decay on every parameter (optax.adamw; SBX cannot mask it to the output layers)."""
-    _refuse("TQC", {**_common(c), "n_quantiles 0 (not TQC)": c.n_quantiles == 0,
+    refuse_settings("SBX's TQC", {**untranslatable_common(c), "n_quantiles 0 (not TQC)": c.n_quantiles == 0,
                     "n_critics != 2": c.n_critics != 2, "crossq": c.crossq,
                     "target_critics off": c.target_critics == "off",
                     "target_update_interval": c.target_update_interval != 1,
@@ -86,8 +89,8 @@ def simba_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
     """SBX's SAC with its SimbaPolicy (residual blocks, one per width; LayerNorms): the SAC family's keywords and
     the number of critics. Observation normalisation goes to SB3's VecNormalize around the peer's env (the same
     running mean and variance, epsilon 1e-8 and clip as softac's obs_norm; softac.peers.peer_model)."""
-    common = {k: v for k, v in _common(c).items() if k not in ("obs_norm", "network")}
-    _refuse("SAC with SimbaPolicy", {**common, "network != simba": c.network != "simba", "crossq": c.crossq,
+    common = {k: v for k, v in untranslatable_common(c).items() if k not in ("obs_norm", "network")}
+    refuse_settings("SBX's SAC with SimbaPolicy", {**common, "network != simba": c.network != "simba", "crossq": c.crossq,
                                      "n_quantiles": c.n_quantiles > 0, "target_critics off": c.target_critics == "off",
                                      "target_update_interval": c.target_update_interval != 1,
                                      "critic_dropout": c.critic_dropout > 0,
@@ -99,7 +102,37 @@ def simba_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
 
 
 # the peers that run at a sweep's own settings, and how their keywords are made
-SWEEP_TRANSLATORS = {"sbx-tqc-softac": tqc_settings, "sbx-simba-softac": simba_settings}
+BRAX_ALPHA_LR = 3e-4  # brax/training/agents/sac/train.py: optax.adam(learning_rate=3e-4) for alpha, fixed
+
+
+def brax_sac_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
+    """`brax.training.agents.sac.train`'s keywords for config `c` (ValueError naming what Brax cannot take): the
+    env's own keywords (episode length, its action repeat, the env) and the run's (steps, evaluations, seed,
+    progress) are the runner's. Brax's SAC has one learning rate for actor and critics, alpha's fixed at 3e-4
+    from alpha 1, two critics, the target entropy -|A|/2, one MLP width list for both networks, and a
+    running observation normaliser without a clip."""
+    common = {k: v for k, v in untranslatable_common(c).items()
+              if k not in ("obs_norm", "n_envs", "actor_lr != alpha_lr", "activation")}
+    refuse_settings("Brax's SAC", {
+        **common, "actor_lr != critic_lr (Brax has one rate)": c.actor_lr != c.critic_lr,
+        f"alpha_lr != {BRAX_ALPHA_LR:g} (Brax's)": c.alpha_lr != BRAX_ALPHA_LR,
+        "initial alpha != 1 (Brax's)": c.alpha != 1.0,
+        "target entropy other than -|A|/2 (Brax's)": c.target_entropy != "auto" or c.target_entropy_scale != 0.5,
+        "n_critics != 2": c.n_critics != 2, "crossq": c.crossq, "n_quantiles": c.n_quantiles > 0,
+        "target_critics off": c.target_critics == "off", "target_update_interval": c.target_update_interval != 1,
+        "policy_delay": c.policy_delay != 1, "critic_dropout": c.critic_dropout > 0, "weight_decay": c.weight_decay > 0,
+        "Adam's b1/b2": (c.adam_b1, c.adam_b2) != (0.9, 0.999), "policy_average_tau": c.policy_average_tau > 0,
+        "actor and critic widths differ (Brax has one list)": c.actor_widths != c.critic_widths,
+        "zero_actor_head": c.zero_actor_head})
+    return {"num_envs": c.n_envs, "learning_rate": c.critic_lr, "discounting": c.gamma, "batch_size": c.batch_size,
+            "normalize_observations": c.obs_norm, "tau": c.tau, "min_replay_size": c.learning_starts,
+            "max_replay_size": c.buffer_size, "grad_updates_per_step": c.gradient_steps, "deterministic_eval": True,
+            "network": {"hidden_layer_sizes": list(c.critic_widths), "activation": c.activation,
+                        "q_network_layer_norm": c.critic_layer_norm, "policy_network_layer_norm": c.actor_layer_norm}}
+
+
+SWEEP_TRANSLATORS = {"sbx-tqc-softac": tqc_settings, "sbx-simba-softac": simba_settings,
+                     "brax-sac": brax_sac_settings}
 
 
 # ---- RL Zoo's tuned SAC settings (the classic set of issue 43) ------------------------------------------

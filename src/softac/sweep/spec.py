@@ -12,6 +12,7 @@ from typing import Any
 import yaml
 
 from softac.config.sac_config import ConfigError, SACConfig, override_key, parse_overrides
+from softac.config.names import is_playground_id
 from softac.errors import SoftacError
 from softac.peers import PEERS
 
@@ -265,6 +266,9 @@ def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
     from softac.peers import check_her_env, missing_peers, peer_settings
 
     peer = PEERS[spec.framework]
+    if peer.package == "brax" and not is_playground_id(spec.env_id):
+        raise SoftacError(f"--framework {spec.framework} trains MuJoCo Playground's envs (--env playground:NAME), "
+                          f"not {spec.env_id}")
     if peer.settings == "sweep":
         if spec.grid or spec.search:
             raise SoftacError(f"--framework {spec.framework} runs at one config (--preset and --set): --grid and "
@@ -292,6 +296,9 @@ def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
         finally:
             env.close()
     if missing_peers([spec.framework]):
+        if peer.extra != "bench":
+            raise SoftacError(f"--framework {spec.framework} needs the [{peer.extra}] extra: "
+                              f"pip install -e '.[{peer.extra}]'")
         raise SoftacError(f"--framework {spec.framework} needs the [bench] extra: `make bench` "
                           "(or: pip install torch==2.13.0 && pip install -e '.[bench]')")
 
