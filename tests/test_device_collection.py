@@ -82,6 +82,31 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     assert a == b and a["episodes"] == 3 and a["lengths"] == [100] * 3 and len(set(a["returns"])) == 3
 
 
+@pytest.mark.exact
+def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
+    """buffer_obs_once on the device: 240 + 160 env steps against 400, the 200-row replay past full (its oldest
+    rows invalid, the episodes' final observations in the side ring), the learner, the replay's arrays and the
+    envs alike; the checkpoint keeps one observation array."""
+    from softac import SAC
+
+    cfg = device_config(buffer_obs_once=True, buffer_size=200, learning_starts=120)
+    straight = SAC(cfg)
+    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(160, run_dir=tmp_path / "split", progress=False)
+    assert_same_learner(straight, resumed)
+    assert_same_run_state(straight, resumed)
+    (_, arrays_a), (_, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
+    assert arrays_a.keys() == arrays_b.keys() and "buffer/next_obs" not in arrays_a
+    for name in arrays_a:
+        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    # the 400th env step ends every env's 100-step episode: their final observations are the ring's 4, and no
+    # successor was written over the oldest rows, so all 200 rows can be drawn
+    assert len(arrays_a["buffer/valid"]) == 200 and arrays_a["buffer/valid"].all()
+    assert sorted(arrays_a["buffer/final_owner"][arrays_a["buffer/final_owner"] >= 0]) == [196, 197, 198, 199]
+
+
 def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_path):
     run = tmp_path / "run"
     # device_config()'s settings (and so its compiled chunk, from the compile cache where the test above ran first)

@@ -133,3 +133,49 @@ def test_collection_into_the_replay_runs_in_one_jitted_scan():
     np.testing.assert_array_equal(np.asarray(replay.obs[:, 1]).reshape(20, 4)[6], 0.0)  # a fresh episode's first
     assert not np.asarray(replay.terminated).any()
 
+
+
+def _steps_with_episode_ends(rng, n_steps, n, obs_dim, act_dim):
+    """Vector steps whose envs end episodes at random (a quarter of them ended somewhere), with the true final
+    observations where they did: what DeviceEnvs gives the replay."""
+    obs = rng.normal(size=(n, obs_dim)).astype(np.float32)
+    for _ in range(n_steps):
+        done = rng.random(n) < 0.25
+        next_obs = rng.normal(size=(n, obs_dim)).astype(np.float32)
+        yield (obs, rng.uniform(-1, 1, (n, act_dim)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+               next_obs, (done & (rng.random(n) < 0.5)).astype(np.float32), done)
+        obs = np.where(done[:, None], rng.normal(size=(n, obs_dim)).astype(np.float32), next_obs)  # resets
+
+
+def test_the_obs_once_device_replay_holds_what_the_hosts_obs_once_buffer_holds():
+    """buffer_obs_once on the device: after the same steps (round the ring twice, the side ring lapped), the same
+    observations, final-observation slots and valid rows as the host's ObsOnceReplayBuffer, and every valid row's
+    rebuilt next observation is the plain layout's."""
+    from softac.replay.buffer import ObsOnceReplayBuffer
+
+    n, obs_dim, act_dim, capacity = 4, 3, 2, 48
+    once = device_buffer.empty(capacity, obs_dim, act_dim, once=True, n_envs=n)
+    plain = device_buffer.empty(capacity, obs_dim, act_dim)
+    host = ObsOnceReplayBuffer(capacity, obs_dim, act_dim, n)
+    assert device_buffer.obs_once(once) and not device_buffer.obs_once(plain) and once.next_obs.shape == (0, obs_dim)
+    assert once.final_obs.shape[0] == host.final_capacity == 16
+    insert = jax.jit(device_buffer.insert)
+    for step in _steps_with_episode_ends(np.random.default_rng(0), 30, n, obs_dim, act_dim):
+        once = insert(once, *(jnp.asarray(a) for a in step))
+        plain = insert(plain, *(jnp.asarray(a) for a in step[:5]))
+        host.add(*step)
+    np.testing.assert_array_equal(np.asarray(once.valid), host.valid)
+    np.testing.assert_array_equal(np.asarray(once.final_slot), host.final_slot)
+    np.testing.assert_array_equal(np.asarray(once.obs), host.obs)
+    np.testing.assert_array_equal(np.asarray(once.final_obs), host.final_obs)
+    assert (int(once.position), int(once.size), int(once.final_pos)) == (host.pos, host.size, host.final_pos)
+    valid = np.flatnonzero(host.valid)
+    assert 0 < len(valid) < capacity  # some rows invalid: the oldest N of the full buffer, and ring losses
+    np.testing.assert_array_equal(host.next_obs_of(valid), np.asarray(plain.next_obs)[valid])
+
+    drawn = jax.jit(device_buffer.sample, static_argnums=(2, 3, 4))(once, jax.random.PRNGKey(3), 5, 64, n)
+    pairs = {(tuple(o), tuple(x)) for o, x in zip(np.asarray(drawn.obs).reshape(-1, obs_dim),
+                                                  np.asarray(drawn.next_obs).reshape(-1, obs_dim))}
+    held = {(tuple(o), tuple(x)) for o, x in zip(np.asarray(plain.obs)[valid], np.asarray(plain.next_obs)[valid])}
+    assert pairs <= held and len(pairs) > 40  # only valid rows' transitions, as the plain layout holds them
+    assert device_buffer.bytes_per_row(obs_dim, act_dim, True, capacity, n) < device_buffer.bytes_per_row(obs_dim, act_dim)

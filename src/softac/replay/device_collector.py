@@ -55,14 +55,21 @@ class DeviceCollector:
 
     @property
     def bytes_per_transition(self) -> float:
-        return float(device_buffer.bytes_per_row(self.spaces.obs_dim, self.spaces.act_dim))
+        return float(device_buffer.bytes_per_row(self.spaces.obs_dim, self.spaces.act_dim, self.config.buffer_obs_once,
+                                                 self.capacity, self.config.n_envs))
+
+    def empty_replay(self) -> DeviceReplay:
+        return device_buffer.empty(self.capacity, self.spaces.obs_dim, self.spaces.act_dim,
+                                   self.config.buffer_obs_once, self.config.n_envs)
 
     def check_memory(self, fraction: float = 0.8) -> None:
         need, have = self.capacity * self.bytes_per_transition, device_memory_bytes()
         if need > fraction * have:
             raise BufferMemoryError(f"replay buffer of {self.capacity:,} transitions needs {human_bytes(need)} on the "
                                     f"device but only {human_bytes(have)} is available; lower buffer_size "
-                                    "(--set buffer_size=N)")
+                                    "(--set buffer_size=N)" + ("" if self.config.buffer_obs_once else
+                                                               ", or store each observation once "
+                                                               "(--set buffer_obs_once=true)"))
 
     def make_env(self, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
         """A host copy of the training env (evaluation and videos run on it)."""
@@ -73,7 +80,7 @@ class DeviceCollector:
         import jax
 
         if self.replay is None:
-            self.replay = device_buffer.empty(self.capacity, self.spaces.obs_dim, self.spaces.act_dim)
+            self.replay = self.empty_replay()
         if not self.started:
             key = jax.random.PRNGKey(self.config.seed)
             env_key, self.key = jax.random.split(jax.random.fold_in(key, num_steps))
@@ -98,10 +105,7 @@ class DeviceCollector:
                                 "has_envs": bool(include_buffer and self.started)}
         arrays: dict[str, np.ndarray] = {}
         if meta["has_buffer"]:
-            size = int(self.replay.size)
-            arrays.update({BUFFER_PREFIX + name: np.asarray(getattr(self.replay, name))[:size]
-                           for name in device_buffer.ROWS})
-            arrays[BUFFER_PREFIX + "position"] = np.asarray(self.replay.position)
+            arrays.update({BUFFER_PREFIX + name: value for name, value in self.replay_rows().items()})
         if meta["has_envs"]:
             import jax
 
@@ -110,20 +114,45 @@ class DeviceCollector:
             arrays.update({f"{ENVS_PREFIX}{i}": np.asarray(leaf) for i, leaf in enumerate(leaves)})
         return meta, arrays
 
+    def replay_rows(self) -> dict[str, np.ndarray]:
+        """The replay's rows held and its positions, as the checkpoint keeps them (obs once: the observations written
+        ahead of `size` too, the side ring whole; the host's ObsOnceReplayBuffer.state_dict's form)."""
+        replay, size = self.replay, int(self.replay.size)
+        rows = {"position": np.asarray(replay.position)}
+        if not device_buffer.obs_once(replay):
+            return {**rows, **{name: np.asarray(getattr(replay, name))[:size] for name in device_buffer.ROWS}}
+        written = min(size + self.config.n_envs, self.capacity)
+        rows.update({name: np.asarray(getattr(replay, name))[:size] for name in device_buffer.OBS_ONCE_ROWS})
+        rows.update({name: np.asarray(getattr(replay, name)) for name in device_buffer.OBS_ONCE_RING})
+        return {**rows, "obs": np.asarray(replay.obs)[:written], "final_pos": np.asarray(replay.final_pos)}
+
+    def replay_from_rows(self, rows: dict[str, np.ndarray]) -> DeviceReplay:
+        import jax.numpy as jnp
+
+        replay = self.empty_replay()
+        once = device_buffer.obs_once(replay)
+        if once != ("final_slot" in rows):
+            raise CheckpointError("its replay buffer was written with buffer_obs_once="
+                                  f"{str(not once).lower()}; resume with the same setting")
+        size = len(rows["rewards"])
+        if size > self.capacity or (once and len(rows["final_obs"]) != replay.final_obs.shape[0]):
+            raise CheckpointError(f"its replay buffer holds {size:,} transitions, more than buffer_size allows "
+                                  f"({self.capacity:,}), or another n_envs' layout")
+        per_row = device_buffer.OBS_ONCE_ROWS + ("obs",) if once else device_buffer.ROWS
+        filled = {name: getattr(replay, name).at[:len(rows[name])].set(jnp.asarray(rows[name])) for name in per_row}
+        if once:
+            filled.update({name: jnp.asarray(rows[name]) for name in device_buffer.OBS_ONCE_RING},
+                          final_pos=jnp.asarray(rows["final_pos"], jnp.int32))
+        return replay._replace(**filled, size=jnp.asarray(size, jnp.int32),
+                               position=jnp.asarray(rows["position"], jnp.int32))
+
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], num_steps: int) -> None:
         import jax
         import jax.numpy as jnp
 
         if meta.get("has_buffer"):
-            replay = device_buffer.empty(self.capacity, self.spaces.obs_dim, self.spaces.act_dim)
-            rows = {name: arrays[BUFFER_PREFIX + name] for name in device_buffer.ROWS}
-            size = len(rows["rewards"])
-            if size > self.capacity:
-                raise CheckpointError(f"its replay buffer holds {size:,} transitions, more than buffer_size allows "
-                                      f"({self.capacity:,})")
-            filled = {name: getattr(replay, name).at[:size].set(jnp.asarray(value)) for name, value in rows.items()}
-            self.replay = replay._replace(**filled, size=jnp.asarray(size, jnp.int32),
-                                          position=jnp.asarray(arrays[BUFFER_PREFIX + "position"], jnp.int32))
+            self.replay = self.replay_from_rows({name[len(BUFFER_PREFIX):]: value for name, value in arrays.items()
+                                                 if name.startswith(BUFFER_PREFIX)})
         if meta.get("has_envs"):
             envs = meta.get("envs", {})
             if envs.get("kind") != "device" or envs.get("n_envs") != self.config.n_envs:

@@ -212,11 +212,12 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
                                lambda: jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0),
                                policy_actions)
         batch, s = envs.step(batch, actions)
-        replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated)
+        replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
+                                      s.terminated | s.truncated)
         after = before + n
 
         def learn(state, totals):
-            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size)
+            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size, n)
             # raw observations in the buffer, normalised when drawn with the statistics of that moment (as the host's)
             batches = Batch(normalized(stats, drawn.obs, spec.obs_clip), drawn.actions, drawn.rewards,
                             normalized(stats, drawn.next_obs, spec.obs_clip), drawn.terminated,
