@@ -18,10 +18,10 @@ ENV = "playground:CartpoleSwingup"
 
 
 def device_config(**extra) -> SACConfig:
-    # action repeat 10: 100-step episodes, so that some end inside a short test
-    # and obs_norm, whose running statistics the chunks carry
+    # action repeat 10: 100-step episodes, so that some end inside a short test; obs_norm and reward_scale, whose
+    # running statistics the chunks carry
     return tiny_config(ENV, **{**dict(n_envs=4, action_repeat=10, learning_starts=200, buffer_size=2000,
-                                      obs_norm=True), **extra})
+                                      obs_norm=True, reward_scale="std"), **extra})
 
 
 def test_the_device_choice_and_what_it_refuses():
@@ -33,7 +33,7 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("reward_scale", "std"), ("exploration_noise", "pink"),
+    for key, value in (("exploration_noise", "pink"),
                        ("n_step", 3), ("random_action_prob", 0.1)):
         with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
             device_config(**{key: value})
@@ -74,6 +74,20 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     assert straight.learner.obs_norm.count == 600  # every observation acted on, the warm-up's too
     np.testing.assert_array_equal(straight.learner.obs_norm.m2, resumed.learner.obs_norm.m2)
 
+    # reward_scale: the chunks' running returns are the host's RunningReturnScale fed the same rewards (the replay's
+    # rows, vector step by vector step) and episode ends (every env's at its 100th step), to float32's rounding
+    from softac.learner.normalization import RunningReturnScale
+
+    host = RunningReturnScale(4, cfg.gamma, "std", cfg.v_max)
+    rewards = arrays_a["buffer/rewards"].reshape(150, 4)
+    for t, row in enumerate(rewards):
+        host.update(row, np.full(4, t == 99))
+    device = straight.learner.return_scale
+    assert device.stats.count == host.stats.count == 600 and device.max_abs == pytest.approx(host.max_abs, rel=1e-5)
+    np.testing.assert_allclose(device.returns, host.returns, rtol=1e-5)
+    assert device.scale == pytest.approx(host.scale, rel=1e-4) and device.scale != 1.0
+    assert resumed.learner.return_scale.scale == device.scale
+
     # evaluation on the device: all episodes at once, deterministic, each counted to its end (100 agent steps)
     from softac.run.device_transitions import device_episodes
     from softac.run.evaluation import summarize
@@ -112,7 +126,8 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     # device_config()'s settings (and so its compiled chunk, from the compile cache where the test above ran first)
     result = run_cli("train", "--env", ENV, "--steps", "400", "--out", str(run), "--no-progress", "--n-envs", "4",
                      "--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200", "eval_interval=400",
-                     "eval_episodes=1", "log_interval=100", "action_repeat=10", "buffer_size=2000", "obs_norm=true")
+                     "eval_episodes=1", "log_interval=100", "action_repeat=10", "buffer_size=2000", "obs_norm=true",
+                     "reward_scale=std")
     assert result.returncode == 0, result.stderr
     assert [int(float(r["step"])) for r in read_csv(run / "progress.csv")] == [100, 200, 300, 400]
     assert [int(float(r["step"])) for r in read_csv(run / "eval.csv")] == [400]

@@ -65,8 +65,8 @@ def _check_collection(config: Any) -> None:
 
 def _check_device_collection(config: Any) -> None:
     """What the device's collection (issue 67) runs: Playground's envs, Gaussian exploration from the policy, one-step
-    targets on raw rewards (observations raw or normalised, obs_norm); the host's parts it has no counterpart of yet
-    are refused by name."""
+    targets (observations raw or normalised, obs_norm; rewards raw or scaled, reward_scale); the host's parts it has
+    no counterpart of yet are refused by name."""
     if not config.collects_on_device:
         return
     need = _requirer(config)
@@ -75,7 +75,6 @@ def _check_device_collection(config: Any) -> None:
     need(is_playground_id(config.env_id), "collect_on",
          f"device collection steps MuJoCo Playground's envs (playground:NAME), not {config.env_id}: use collect_on=host")
     host_only = "is not run by device collection yet (collect_on=device): set it off, or collect_on=host"
-    need(config.reward_scale == "off", "reward_scale", host_only)
     need(config.exploration_noise == "gaussian", "exploration_noise", host_only.replace("set it off", "use gaussian"))
     need(config.random_action_prob == 0, "random_action_prob", host_only.replace("set it off", "set it to 0"))
     need(config.n_step == 1, "n_step", host_only.replace("set it off", "set it to 1"))

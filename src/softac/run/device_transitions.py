@@ -47,6 +47,9 @@ class ChunkSpec(NamedTuple):
     linear_lr: bool
     length: int  # vector steps
     obs_clip: float  # > 0: obs_norm's clip, the observations normalised by running statistics; 0: raw
+    reward_scale: str  # off, std or std_max (learner.normalization.RunningReturnScale), with:
+    gamma: float
+    v_max: float
 
 
 class DeviceTransitions:
@@ -59,7 +62,8 @@ class DeviceTransitions:
         cfg, settings = learner.config, learner.functions.settings
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts, cfg.lr_schedule == "linear",
-                              chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0)
+                              chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
+                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max))
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
@@ -79,12 +83,14 @@ class DeviceTransitions:
         n, before = cfg.n_envs, rs.num_steps
         count = max(1, min(self.spec.length, -(-(until - before) // n)))
         totals = learner.totals if learner.totals is not None else zero_totals()
-        carry = (learner.state, totals, collector.replay, collector.batch, collector.key, obs_stats(learner))
+        carry = (learner.state, totals, collector.replay, collector.batch, collector.key, obs_stats(learner),
+                 return_stats(learner))
         schedule = (jnp.float32(max(cfg.total_steps, 1)), jnp.float32(cfg.lr_end_fraction))
         carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
                                                    jnp.int32(count), schedule)
-        learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats = carry
+        learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats, return_scale = carry
         keep_obs_stats(learner, stats)
+        keep_return_stats(learner, return_scale)
         rs.num_steps = after = before + count * n
         return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
                                                       before, n))
@@ -159,6 +165,54 @@ def keep_obs_stats(learner: Learner, stats: tuple) -> None:
         learner.obs_norm.mean, learner.obs_norm.m2 = np.asarray(mean, np.float64), np.asarray(m2, np.float64)
 
 
+def return_stats(learner: Learner) -> tuple:
+    """reward_scale's running return per env and the statistics of all returns seen (returns, count, mean, m2,
+    max |G|) as the chunk carries them (float32), or () without."""
+    import jax.numpy as jnp
+
+    scale = learner.return_scale
+    if scale is None:
+        return ()
+    stats = scale.stats
+    return (jnp.asarray(scale.returns, jnp.float32), jnp.int32(stats.count), jnp.asarray(stats.mean, jnp.float32),
+            jnp.asarray(stats.m2, jnp.float32), jnp.float32(scale.max_abs))
+
+
+def keep_return_stats(learner: Learner, carried: tuple) -> None:
+    """The chunk's return statistics back into the learner's RunningReturnScale (what checkpoints save)."""
+    if carried:
+        returns, count, mean, m2, max_abs = carried
+        scale = learner.return_scale
+        scale.returns = np.asarray(returns, np.float64)
+        scale.stats.count, scale.stats.mean, scale.stats.m2 = int(count), np.asarray(mean, np.float64), \
+            np.asarray(m2, np.float64)
+        scale.max_abs = float(max_abs)
+
+
+def observed_returns(carried: tuple, rewards: Any, dones: Any, gamma: float) -> tuple:
+    """RunningReturnScale.update inside the chunk: each env's G <- gamma (1 - done) G + r, merged into the moments."""
+    import jax.numpy as jnp
+
+    from softac.learner.normalization import merged_moments
+
+    returns, count, mean, m2, max_abs = carried
+    returns = gamma * (1.0 - dones.astype(jnp.float32)) * returns + rewards
+    return (returns, *merged_moments(count, mean, m2, returns[:, None]), jnp.maximum(max_abs, jnp.max(jnp.abs(returns))))
+
+
+def reward_divisor(carried: tuple, mode: str, v_max: float) -> Any:
+    """RunningReturnScale.scale from the carried statistics: what rewards are divided by now (1 before any step)."""
+    import jax.numpy as jnp
+
+    from softac.learner.normalization import RunningReturnScale
+
+    _, count, _, m2, max_abs = carried
+    var = (m2 / jnp.maximum(count, 1))[0]
+    eps = RunningReturnScale.EPSILON
+    scale = jnp.sqrt(var) + eps if mode == "std" else jnp.maximum(jnp.sqrt(var + eps), max_abs / v_max)
+    return jnp.where(count > 0, scale, 1.0)
+
+
 def normalized(stats: tuple, obs: Any, clip: float) -> Any:
     """RunningObsNorm.normalize with these statistics."""
     import jax.numpy as jnp
@@ -198,7 +252,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
     total, end_fraction = schedule
 
     def step(carry, before):
-        state, totals, replay, batch, key, stats = carry
+        state, totals, replay, batch, key, stats, returns = carry
         key, act_key, sample_key = jax.random.split(key, 3)
         if stats:  # every observation the policy acts on counts, the warm-up's too (as the host's learner.observe)
             stats = merged_moments(*stats, batch.obs)
@@ -214,12 +268,15 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
         batch, s = envs.step(batch, actions)
         replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
                                       s.terminated | s.truncated)
+        if returns:  # reward_scale: every training step's rewards count, the warm-up's too (learner.observe_rewards)
+            returns = observed_returns(returns, s.rewards, s.terminated | s.truncated, spec.gamma)
         after = before + n
 
         def learn(state, totals):
             drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size, n)
             # raw observations in the buffer, normalised when drawn with the statistics of that moment (as the host's)
-            batches = Batch(normalized(stats, drawn.obs, spec.obs_clip), drawn.actions, drawn.rewards,
+            rewards = drawn.rewards / reward_divisor(returns, spec.reward_scale, spec.v_max) if returns else drawn.rewards
+            batches = Batch(normalized(stats, drawn.obs, spec.obs_clip), drawn.actions, rewards,
                             normalized(stats, drawn.next_obs, spec.obs_clip), drawn.terminated,
                             jnp.ones_like(drawn.rewards))
             scale = (1.0 - (1.0 - end_fraction) * jnp.minimum(after / total, 1.0)).astype(jnp.float32) \
@@ -228,7 +285,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
 
         if spec.gradient_steps > 0:
             state, totals = jax.lax.cond(after >= spec.learning_starts, learn, lambda s, t: (s, t), state, totals)
-        return (state, totals, replay, batch, key, stats), (s.episode_returns, s.episode_lengths)
+        return (state, totals, replay, batch, key, stats, returns), (s.episode_returns, s.episode_lengths)
 
     def maybe_step(carry, i):
         # the steps past `count` (the budget's end inside this chunk) leave everything as it is
