@@ -21,14 +21,14 @@ if [[ " $PARTS " == *" throughput "* ]]; then
   for n in 16 1024; do
     steps=$(( n == 16 ? 24576 : 409600 ))
     for framework in softac brax-sac; do
-      sweep --framework "$framework" --seeds 1 --steps "$steps" --out "$OUT/CartpoleSwingup-$framework-n$n-throughput" \
+      sweep --framework "$framework" --seeds 1 --steps "$steps" --out "$OUT/playground-CartpoleSwingup-$framework-n$n-throughput" \
         --set n_envs=$n eval_interval=$(( steps / 4 )) eval_episodes=16 log_interval=$(( n * 64 ))
     done
   done
 fi
 if [[ " $PARTS " == *" returns "* ]]; then
   for framework in softac brax-sac; do
-    sweep --framework "$framework" --seeds 3 --steps 500000 --out "$OUT/CartpoleSwingup-$framework-500k" \
+    sweep --framework "$framework" --seeds 3 --steps 500000 --out "$OUT/playground-CartpoleSwingup-$framework-500k" \
       --set eval_interval=100000
   done
 fi

@@ -1,0 +1,74 @@
+"""docs/results.md's section on MuJoCo Playground's envs collected on the device (issue 67): softac's device loop
+beside Brax's own SAC trainer (`--framework brax-sac`) at the same settings, from the sweeps of
+benchmarks/playground_cpu.sh (SWEEPS/playground-ENV-FRAMEWORK-NAME)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from results_common import machines_of, short_machines
+
+PLAYGROUND = "MuJoCo Playground on the device"
+PREFIX = "playground-"
+
+
+def steady_steps_per_s(run: Path, total_steps: int) -> float | None:
+    """The median of progress.csv's env steps per second over its rows in the run's second half: past the
+    replay's prefill and the compiles, for softac's rows (one per log_interval) and Brax's (one per epoch) alike."""
+    try:
+        with open(run / "progress.csv", newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r.get("fps") and int(float(r["step"])) > total_steps / 2]
+    except OSError:
+        return None
+    return float(np.median([float(r["fps"]) for r in rows])) if rows else None
+
+
+def playground_runs(d: Path) -> dict | None:
+    """One sweep's finished trials: framework, env, envs, seeds' final evaluations, wall seconds, steady steps/s."""
+    trials = sorted(p.parent for p in d.glob("*/summary.json"))
+    if not trials:
+        return None
+    finals, walls, speeds, envs, framework, env_id = [], [], [], set(), "softac", ""
+    for run in trials:
+        summary = json.loads((run / "summary.json").read_text())
+        config = yaml.safe_load((run / "config.yaml").read_text()) or {}
+        framework = config.get("framework", "softac")
+        env_id = config["env_id"]
+        envs.add(config["brax"]["num_envs"] if framework == "brax-sac" else config["n_envs"])
+        finals.append(summary["last_eval"])
+        walls.append(summary["wall_s"])
+        speeds.append(steady_steps_per_s(run, int(config["total_steps"])))
+    return {"framework": framework, "env": env_id, "envs": sorted(envs), "finals": finals, "walls": walls,
+            "speeds": [s for s in speeds if s is not None], "steps": int(config["total_steps"]),
+            "machines": machines_of(trials)}
+
+
+def playground_section(sweeps: Path) -> list[str]:
+    dirs = sorted(d for d in sweeps.glob(PREFIX + "*") if d.is_dir())
+    runs = [(d.name, r) for d in dirs if (r := playground_runs(d)) is not None]
+    if not runs:
+        return []
+    lines = [f"## {PLAYGROUND}", "",
+             "softac's device loop (envs, replay and updates in one jitted scan a chunk) beside Brax's own SAC trainer "
+             "(`--framework brax-sac`, brax 0.14.2) at the same settings, the `brax-sac` preset (Playground's settings "
+             "for its DeepMind Control ports: batch 512, 8 updates per vector step, 256x256, LayerNorm critics), on "
+             "one pinned CPU per trial (`bash benchmarks/playground_cpu.sh`). Env steps per second: the median of "
+             "each trial's progress rows in its second half (past the prefill and the compiles); the final "
+             "evaluation is each framework's own, `eval_episodes` deterministic episodes at once (softac's from the "
+             "same starts each time, Brax's from fresh ones). The throughput sweeps' evaluations come after a few "
+             "hundred updates and say little about learning.", "",
+             "| sweep | framework | env | envs | steps | seeds | env steps/s (median) | final eval (mean ± std) | "
+             "wall s (median) | machine |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in runs:
+        finals = np.asarray(r["finals"], float)
+        speed = f"{np.median(r['speeds']):,.0f}" if r["speeds"] else "-"
+        lines.append(f"| {name} | {r['framework']} | {r['env']} | {', '.join(map(str, r['envs']))} | {r['steps']:,} | "
+                     f"{len(finals)} | {speed} | {finals.mean():.1f} ± {finals.std():.1f} | "
+                     f"{np.median(r['walls']):,.0f} | {short_machines(r['machines'])} |")
+    return lines + [""]
