@@ -62,13 +62,13 @@ def playground_section(sweeps: Path) -> list[str]:
              "evaluation is each framework's own, `eval_episodes` deterministic episodes at once (softac's from the "
              "same starts each time, Brax's from fresh ones). The throughput sweeps' evaluations come after a few "
              "hundred updates and say little about learning.", "",
-             "| sweep | framework | env | envs | steps | seeds | env steps/s (median) | final eval (mean ± std) | "
+             "| sweep | framework | env | envs | steps | seeds | env steps/s (median) | final eval (mean ± sd) | "
              "wall s (median) | machine |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in runs:
         finals = np.asarray(r["finals"], float)
         speed = f"{np.median(r['speeds']):,.0f}" if r["speeds"] else "-"
         lines.append(f"| {name} | {r['framework']} | {r['env']} | {', '.join(map(str, r['envs']))} | {r['steps']:,} | "
-                     f"{len(finals)} | {speed} | {finals.mean():.1f} ± {finals.std():.1f} | "
+                     f"{len(finals)} | {speed} | {finals.mean():.1f} ± {finals.std(ddof=1) if len(finals) > 1 else 0.0:.1f} | "
                      f"{np.median(r['walls']):,.0f} | {short_machines(r['machines'])} |")
     return lines + [""]

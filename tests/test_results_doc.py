@@ -468,3 +468,33 @@ def test_the_front_figure_draws_short_labels_the_named_and_best_published_on_eve
     assert rows[0].startswith("| crossq | softac, crossq preset | ") and "GPU" not in rows[0]
     assert rows[1].startswith("| crossq-avg | softac, crossq-avg preset | ") and rows[1].endswith(" + GPU |")
     assert (docs / "results" / "front-v4.png").stat().st_size > 10_000
+
+
+def test_the_playground_section_sets_softacs_device_loop_beside_braxs_sac(tmp_path):
+    """benchmarks/results_playground.py: per sweep the envs (softac's n_envs, Brax's num_envs), the median over seeds
+    of each trial's steady env steps per second (its progress rows in the run's second half, past the compiles),
+    the final evaluations' mean and sd over seeds and the median wall time."""
+    import yaml
+
+    def trial(sweep: str, seed: int, config: dict, fps: list[float], final: float, wall: float) -> None:
+        run = tmp_path / "sweeps" / sweep / f"seed={seed}"
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text(yaml.safe_dump({"env_id": "playground:CartpoleSwingup", "total_steps": 400,
+                                                          "machine": "Intel(R) Xeon(R) Processor (AMX), 2 cores",
+                                                          **config}))
+        (run / "summary.json").write_text(json.dumps({"last_eval": final, "wall_s": wall}))
+        rows = "\n".join(f"{100 * (i + 1)},{i},{v}" for i, v in enumerate(fps))
+        (run / "progress.csv").write_text("step,time_s,fps\n" + rows + "\n")
+
+    trial("playground-Cartpole-softac", 0, {"n_envs": 128}, [5.0, 10.0, 100.0, 110.0], 400.0, 60.0)  # steady 105
+    trial("playground-Cartpole-softac", 1, {"n_envs": 128}, [5.0, 10.0, 120.0, 120.0], 500.0, 80.0)  # steady 120
+    trial("playground-Cartpole-brax-sac", 0, {"framework": "brax-sac", "brax": {"num_envs": 128}}, [1.0, 2.0, 3.0, 50.0],
+          600.0, 90.0)  # steady 26.5
+    trial("Hopper-v4-softac", 0, {"n_envs": 1}, [1.0], 1.0, 1.0)  # not a Playground sweep
+    section = load_benchmark_script("results_doc").playground_section(tmp_path / "sweeps")
+    rows = [line for line in section if line.startswith("| playground-")]
+    assert rows == [
+        "| playground-Cartpole-brax-sac | brax-sac | playground:CartpoleSwingup | 128 | 400 | 1 | 26 | 600.0 ± 0.0 | 90 "
+        "| Intel Xeon (AMX) |",
+        "| playground-Cartpole-softac | softac | playground:CartpoleSwingup | 128 | 400 | 2 | 112 | 450.0 ± 70.7 | 70 "
+        "| Intel Xeon (AMX) |"]

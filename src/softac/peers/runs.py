@@ -84,6 +84,8 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
         from softac.peers.brax_sac import BraxSACRun
 
         config = sweep_config(env_id, **sweep)
+        if target_success is not None:
+            raise SoftacError("brax-sac trains Playground's envs, which report no success: no --target-success")
         if action_repeat not in (1, config.action_repeat):
             raise SoftacError(f"--action-repeat {action_repeat} and the setting action_repeat="
                               f"{config.action_repeat} differ: give one")
