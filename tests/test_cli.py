@@ -471,3 +471,16 @@ def test_a_changed_env_with_other_action_bounds_is_refused_unless_asked(tmp_path
         assert r.returncode == 0, (args, r.stderr)
     assert_clean_error(run_cli("train", "--env", "boundedenv:Bounded-v0", "--out", str(tmp_path / "new"),
                                "--allow-new-bounds", env_extra=changed), "goes with --resume")
+
+
+def test_a_warm_up_past_the_run_is_said_when_training_starts(tmp_path):
+    """A preset's learning_starts past a short --steps (fastsac's 40,960 transitions) would train nothing: one note
+    line says so; a run that learns gets none."""
+    run = lambda steps, name: run_cli("train", "--env", "softac_test_envs:Drift-v0", "--steps", steps, "--out",
+                                      str(tmp_path / name), "--no-progress", *TINY_SETS, "eval_interval=0",
+                                      "learning_starts=100")
+    r = run("100", "short")
+    assert r.returncode == 0 and ("softac: note: learning_starts=100 is not below the run's 100 steps: it acts at "
+                                  "random throughout and never updates") in r.stderr, r.stderr
+    r = run("101", "long")
+    assert r.returncode == 0 and "note: learning_starts" not in r.stderr

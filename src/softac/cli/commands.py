@@ -170,6 +170,10 @@ def _new_agent(config, run: Path, args: argparse.Namespace):
     start = (f"training {config.env_id} for {config.total_steps} steps (seed {config.seed}) -> {run}; replay buffer "
              f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
              f"{config.buffer_size:,}")
+    if config.learning_starts >= config.total_steps:  # a preset's warm-up past a short --steps (fastsac's 40,960)
+        start += (f"\nsoftac: note: learning_starts={config.learning_starts:,} is not below the run's "
+                  f"{config.total_steps:,} steps: it acts at random throughout and never updates (--set "
+                  "learning_starts=N for fewer)")
     return agent, config.total_steps, start, pinned
 
 
