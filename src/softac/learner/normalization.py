@@ -67,6 +67,14 @@ class RunningObsNorm:
         self.mean, self.m2 = mean.copy(), m2.copy()
 
 
+def return_divisor(var, max_abs, mode: str, v_max: float, xp=np):
+    """What reward_scale divides rewards by, from the running return's variance and largest |G|: `std`, XQC's
+    sqrt(var) + eps; `std_max`, FlashSAC's max(sqrt(var + eps), G_max / v_max). NumPy's float64 in
+    RunningReturnScale, JAX's float32 inside device collection's chunks, one formula."""
+    eps = RunningReturnScale.EPSILON
+    return xp.sqrt(var) + eps if mode == "std" else xp.maximum(xp.sqrt(var + eps), max_abs / v_max)
+
+
 class RunningReturnScale:
     """Reward scaling for critics on a fixed support (`reward_scale`): rewards divided by the spread of the
     discounted return, so that the returns fit the support whatever the env's reward units (SimbaV2's reward
@@ -96,10 +104,7 @@ class RunningReturnScale:
         """What rewards are divided by now (1 before any step)."""
         if self.stats.count == 0:
             return 1.0
-        var = float(self.stats.var[0])
-        if self.mode == "std":  # XQC's sqrt(var) + eps, FlashSAC's sqrt(var + eps)
-            return float(np.sqrt(var)) + self.EPSILON
-        return max(float(np.sqrt(var + self.EPSILON)), self.max_abs / self.v_max)
+        return float(return_divisor(float(self.stats.var[0]), self.max_abs, self.mode, self.v_max))
 
     def scale_rewards(self, rewards: np.ndarray) -> np.ndarray:
         return (np.asarray(rewards, np.float64) / self.scale).astype(np.float32)

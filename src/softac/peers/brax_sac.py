@@ -62,23 +62,30 @@ def with_device_put_replicated() -> None:
     jax.device_put_replicated = replicate_for_pmap
 
 
+def check_playground_env(env_id: str, named: str = "brax-sac") -> None:
+    """Brax's trainer takes a Brax env: a Playground id, else one line (SoftacError) naming `named`."""
+    from softac.config.names import is_playground_id
+    from softac.errors import SoftacError
+
+    if not is_playground_id(env_id):
+        raise SoftacError(f"{named} trains MuJoCo Playground's envs (--env playground:NAME), not {env_id}")
+
+
 class BraxSACRun:
-    """One Brax SAC run into a softac-style run directory, at the settings a sweep's --preset and --set make."""
+    """One Brax SAC run into a softac-style run directory, at the settings a sweep's --preset and --set make; its
+    rows come once an epoch of Brax's trainer, whatever log_interval says."""
 
     def __init__(self, env_id: str, seed: int, steps: int, out: Path, eval_interval: int, eval_episodes: int,
-                 log_interval: int, config: SACConfig, sweep: dict[str, Any],
-                 target_return: float | None = None) -> None:
-        from softac.config.names import is_playground_id
+                 config: SACConfig, sweep: dict[str, Any], target_return: float | None = None) -> None:
         from softac.errors import SoftacError
 
-        if not is_playground_id(env_id):
-            raise SoftacError(f"brax-sac trains MuJoCo Playground's envs (playground:NAME), not {env_id}")
+        check_playground_env(env_id)
         if eval_interval <= 0:
             raise SoftacError("brax-sac evaluates with Brax's evaluator between its epochs: eval_interval must be > 0")
         if target_return is not None:
             raise SoftacError("brax-sac runs its whole budget in one call of Brax's trainer: no --target-return")
         self.env_id, self.seed, self.steps, self.out = env_id, seed, steps, out
-        self.eval_interval, self.eval_episodes, self.log_interval = eval_interval, eval_episodes, log_interval
+        self.eval_interval, self.eval_episodes = eval_interval, eval_episodes
         self.config, self.sweep = config, sweep
 
     def run(self) -> dict[str, Any]:

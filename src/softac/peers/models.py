@@ -117,9 +117,7 @@ def peer_env(framework: str, env_id: str, action_repeat: int = 1):
 def sweep_config(env_id: str, preset: str | None, overrides: list[str] | None) -> SACConfig:
     """The softac config a sweep's --preset and --set make (default: the env's own preset): what a peer whose
     settings are "sweep" runs at."""
-    from softac.config.sac_config import SACConfig
-
-    from softac.config.sac_config import parse_overrides
+    from softac.config.sac_config import SACConfig, parse_overrides
 
     changes = parse_overrides(list(overrides or []))
     return SACConfig.preset(preset, env_id=env_id, overrides=changes) if preset else SACConfig.for_env(env_id, changes)

@@ -86,11 +86,9 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
         config = sweep_config(env_id, **sweep)
         if target_success is not None:
             raise SoftacError("brax-sac trains Playground's envs, which report no success: no --target-success")
-        if action_repeat not in (1, config.action_repeat):
-            raise SoftacError(f"--action-repeat {action_repeat} and the setting action_repeat="
-                              f"{config.action_repeat} differ: give one")
+        settled_action_repeat(action_repeat, config)  # Brax repeats the setting's (BraxSACRun)
         with run_lock(out):
-            return BraxSACRun(env_id, seed, steps, out, eval_interval, eval_episodes, log_interval, config, sweep,
+            return BraxSACRun(env_id, seed, steps, out, eval_interval, eval_episodes, config, sweep,
                               target_return).run()
     with run_lock(out):
         try:
@@ -101,6 +99,21 @@ def peer_run(framework: str, env_id: str, seed: int, steps: int, out: Path, eval
             print(f"python -m softac.peers: {exc}; run the same command again to continue", file=sys.stderr,
                   flush=True)
             raise
+
+
+def settled_action_repeat(action_repeat: int, config: Any = None) -> int:
+    """The action repeat a peer's run takes: --action-repeat, or a sweep peer's setting (`config`'s), which
+    must agree when both are given (SoftacError otherwise, as for a value below 1)."""
+    from softac.errors import SoftacError
+
+    if action_repeat < 1:
+        raise SoftacError(f"--action-repeat must be >= 1, not {action_repeat}")
+    if config is None or config.action_repeat == 1:
+        return action_repeat
+    if action_repeat not in (1, config.action_repeat):
+        raise SoftacError(f"--action-repeat {action_repeat} and the setting action_repeat={config.action_repeat} "
+                          "differ: give one")
+    return config.action_repeat
 
 
 def _hyperparameters(model: Any) -> dict[str, Any]:
@@ -127,7 +140,6 @@ class PeerRun:
                  sweep: dict[str, Any] | None = None, action_repeat: int = 1, target_return: float | None = None,
                  target_success: float | None = None):
         from softac.run import checkpoint as ckpt
-        from softac.errors import SoftacError
         from softac.run.run_dir import checkpoint_path
 
         self.framework, self.env_id, self.seed, self.steps, self.out = framework, env_id, seed, steps, out
@@ -137,15 +149,8 @@ class PeerRun:
         self.reached: str | None = None  # target_return or target_success once an evaluation reached it
         self.sweep = sweep if PEERS[framework].settings == "sweep" else None  # the softac settings it runs at
         self.checkpoint = checkpoint_path(out, "last")
-        if action_repeat < 1:
-            raise SoftacError(f"--action-repeat must be >= 1, not {action_repeat}")
         config = sweep_config(env_id, **self.sweep) if self.sweep is not None else None
-        if config is not None and config.action_repeat != 1:
-            if action_repeat not in (1, config.action_repeat):
-                raise SoftacError(f"--action-repeat {action_repeat} and the setting action_repeat="
-                                  f"{config.action_repeat} differ: give one")
-            action_repeat = config.action_repeat
-        self.action_repeat = action_repeat
+        self.action_repeat = action_repeat = settled_action_repeat(action_repeat, config)
         self.identity = {"framework": framework, "env_id": env_id, "seed": seed, "total_steps": steps}
         if action_repeat != 1:  # only then: the checkpoints of runs without it keep their identity
             self.identity["action_repeat"] = action_repeat

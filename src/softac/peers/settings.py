@@ -37,32 +37,33 @@ def untranslatable_common(c: SACConfig) -> dict[str, bool]:
 def crossq_settings(c: SACConfig) -> dict[str, Any]:
     """SBX's CrossQ keywords (ReLU, autotuned alpha from 1.0, target entropy -act_dim, one update per env step,
     one env are SBX's own)."""
-    refuse_settings("SBX's CrossQ", {**untranslatable_common(c), "critic_layer_norm": c.critic_layer_norm,
-                                     "not crossq": not c.crossq,
-                       "gradient_steps": c.gradient_steps != 1, "target_entropy": c.target_entropy != "auto"
-                       or c.target_entropy_scale != 1.0, "initial alpha": c.alpha != 1.0,
-                       "target_critics": c.target_critics == "on", "weight_norm": c.weight_norm,
-                       "weight_decay": c.weight_decay > 0, "n_quantiles": c.n_quantiles > 0,
-                       "critic_dropout": c.critic_dropout > 0, "batch_norm_eps": c.batch_norm_eps != 1e-3,
-                       "actor and critic widths differ": c.actor_widths != c.critic_widths})
+    refuse_settings("SBX's CrossQ", {
+        **untranslatable_common(c), "critic_layer_norm": c.critic_layer_norm, "not crossq": not c.crossq,
+        "gradient_steps": c.gradient_steps != 1, "target_entropy": c.target_entropy != "auto"
+        or c.target_entropy_scale != 1.0, "initial alpha": c.alpha != 1.0,
+        "target_critics": c.target_critics == "on", "weight_norm": c.weight_norm,
+        "weight_decay": c.weight_decay > 0, "n_quantiles": c.n_quantiles > 0,
+        "critic_dropout": c.critic_dropout > 0, "batch_norm_eps": c.batch_norm_eps != 1e-3,
+        "actor and critic widths differ": c.actor_widths != c.critic_widths})
     return {"learning_rate": c.actor_lr, "qf_learning_rate": c.critic_lr, "buffer_size": c.buffer_size,
             "learning_starts": c.learning_starts, "batch_size": c.batch_size, "gamma": c.gamma,
             "policy_delay": c.policy_delay,
             "policy_kwargs": {"net_arch": {"pi": list(c.hidden_sizes), "qf": list(c.hidden_sizes)},
                               "n_critics": c.n_critics, "batch_norm_momentum": c.batch_norm_momentum,
-                              "renorm_warmup_steps": c.batch_renorm_warmup, "optimizer_kwargs": {"b1": c.adam_b1, "b2": c.adam_b2}}}
+                              "renorm_warmup_steps": c.batch_renorm_warmup,
+                              "optimizer_kwargs": {"b1": c.adam_b1, "b2": c.adam_b2}}}
 
 
 def tqc_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
     """SBX's TQC keywords: two critics (SBX's TQC has two), their quantiles and the atoms dropped, the widths,
     rates, batch, UTD, policy delay, tau, gamma, the entropy target and initial alpha, Adam's b1 and AdamW's
     decay on every parameter (optax.adamw; SBX cannot mask it to the output layers)."""
-    refuse_settings("SBX's TQC", {**untranslatable_common(c), "n_quantiles 0 (not TQC)": c.n_quantiles == 0,
-                    "n_critics != 2": c.n_critics != 2, "crossq": c.crossq,
-                    "target_critics off": c.target_critics == "off",
-                    "target_update_interval": c.target_update_interval != 1,
-                    "critic_layer_norm (SBX's LayerNorm learns scale and bias)": c.critic_layer_norm,
-                    "weight_decay on the output layers only": c.weight_decay > 0 and c.weight_decay_layers == "output"})
+    refuse_settings("SBX's TQC", {
+        **untranslatable_common(c), "n_quantiles 0 (not TQC)": c.n_quantiles == 0,
+        "n_critics != 2": c.n_critics != 2, "crossq": c.crossq, "target_critics off": c.target_critics == "off",
+        "target_update_interval": c.target_update_interval != 1,
+        "critic_layer_norm (SBX's LayerNorm learns scale and bias)": c.critic_layer_norm,
+        "weight_decay on the output layers only": c.weight_decay > 0 and c.weight_decay_layers == "output"})
     settings = _sac_family(c, act_dim)
     settings["top_quantiles_to_drop_per_net"] = c.top_quantiles_to_drop_per_net
     settings["policy_kwargs"].update(n_quantiles=c.n_quantiles, dropout_rate=c.critic_dropout)
@@ -90,18 +91,16 @@ def simba_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
     the number of critics. Observation normalisation goes to SB3's VecNormalize around the peer's env (the same
     running mean and variance, epsilon 1e-8 and clip as softac's obs_norm; softac.peers.peer_model)."""
     common = {k: v for k, v in untranslatable_common(c).items() if k not in ("obs_norm", "network")}
-    refuse_settings("SBX's SAC with SimbaPolicy", {**common, "network != simba": c.network != "simba", "crossq": c.crossq,
-                                     "n_quantiles": c.n_quantiles > 0, "target_critics off": c.target_critics == "off",
-                                     "target_update_interval": c.target_update_interval != 1,
-                                     "critic_dropout": c.critic_dropout > 0,
-                                     "weight_decay on the output layers only":
-                                     c.weight_decay > 0 and c.weight_decay_layers == "output"})
+    refuse_settings("SBX's SAC with SimbaPolicy", {
+        **common, "network != simba": c.network != "simba", "crossq": c.crossq, "n_quantiles": c.n_quantiles > 0,
+        "target_critics off": c.target_critics == "off", "target_update_interval": c.target_update_interval != 1,
+        "critic_dropout": c.critic_dropout > 0,
+        "weight_decay on the output layers only": c.weight_decay > 0 and c.weight_decay_layers == "output"})
     settings = _sac_family(c, act_dim)
     settings["policy_kwargs"]["n_critics"] = c.n_critics
     return settings
 
 
-# the peers that run at a sweep's own settings, and how their keywords are made
 BRAX_ALPHA_LR = 3e-4  # brax/training/agents/sac/train.py: optax.adam(learning_rate=3e-4) for alpha, fixed
 
 
@@ -131,6 +130,7 @@ def brax_sac_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
                         "q_network_layer_norm": c.critic_layer_norm, "policy_network_layer_norm": c.actor_layer_norm}}
 
 
+# the peers that run at a sweep's own settings, and how their keywords are made
 SWEEP_TRANSLATORS = {"sbx-tqc-softac": tqc_settings, "sbx-simba-softac": simba_settings,
                      "brax-sac": brax_sac_settings}
 

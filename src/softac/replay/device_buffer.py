@@ -24,6 +24,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from softac.replay.buffer import ObsOnceReplayBuffer
+
+final_ring_size = ObsOnceReplayBuffer.final_ring_size  # the side ring: the host's size, the same rows held
+
 
 class DeviceReplay(NamedTuple):
     obs: jax.Array  # [capacity, obs_dim] float32
@@ -65,11 +69,6 @@ def capacity_for(buffer_size: int, n_envs: int) -> int:
     """The rows a buffer of `buffer_size` holds when written `n_envs` at a time: a multiple of n_envs, at least one
     vector step's worth."""
     return max(n_envs, (int(buffer_size) // n_envs) * n_envs)
-
-
-def final_ring_size(capacity: int, n_envs: int) -> int:
-    """The side ring's final observations: room for episodes averaging >= 8 steps (the host's rule)."""
-    return min(capacity, max(capacity // 8, 4 * n_envs))
 
 
 def bytes_per_row(obs_dim: int, act_dim: int, once: bool = False, capacity: int = 1, n_envs: int = 1) -> float:

@@ -147,22 +147,28 @@ def evaluation_program(spec: EvalSpec, networks: tuple, stats: tuple, key: Any) 
     return returns, lengths
 
 
-def obs_stats(learner: Learner) -> tuple:
-    """obs_norm's running statistics (count, mean, m2) as the chunk carries them (float32), or () without."""
+def moments(norm: Any) -> tuple:
+    """A RunningObsNorm's (count, mean, m2) as the chunk carries them (float32)."""
     import jax.numpy as jnp
 
-    norm = learner.obs_norm
-    if norm is None:
-        return ()
     return jnp.int32(norm.count), jnp.asarray(norm.mean, jnp.float32), jnp.asarray(norm.m2, jnp.float32)
+
+
+def keep_moments(norm: Any, carried: tuple) -> None:
+    """The chunk's (count, mean, m2) back into a RunningObsNorm (float64, as it keeps them)."""
+    count, mean, m2 = carried
+    norm.count, norm.mean, norm.m2 = int(count), np.asarray(mean, np.float64), np.asarray(m2, np.float64)
+
+
+def obs_stats(learner: Learner) -> tuple:
+    """obs_norm's running statistics (count, mean, m2) as the chunk carries them, or () without."""
+    return () if learner.obs_norm is None else moments(learner.obs_norm)
 
 
 def keep_obs_stats(learner: Learner, stats: tuple) -> None:
     """The chunk's statistics back into the learner's obs_norm (what evaluation, predict and checkpoints use)."""
     if stats:
-        count, mean, m2 = stats
-        learner.obs_norm.count = int(count)
-        learner.obs_norm.mean, learner.obs_norm.m2 = np.asarray(mean, np.float64), np.asarray(m2, np.float64)
+        keep_moments(learner.obs_norm, stats)
 
 
 def return_stats(learner: Learner) -> tuple:
@@ -173,20 +179,16 @@ def return_stats(learner: Learner) -> tuple:
     scale = learner.return_scale
     if scale is None:
         return ()
-    stats = scale.stats
-    return (jnp.asarray(scale.returns, jnp.float32), jnp.int32(stats.count), jnp.asarray(stats.mean, jnp.float32),
-            jnp.asarray(stats.m2, jnp.float32), jnp.float32(scale.max_abs))
+    return (jnp.asarray(scale.returns, jnp.float32), *moments(scale.stats), jnp.float32(scale.max_abs))
 
 
 def keep_return_stats(learner: Learner, carried: tuple) -> None:
     """The chunk's return statistics back into the learner's RunningReturnScale (what checkpoints save)."""
     if carried:
-        returns, count, mean, m2, max_abs = carried
+        returns, *stats, max_abs = carried
         scale = learner.return_scale
-        scale.returns = np.asarray(returns, np.float64)
-        scale.stats.count, scale.stats.mean, scale.stats.m2 = int(count), np.asarray(mean, np.float64), \
-            np.asarray(m2, np.float64)
-        scale.max_abs = float(max_abs)
+        scale.returns, scale.max_abs = np.asarray(returns, np.float64), float(max_abs)
+        keep_moments(scale.stats, tuple(stats))
 
 
 def observed_returns(carried: tuple, rewards: Any, dones: Any, gamma: float) -> tuple:
@@ -204,13 +206,11 @@ def reward_divisor(carried: tuple, mode: str, v_max: float) -> Any:
     """RunningReturnScale.scale from the carried statistics: what rewards are divided by now (1 before any step)."""
     import jax.numpy as jnp
 
-    from softac.learner.normalization import RunningReturnScale
+    from softac.learner.normalization import return_divisor
 
     _, count, _, m2, max_abs = carried
     var = (m2 / jnp.maximum(count, 1))[0]
-    eps = RunningReturnScale.EPSILON
-    scale = jnp.sqrt(var) + eps if mode == "std" else jnp.maximum(jnp.sqrt(var + eps), max_abs / v_max)
-    return jnp.where(count > 0, scale, 1.0)
+    return jnp.where(count > 0, return_divisor(var, max_abs, mode, v_max, jnp), 1.0)
 
 
 def normalized(stats: tuple, obs: Any, clip: float) -> Any:

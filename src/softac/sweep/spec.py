@@ -11,10 +11,9 @@ from typing import Any
 
 import yaml
 
-from softac.config.sac_config import ConfigError, SACConfig, override_key, parse_overrides
-from softac.config.names import is_playground_id
+from softac.config.sac_config import ConfigError, SACConfig, override_key
 from softac.errors import SoftacError
-from softac.peers import PEERS
+from softac.peers import PEERS, sweep_config
 
 
 SPEC_FILE = "sweep.json"
@@ -83,10 +82,7 @@ class SweepSpec:
 
     def preset_config(self) -> SACConfig:
         """The preset (or the env's own) with the overrides, before the sweep's step budget."""
-        overrides = parse_overrides(self.overrides)  # checked with the preset at once (SACConfig.preset)
-        if self.preset:
-            return SACConfig.preset(self.preset, env_id=self.env_id, overrides=overrides)
-        return SACConfig.for_env(self.env_id, overrides=overrides)
+        return sweep_config(self.env_id, self.preset, self.overrides)  # checked with the preset at once
 
     def base_config(self) -> SACConfig:
         return self.preset_config().replace(total_steps=self.steps)
@@ -266,9 +262,10 @@ def check_peer_spec(spec: SweepSpec, base: SACConfig) -> None:
     from softac.peers import check_her_env, missing_peers, peer_settings
 
     peer = PEERS[spec.framework]
-    if peer.package == "brax" and not is_playground_id(spec.env_id):
-        raise SoftacError(f"--framework {spec.framework} trains MuJoCo Playground's envs (--env playground:NAME), "
-                          f"not {spec.env_id}")
+    if peer.package == "brax":
+        from softac.peers.brax_sac import check_playground_env
+
+        check_playground_env(spec.env_id, named=f"--framework {spec.framework}")
     if peer.settings == "sweep":
         if spec.grid or spec.search:
             raise SoftacError(f"--framework {spec.framework} runs at one config (--preset and --set): --grid and "
