@@ -159,10 +159,11 @@ def _rounded_dense(x: np.ndarray, e: np.ndarray, w: np.ndarray, b: np.ndarray, b
 
 def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, matmul_dtype: str = "float32",
                   norm=None, stats: list | None = None, out_columns: int | None = None,
-                  layer_norm: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                  layer_norm: bool | str = False) -> tuple[np.ndarray, np.ndarray]:
     """(reference, bound) of an MLP's outputs (networks.mlp, or networks.batch_renorm_mlp in evaluation mode with
     `norm` and its running `stats`) for inputs within `e` of the float64 `x`; `out_columns`: the first ones only;
-    `layer_norm`: a LayerNorm without scale or bias before each hidden activation (actor_layer_norm)."""
+    `layer_norm`: a LayerNorm without scale or bias before each hidden activation (actor_layer_norm), or after it
+    ("after": layer_norm_position after)."""
     from softac.learner.networks.layers import LAYER_NORM_EPS
 
     from softac.learner.networks.layers import multiplies_in_bf16
@@ -191,10 +192,12 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
         rounding = np.maximum(gamma(n + 1) * magnitude, folded_rounding)
         e = e + rounding + TINY * (n + 1) * (1.0 + np.abs(w).max())
         x = z
-        if i < len(layers) - 1 and layer_norm:
+        if i < len(layers) - 1 and layer_norm and layer_norm != "after":
             x, e = _layer_norm(x, e, np.ones(x.shape[-1]), np.zeros(x.shape[-1]), LAYER_NORM_EPS)
         if i < len(layers) - 1:
             x, e = _activation_error(activation, x, e)
+        if i < len(layers) - 1 and layer_norm == "after":
+            x, e = _layer_norm(x, e, np.ones(x.shape[-1]), np.zeros(x.shape[-1]), LAYER_NORM_EPS)
     return x, e
 
 

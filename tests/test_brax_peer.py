@@ -45,6 +45,10 @@ def test_the_brax_sac_presets_settings_become_braxs_keywords():
     ({"n_atoms": 11}, "n_atoms"),
     ({"target_entropy_scale": 1.0}, "target entropy other than -|A|/2"),
     ({"critic_hidden_sizes": [64, 64]}, "actor and critic widths differ"),
+    ({"warmup_actions": "uniform"}, "warmup_actions other than policy"),
+    ({"log_std_mode": "clamp", "log_std_min": -20.0}, "log_std other than softplus with floor 0.001"),
+    ({"layer_norm_position": "before"}, "layer_norm_position other than after"),
+    ({"init": "default"}, "init other than lecun_uniform"),
 ])
 def test_settings_brax_cannot_take_are_refused_by_name(change, fragment):
     from softac.peers.settings import brax_sac_settings

@@ -50,10 +50,11 @@ def _playground():
 @pytest.mark.exact
 def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     """N + M == N+M: 320 + 280 env steps against 600 in one go, the split inside the envs' second episodes and
-    inside a chunk of the straight run; the episodes that ended are logged alike."""
+    inside a chunk of the straight run; the episodes that ended are logged alike. The warm-up acts with the initial
+    policy (warmup_actions policy, Brax's prefill), whose zeroed head and std under e^-8 keep its actions near 0."""
     from softac import SAC
 
-    cfg = device_config()
+    cfg = device_config(warmup_actions="policy", zero_actor_head=True, log_std_max=-8.0)
     straight = SAC(cfg)
     straight.learn(600, run_dir=tmp_path / "straight", progress=False)
     SAC(cfg).learn(320, run_dir=tmp_path / "split", progress=False)
@@ -68,6 +69,7 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     for name in arrays_a:
         np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
     assert len(arrays_a["buffer/rewards"]) == 600
+    assert np.abs(arrays_a["buffer/actions"][:200]).max() < 0.01  # uniform ones would span [-1, 1]
     episodes = [read_csv(tmp_path / run / "episodes.csv") for run in ("straight", "split")]
     assert episodes[0] == episodes[1] and [int(float(e["length"])) for e in episodes[0]] == [100] * 4
     assert straight.num_episodes == resumed.num_episodes == 4

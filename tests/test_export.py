@@ -58,6 +58,9 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     # FastSAC's actor (issue 67): LayerNorm (no scale or bias) before each SiLU, a zero-initialised output layer
     "fastsac": lambda: tiny_config("Pusher-v5", learning_starts=100, activation="silu", actor_layer_norm=True,
                                    zero_actor_head=True, log_std_mode="tanh", log_std_min=-5.0, log_std_max=0.0),
+    # Brax's MLP: LayerNorm after each hidden activation, LeCun-uniform weights, a softplus std
+    "brax": lambda: tiny_config("Pusher-v5", learning_starts=100, actor_layer_norm=True, layer_norm_position="after",
+                                init="lecun_uniform", log_std_mode="softplus", log_std_min=-6.9, warmup_actions="policy"),
 }
 
 
@@ -135,14 +138,17 @@ def assert_bound_is_tight(agent: SAC, bound: np.ndarray, bf16: bool) -> None:
     do depends on the trained weights, so on the CPU that trained them (CI's AVX2 run: 89% below 1e-4, the
     95th percentile 2e-4): below 1e-4 at the median and below 1e-3 on 95%. A SimBa actor's bound is ten times
     looser (its worst case carries each error through both layers of a residual block at full weight, where
-    real errors partly cancel: bounds ~5e-4 of the range for errors of ~2e-7): below 1e-3."""
+    real errors partly cancel: bounds ~5e-4 of the range for errors of ~2e-7): below 1e-3. So is an actor with
+    LayerNorm after each activation (Brax's): the norm divides each ReLU layer's error by its outputs' spread, small
+    where most units are off (bounds 2e-4 to 9e-4 of the range)."""
     width = (agent.learner.scaler.high - agent.learner.scaler.low).astype(np.float64)
     relative = np.max(bound / width, axis=1)
     summary = np.quantile(relative, [0.5, 0.95, 1.0])
     if bf16:
         assert np.median(relative) <= 1e-4 and np.mean(relative <= 1e-3) >= 0.95, summary
     else:
-        limit = 1e-3 if agent.config.network == "simba" else 1e-4
+        loose = agent.config.network == "simba" or agent.learner.functions.policy.layer_norm == "after"
+        limit = 1e-3 if loose else 1e-4
         assert np.mean(relative <= limit) >= 0.95, summary
 
 

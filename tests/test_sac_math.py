@@ -87,6 +87,17 @@ def test_log_std_bounds():
 
 
 @pytest.mark.numerics
+def test_softplus_log_std_is_braxs_std_softplus_plus_a_floor():
+    """log_std_mode softplus: std = softplus(raw) + exp(log_std_min), no upper bound (Brax's NormalTanhDistribution,
+    floor 0.001): at raw 0 the std is log 2 + 0.001; far below, the floor; far above, raw + 0.001."""
+    floor = np.log(0.001)
+    std = lambda raw: float(np.exp(policy.bound_log_std(jnp.array(raw, jnp.float32), floor, 2.0, "softplus")))
+    assert std(0.0) == pytest.approx(np.log(2.0) + 0.001, rel=1e-6)
+    assert std(-40.0) == pytest.approx(0.001, rel=1e-5)
+    assert std(30.0) == pytest.approx(30.001, rel=1e-6)  # above log_std_max's e^2: not bounded
+
+
+@pytest.mark.numerics
 def test_action_rescaling_with_asymmetric_bounds():
     scaler = policy.ActionScaler(np.array([-1.0, 0.0, -10.0]), np.array([3.0, 10.0, -2.0]))
     np.testing.assert_allclose(scaler.to_env(-np.ones(3)), [-1.0, 0.0, -10.0])

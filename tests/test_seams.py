@@ -125,6 +125,11 @@ def test_the_explorer_chooses_warm_up_policy_and_random_actions_and_refuses_non_
     with pytest.raises(RunFailed, match="training diverged at step 14: the policy produced non-finite actions"):
         explorer.actions(np.zeros((2, 3)), step=14)
 
+    policy.actions, policy.config = actions, config.replace(warmup_actions="policy")  # Brax's prefill
+    rng_state = streams.rng.bit_generator.state
+    warm_policy, _ = explorer.actions(np.zeros((2, 3)), step=0)
+    assert policy.calls == 5 and np.array_equal(warm_policy, actions) and streams.rng.bit_generator.state == rng_state
+
 
 def test_the_explorer_acts_through_the_runs_noise_and_restarts_an_ended_episodes_sequence(tiny):
     """With pink noise the policy acts on the noise sequence's next values (not the act key), and an env whose

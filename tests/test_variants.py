@@ -299,6 +299,34 @@ def test_a_zero_actor_head_starts_every_state_at_the_mean_action_zero_and_one_lo
     assert np.abs(hidden).max() > 0  # the hidden layers keep their usual init
 
 
+@pytest.mark.numerics
+def test_braxs_networks_lecun_uniform_weights_and_layer_norm_after_each_activation():
+    """init lecun_uniform: weights U(+-sqrt(3 / fan_in)) (variance 1 / fan_in), biases 0; layer_norm_position after:
+    each hidden layer is LayerNorm(relu(x W + b)), as Brax's MLP with layer_norm, the critics' and the actor's."""
+    cfg = SACConfig().replace(hidden_sizes=[64, 64], init="lecun_uniform", critic_layer_norm=True,
+                              actor_layer_norm=True, layer_norm_position="after")
+    fns = build.build(cfg, 5, 2)
+    state = fns.init(0)
+    w = np.asarray(state.critic[1]["w"])  # [critic, 64, 64]
+    assert np.abs(w).max() <= np.sqrt(3.0 / 64) and np.var(w) == pytest.approx(1.0 / 64, rel=0.1)
+    assert not np.any(np.asarray(state.critic[0]["b"])) and not np.any(np.asarray(state.actor[-1]["b"]))
+
+    def hand(layers, x):  # float64
+        for layer in layers[:-1]:
+            h = np.maximum(x @ np.asarray(layer["w"], np.float64) + np.asarray(layer["b"], np.float64), 0.0)
+            x = (h - h.mean(-1, keepdims=True)) / np.sqrt(h.var(-1, keepdims=True) + 1e-5)
+        return x @ np.asarray(layers[-1]["w"], np.float64) + np.asarray(layers[-1]["b"], np.float64)
+
+    rng = np.random.default_rng(2)
+    obs, act = rng.normal(size=(7, 5)).astype(np.float32), rng.uniform(-1, 1, (7, 2)).astype(np.float32)
+    q = fns.settings.critics.q_values(state.critic, (), jnp.asarray(obs), jnp.asarray(act))
+    first = jax.tree_util.tree_map(lambda a: np.asarray(a)[0], state.critic)
+    np.testing.assert_allclose(np.asarray(q)[0], hand(first, np.concatenate([obs, act], -1))[:, 0], rtol=1e-4,
+                               atol=1e-4)
+    mean, _ = fns.policy.mean_and_log_std(state.actor, (), jnp.asarray(obs))
+    np.testing.assert_allclose(np.asarray(mean), hand(state.actor, obs)[:, :2], rtol=1e-4, atol=1e-4)
+
+
 # ---- SimBa ---------------------------------------------------------------------------------------------------
 
 def _hand_simba(params, x, eps=1e-6):

@@ -48,6 +48,7 @@ def _check_collection(config: Any) -> None:
     need(config.buffer_size >= 1, "buffer_size", "must be >= 1")
     need(config.batch_size >= 1, "batch_size", "must be >= 1")
     need(config.learning_starts >= 0, "learning_starts", "must be >= 0")
+    need(config.warmup_actions in ("uniform", "policy"), "warmup_actions", "must be uniform or policy")
     need(0.0 <= config.random_action_prob <= 1.0, "random_action_prob", "must be in [0, 1]")
     need(config.exploration_noise in ("gaussian", "pink", "gsde", "repeat"), "exploration_noise",
          "must be gaussian, pink, gsde or repeat")
@@ -98,6 +99,7 @@ def _check_targets_and_critics(config: Any) -> None:
     need(1 <= config.n_critics <= 100, "n_critics", "must be between 1 and 100")
     need(not (config.crossq and config.critic_layer_norm), "critic_layer_norm",
          "cannot be combined with crossq, which normalises with batch renormalisation")
+    need(config.layer_norm_position in ("before", "after"), "layer_norm_position", "must be before or after")
     need(config.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
     need(config.target_q in ("min", "each"), "target_q", "must be min or each")
     need(config.actor_q in ("min", "mean"), "actor_q", "must be min or mean")
@@ -165,7 +167,7 @@ def _check_networks(config: Any) -> None:
     need(len(config.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
     need(all(1 <= h <= 65_536 for h in config.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
     need(config.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
-    need(config.init in ("default", "orthogonal"), "init", "must be default or orthogonal")
+    need(config.init in ("default", "orthogonal", "lecun_uniform"), "init", "must be default, orthogonal or lecun_uniform")
     need(config.matmul_dtype in ("float32", "bfloat16", "auto"), "matmul_dtype", "must be float32, bfloat16 or auto")
 
 
@@ -181,7 +183,7 @@ def _check_optimisers_and_policy(config: Any) -> None:
     need(config.target_entropy == "auto" or isinstance(config.target_entropy, float), "target_entropy",
          "must be auto or a number")
     need(config.log_std_min < config.log_std_max, "log_std_min", "must be below log_std_max")
-    need(config.log_std_mode in ("clamp", "tanh"), "log_std_mode", "must be clamp or tanh")
+    need(config.log_std_mode in ("clamp", "tanh", "softplus"), "log_std_mode", "must be clamp, tanh or softplus")
 
 
 def _check_outputs(config: Any) -> None:

@@ -136,8 +136,8 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
     unroll = jax.default_backend() == "cpu" and c.n_critics <= 8 and norm is None
     return UpdateSettings(
         policy=Policy(c.activation, c.log_std_min, c.log_std_max, c.log_std_mode, matmul_dtype, norm, c.network,
-                      sde=c.exploration_noise == "gsde", layer_norm=c.actor_layer_norm),
-        critics=Critics(c.activation, matmul_dtype, c.critic_layer_norm, unroll=unroll, batch_renorm=norm,
+                      sde=c.exploration_noise == "gsde", layer_norm=c.layer_norm_position if c.actor_layer_norm else ""),
+        critics=Critics(c.activation, matmul_dtype, c.layer_norm_position if c.critic_layer_norm else "", unroll=unroll, batch_renorm=norm,
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
                         drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics,
                         n_atoms=c.n_atoms, v_min=c.v_min, v_max=c.v_max, categorical_target=c.categorical_target,

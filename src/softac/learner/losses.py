@@ -41,7 +41,7 @@ class Critics:
     statistics are passed in)."""
     activation: str
     matmul_dtype: str = "float32"
-    layer_norm: bool = False
+    layer_norm: str = ""  # "before" or "after" each hidden activation: its LayerNorm (MLP critics)
     unroll: bool = False  # critic by critic (faster on CPU, see critics_apply) instead of vmap
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
     network: str = "mlp"  # a config's network (mlp, simba); with batch_renorm an MLP is a batch_renorm_mlp

@@ -8,6 +8,7 @@ network's parameters, their running statistics (batch renormalisation; `()` with
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +26,8 @@ LOG_SQRT_2PI = float(0.5 * np.log(2.0 * np.pi))
 def bound_log_std(raw: jax.Array, lo: float, hi: float, mode: str) -> jax.Array:
     if mode == "tanh":  # CleanRL: squash smoothly into [lo, hi]
         return lo + 0.5 * (hi - lo) * (jnp.tanh(raw) + 1.0)
+    if mode == "softplus":  # Brax's NormalTanhDistribution: std = softplus(raw) + min_std, no upper bound
+        return jnp.log(jax.nn.softplus(raw) + math.exp(lo))
     return jnp.clip(raw, lo, hi)  # SB3
 
 
@@ -85,7 +88,7 @@ class Policy:
     batch_renorm: BatchRenorm | None = None  # between layers (CrossQ)
     network: str = "mlp"  # a config's network (mlp, simba); with batch_renorm an MLP is a batch_renorm_mlp
     sde: bool = False  # gSDE: the actor outputs the mean; its head holds the exploration matrix's log std
-    layer_norm: bool = False  # LayerNorm before each hidden activation (MLP actors; FastSAC)
+    layer_norm: str = ""  # "before" or "after" each hidden activation: its LayerNorm (MLP actors; FastSAC, Brax)
 
     @property
     def kind(self) -> Network:

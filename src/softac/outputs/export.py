@@ -94,10 +94,12 @@ def policy_arrays(learner: Learner, step: int) -> dict[str, np.ndarray]:
     if learner.spaces.image_shape is not None:
         arrays.update(encoder_arrays(learner))
     arrays["activation"] = np.asarray(learner.config.activation)
-    if learner.functions.policy.layer_norm:  # an MLP actor's LayerNorm before each hidden activation
+    if learner.functions.policy.layer_norm:  # an MLP actor's LayerNorm before (or after) each hidden activation
         from softac.learner.networks.layers import LAYER_NORM_EPS
 
         arrays["hidden_ln_eps"] = np.asarray(LAYER_NORM_EPS, np.float32)
+        if learner.functions.policy.layer_norm == "after":
+            arrays["hidden_ln_after"] = np.asarray(1, np.int8)
     arrays["action_low"] = learner.scaler.low.astype(np.float32)
     arrays["action_high"] = learner.scaler.high.astype(np.float32)
     if learner.spaces.layout is not None:  # a dict-observing env: the policy takes the dict, flattened in this order

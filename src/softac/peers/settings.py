@@ -31,7 +31,9 @@ def untranslatable_common(c: SACConfig) -> dict[str, bool]:
             "n_atoms (SBX has no categorical critic)": c.n_atoms > 0, "reward_scale": c.reward_scale != "off",
             "target_entropy_std": c.target_entropy_std > 0, "target_q": c.target_q != "min",
             "actor_q": c.actor_q != "min", "actor_layer_norm": c.actor_layer_norm,
-            "zero_actor_head": c.zero_actor_head}  # action_repeat: the peer's env (peers.py)
+            "zero_actor_head": c.zero_actor_head, "init": c.init != "default",
+            "warmup_actions": c.warmup_actions != "uniform",
+            "layer_norm_position": c.layer_norm_position != "before"}  # action_repeat: the peer's env (peers.py)
 
 
 def crossq_settings(c: SACConfig) -> dict[str, Any]:
@@ -102,16 +104,19 @@ def simba_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
 
 
 BRAX_ALPHA_LR = 3e-4  # brax/training/agents/sac/train.py: optax.adam(learning_rate=3e-4) for alpha, fixed
+BRAX_LOG_STD_MIN = -6.9078  # log(0.001), brax/training/distribution.py NormalTanhDistribution's min_std, to 4 places
 
 
 def brax_sac_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
     """`brax.training.agents.sac.train`'s keywords for config `c` (ValueError naming what Brax cannot take): the
     env's own keywords (episode length, its action repeat, the env) and the run's (steps, evaluations, seed,
     progress) are the runner's. Brax's SAC has one learning rate for actor and critics, alpha's fixed at 3e-4
-    from alpha 1, two critics, the target entropy -|A|/2, one MLP width list for both networks, and a
-    running observation normaliser without a clip."""
+    from alpha 1, two critics, the target entropy -|A|/2, one MLP width list for both networks, a running
+    observation normaliser without a clip, LeCun-uniform weights, LayerNorm after each hidden activation, a std of
+    softplus + 0.001, and a replay prefilled by its initial policy: each of those a setting a config must match."""
     common = {k: v for k, v in untranslatable_common(c).items()
-              if k not in ("obs_norm", "n_envs", "actor_lr != alpha_lr", "activation")}
+              if k not in ("obs_norm", "n_envs", "actor_lr != alpha_lr", "activation", "log_std bounds", "init",
+                           "warmup_actions", "layer_norm_position")}
     refuse_settings("Brax's SAC", {
         **common, "actor_lr != critic_lr (Brax has one rate)": c.actor_lr != c.critic_lr,
         f"alpha_lr != {BRAX_ALPHA_LR:g} (Brax's)": c.alpha_lr != BRAX_ALPHA_LR,
@@ -122,7 +127,13 @@ def brax_sac_settings(c: SACConfig, act_dim: int) -> dict[str, Any]:
         "policy_delay": c.policy_delay != 1, "critic_dropout": c.critic_dropout > 0, "weight_decay": c.weight_decay > 0,
         "Adam's b1/b2": (c.adam_b1, c.adam_b2) != (0.9, 0.999), "policy_average_tau": c.policy_average_tau > 0,
         "actor and critic widths differ (Brax has one list)": c.actor_widths != c.critic_widths,
-        "zero_actor_head": c.zero_actor_head})
+        "zero_actor_head": c.zero_actor_head,
+        "log_std other than softplus with floor 0.001 (Brax's)": (c.log_std_mode, round(c.log_std_min, 4))
+        != ("softplus", BRAX_LOG_STD_MIN),
+        "init other than lecun_uniform (Brax's)": c.init != "lecun_uniform",
+        "warmup_actions other than policy (Brax's prefill)": c.warmup_actions != "policy",
+        "layer_norm_position other than after (Brax's MLP)": (c.critic_layer_norm or c.actor_layer_norm)
+        and c.layer_norm_position != "after"})
     return {"num_envs": c.n_envs, "learning_rate": c.critic_lr, "discounting": c.gamma, "batch_size": c.batch_size,
             "normalize_observations": c.obs_norm, "tau": c.tau, "min_replay_size": c.learning_starts,
             "max_replay_size": c.buffer_size, "grad_updates_per_step": c.gradient_steps, "deterministic_eval": True,

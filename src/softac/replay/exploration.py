@@ -200,8 +200,8 @@ def mix_in_random_actions(rng: np.random.Generator, actions: np.ndarray, prob: f
 
 
 class Explorer:
-    """The training loop's actions for one vector-env step: uniform before learning_starts; after it the
-    policy's sample, through the run's coloured or gSDE noise where it has one, else through the run's act
+    """The training loop's actions for one vector-env step: uniform before learning_starts (unless warmup_actions
+    is policy); after it the policy's sample, through the run's coloured or gSDE noise where it has one, else through the run's act
     key; with random_action_prob, that share of the rows uniform again. `policy`: the learner (its config,
     act, act_with_noise, scaler); `streams`: the run state, whose random streams (rng, act_key, noise) are
     checkpointed with it and advanced here."""
@@ -213,7 +213,7 @@ class Explorer:
         """(actions in [-1, 1], the same in env bounds) for the envs' observations at env step `step`."""
         policy, rs = self.policy, self.streams
         cfg = policy.config
-        if step < cfg.learning_starts:
+        if step < cfg.learning_starts and cfg.warmup_actions == "uniform":
             actions = rs.rng.uniform(-1.0, 1.0, (cfg.n_envs, policy.spaces.act_dim)).astype(np.float32)
             return actions, policy.scaler.to_env(actions)
         if rs.noise is not None:

@@ -1,6 +1,6 @@
 """The device's source of transitions (issue 67), the training loop's other source beside the host's
 (softac.run.transitions): a chunk is many vector steps of N envs in one jitted `lax.scan`, each step the policy's
-actions (uniform ones before learning_starts), the envs stepped and auto-reset (softac.envs.device_envs), the
+actions (uniform ones before learning_starts, unless warmup_actions is policy), the envs stepped and auto-reset (softac.envs.device_envs), the
 transitions written into the device's replay buffer and `gradient_steps` updates on batches drawn from it, as
 Brax's SAC training step fuses them. The host sees the chunk's end only: the episodes that ended in it (each at
 its own step), for the loop's logs, evaluations, checkpoints and callbacks. Evaluation runs its episodes at once on
@@ -44,6 +44,7 @@ class ChunkSpec(NamedTuple):
     gradient_steps: int
     batch_size: int
     learning_starts: int
+    uniform_warmup: bool  # warmup_actions uniform: uniform actions before learning_starts (else the policy's)
     linear_lr: bool
     length: int  # vector steps
     obs_clip: float  # > 0: obs_norm's clip, the observations normalised by running statistics; 0: raw
@@ -61,7 +62,8 @@ class DeviceTransitions:
         self.learner, self.collector, self.run_state = learner, collector, run_state
         cfg, settings = learner.config, learner.functions.settings
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
-                              cfg.gradient_steps, cfg.batch_size, cfg.learning_starts, cfg.lr_schedule == "linear",
+                              cfg.gradient_steps, cfg.batch_size, cfg.learning_starts,
+                              cfg.warmup_actions == "uniform", cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
                               cfg.reward_scale, float(cfg.gamma), float(cfg.v_max))
         self.numbers = numbers_of(settings)
@@ -262,9 +264,12 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
             obs = normalized(stats, batch.obs, spec.obs_clip)
             return spec.policy.sample(actor, actor_stats, features_of(encoder, obs), act_key)[0]
 
-        actions = jax.lax.cond(before < spec.learning_starts,
-                               lambda: jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0),
-                               policy_actions)
+        if spec.uniform_warmup:
+            actions = jax.lax.cond(before < spec.learning_starts,
+                                   lambda: jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0),
+                                   policy_actions)
+        else:
+            actions = policy_actions()
         batch, s = envs.step(batch, actions)
         replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
                                       s.terminated | s.truncated)

@@ -55,7 +55,7 @@ def init_critics(rng: np.random.Generator, obs_dim: int, act_dim: int, hidden: l
 
 
 def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation: str,
-                  matmul_dtype: str = "float32", normalize: bool = False, unroll: bool = False,
+                  matmul_dtype: str = "float32", normalize: bool | str = False, unroll: bool = False,
                   network: str = "mlp", dropout_rate: float = 0.0, key: jax.Array | None = None,
                   quantiles: bool = False, stats: Params = (), batch_renorm: BatchRenorm | None = None,
                   train: bool = False, renorm: jax.Array | bool = False) -> tuple[jax.Array, Params]:
@@ -63,7 +63,7 @@ def critics_apply(params: Params, obs: jax.Array, actions: jax.Array, activation
     (TQC's quantile critics, one output a quantile), and the running statistics (each critic its own; new ones
     in training mode with batch renormalisation, else `stats` as given). With `dropout_rate`, each critic and row
     drops its own hidden units (masks drawn from `key`; MLP critics). `normalize`: LayerNorm before each hidden
-    activation (MLP critics).
+    activation (True or "before") or after it ("after"; MLP critics).
 
     The parameters are one stacked ensemble either way. `unroll` evaluates it critic by critic as
     plain 2-D matmuls, which XLA's CPU backend runs faster than the batched matmuls of `vmap`

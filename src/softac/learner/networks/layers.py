@@ -32,6 +32,10 @@ def init_layer(rng: np.random.Generator, fan_in: int, fan_out: int, init: str, g
         q *= np.sign(np.diag(r))
         w = gain * (q if fan_in >= fan_out else q.T)
         b = np.zeros(fan_out)
+    elif init == "lecun_uniform":  # Brax's networks (jax.nn.initializers.lecun_uniform): U(+-sqrt(3 / fan_in)), zero biases
+        bound = math.sqrt(3.0 / fan_in)
+        w = rng.uniform(-bound, bound, (fan_in, fan_out))
+        b = np.zeros(fan_out)
     else:  # PyTorch nn.Linear's default: U(-1/sqrt(fan_in), 1/sqrt(fan_in)) for weights and biases
         bound = 1.0 / math.sqrt(fan_in)
         w = rng.uniform(-bound, bound, (fan_in, fan_out))

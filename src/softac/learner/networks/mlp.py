@@ -1,5 +1,5 @@
-"""The plain MLP (SAC's networks), optionally with LayerNorm before each hidden activation (RLPD) and dropout of
-hidden units (DroQ). Parameters: a list of {"w", "b"} layers."""
+"""The plain MLP (SAC's networks), optionally with LayerNorm before each hidden activation (RLPD) or after it
+(Brax), and dropout of hidden units (DroQ). Parameters: a list of {"w", "b"} layers."""
 
 from __future__ import annotations
 
@@ -30,22 +30,25 @@ def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: fl
 
 
 def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
-        normalize: bool = False, masks: list[jax.Array] | None = None) -> jax.Array:
-    """`normalize` puts a LayerNorm (no affine) before each hidden activation (Ball et al. 2023, RLPD):
-    it keeps critics stable at high update-to-data ratios. `masks` (dropout_mask's, one per hidden layer) drop
+        normalize: bool | str = False, masks: list[jax.Array] | None = None) -> jax.Array:
+    """`normalize` puts a LayerNorm (no affine) before each hidden activation (True or "before": Ball et al. 2023,
+    RLPD; it keeps critics stable at high update-to-data ratios) or after it ("after": Brax's MLP). `masks` (dropout_mask's, one per hidden layer) drop
     hidden units before it (DroQ, Hiraoka et al. 2022: dense, dropout, LayerNorm, activation)."""
     return dense(mlp_features(params, x, activation, matmul_dtype, normalize, masks), params[-1], matmul_dtype)
 
 
 def mlp_features(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
-                 normalize: bool = False, masks: list[jax.Array] | None = None) -> jax.Array:
-    """`mlp` up to the output layer's input: the last hidden layer's activations."""
+                 normalize: bool | str = False, masks: list[jax.Array] | None = None) -> jax.Array:
+    """`mlp` up to the output layer's input: the last hidden layer's activations (LayerNormed, with "after")."""
     act = ACTIVATIONS[activation]
     for i, layer in enumerate(params[:-1]):
         h = dense(x, layer, matmul_dtype)
         if masks is not None:
             h = h * masks[i]
-        x = act(layer_norm(h) if normalize else h)
+        if normalize == "after":
+            x = layer_norm(act(h))
+        else:
+            x = act(layer_norm(h) if normalize else h)
     return x
 
 
@@ -125,10 +128,13 @@ def onnx_actor(g: onnx_layers.Graph, arrays: dict[str, np.ndarray], x: str) -> s
                      g.const(f"p{i}_inv_std", arrays[f"p{i}_inv_std"]))
             x = g.op("Add", g.op("Mul", x, g.const(f"p{i}_scale", arrays[f"p{i}_scale"])),
                      g.const(f"p{i}_bias", arrays[f"p{i}_bias"]))
-        if i < len(bf16) - 1 and "hidden_ln_eps" in arrays:
+        ln_after = bool(arrays.get("hidden_ln_after", False))
+        if i < len(bf16) - 1 and "hidden_ln_eps" in arrays and not ln_after:
             x = onnx_layers.layer_norm(g, arrays, x, f"ln{i}", float(arrays["hidden_ln_eps"]))
         if i < len(bf16) - 1:
             x = onnx_layers.activation(g, str(arrays["activation"]), x)
+        if i < len(bf16) - 1 and "hidden_ln_eps" in arrays and ln_after:
+            x = onnx_layers.layer_norm(g, arrays, x, f"ln{i}", float(arrays["hidden_ln_eps"]))
     return x
 
 
