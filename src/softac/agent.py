@@ -14,6 +14,7 @@ and `load()` go through softac.run.checkpoint_contents. No module below this one
 from __future__ import annotations
 
 import contextlib
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,9 +46,14 @@ def device_collector(config: SACConfig, env_source: EnvSource, spaces: Any) -> D
 class SAC:
     """A Soft Actor-Critic agent for one env (an id or a gym.Env instance)."""
 
-    def __init__(self, config: SACConfig | None = None, env: EnvSource | None = None):
+    def __init__(self, config: SACConfig | None = None, env: EnvSource | None = None,
+                 offline_data: str | Path | None = None):
+        """`offline_data`: a dataset to learn from beside the env (config key offline_data, which it replaces): a
+        Minari dataset id or directory, a softac run directory, or a `softac dataset` output (issue 68)."""
         if config is None:
             config = SACConfig.for_env(env if isinstance(env, str) else None)
+        if offline_data is not None:
+            config = config.replace(offline_data=str(offline_data))
         if env is None:
             env = config.env_id
         elif isinstance(env, str):
@@ -67,9 +73,18 @@ class SAC:
         self.learner = Learner(config, self.spaces)  # what the agent knows
         # its training envs and replay buffer: on the host, or N envs on the device (MuJoCo Playground's; issue 67)
         self.collector = (device_collector(config, self.env_source, self.spaces) if config.collects_on_device
-                          else Collector(config, self.env_source, self.spaces, her))
+                          else Collector(config, self.env_source, self.spaces, her, self._offline_loader(config)))
         # where its training stands (counters, RNGs, exploration noise, evaluations, its run)
         self.run_state = RunState.new(config.seed, exploration_noise(config, self.spaces.act_dim))
+
+    def _offline_loader(self, config: SACConfig) -> Any:
+        """offline_data's reader (issue 68), called when training first needs the dataset."""
+        if not config.offline_data:
+            return None
+        from softac.run.offline_sources import load_offline_data
+
+        return partial(load_offline_data, config.offline_data, env_name(self.env_source) if not isinstance(
+            self.env_source, str) else self.env_source, self.spaces, self.learner.scaler.to_normalised)
 
     @property
     def config(self) -> SACConfig:

@@ -20,7 +20,7 @@ EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a Unix tool wh
 # train's flags that set a config key, by key, each read from its argparse destination (--env is not one: it picks
 # the preset, which `--set env_id=` may move to another env, as a sweep's grid over env_id does)
 FLAG_OF_KEY = {"total_steps": "--steps", "seed": "--seed", "n_envs": "--n-envs", "env_workers": "--env-workers",
-               "device": "--device", "loggers": "--logger"}
+               "device": "--device", "loggers": "--logger", "offline_data": "--offline-data"}
 
 
 def _resolve_train_config(args: argparse.Namespace):
@@ -85,7 +85,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if args.resume:
         clash = [flag for flag, value in (("--env", args.env), ("--preset", args.preset), ("--config", args.config),
-                                          ("--seed", args.seed), ("--n-envs", args.n_envs), ("--out", args.out))
+                                          ("--seed", args.seed), ("--n-envs", args.n_envs), ("--out", args.out),
+                                          ("--offline-data", args.offline_data))
                  if value is not None] + (["--set"] if args.overrides else [])
         if clash:
             raise SoftacError(f"--resume continues a run with its own config; drop {', '.join(clash)}")
@@ -170,6 +171,10 @@ def _new_agent(config, run: Path, args: argparse.Namespace):
     start = (f"training {config.env_id} for {config.total_steps} steps (seed {config.seed}) -> {run}; replay buffer "
              f"{per:.0f} B per transition, {per * config.buffer_size / 2**20:.1f} MiB at buffer_size "
              f"{config.buffer_size:,}")
+    offline = agent.collector.load_offline() if config.offline_data else None  # read now: a bad one fails first
+    if offline is not None:
+        start += f"; {offline.describe()}, {config.offline_mode}" + (
+            f" ({config.offline_fraction:g} of each batch)" if config.offline_mode == "mix" else " into the replay")
     if config.learning_starts >= config.total_steps:  # a preset's warm-up past a short --steps (fastsac's 40,960)
         start += (f"\nsoftac: note: learning_starts={config.learning_starts:,} is not below the run's "
                   f"{config.total_steps:,} steps: it acts at random throughout and never updates (--set "
@@ -209,6 +214,41 @@ def cmd_eval(args: argparse.Namespace) -> int:
             print("reward terms, mean per episode: " + ", ".join(
                 f"{name[len('reward_'):]} {value:.2f}" for name, value in stats["reward_terms"].items()))
     return EXIT_OK
+
+
+def cmd_dataset(args: argparse.Namespace) -> int:
+    from softac.outputs.dataset import buffer_dataset, policy_dataset
+    from softac.run import checkpoint as ckpt
+
+    run, out = Path(args.run), Path(args.out)
+    if out.exists():
+        raise SoftacError(f"{out} exists; pick a new --out")
+    if args.noise < 0:
+        raise SoftacError("--noise must be >= 0")
+    if args.episodes is None and (args.noise or args.policy != "deployed"):
+        raise SoftacError("--noise and --policy choose how fresh episodes act: give --episodes N too")
+    from softac.agent import SAC
+
+    if args.episodes is None:
+        agent = SAC.load(ckpt.resolve(run, "last"))
+        written, episodes, steps = buffer_dataset(run, agent.make_env, agent.learner.scaler.to_env, out, args.id)
+        print(f"wrote {written}: the replay buffer of {run}, {steps:,} transitions in {episodes:,} episodes "
+              f"(Minari {_minari_version()}; --offline-data {written})")
+        return EXIT_OK
+    agent = SAC.load(run)
+    written, episodes, steps, mean_return = policy_dataset(agent, run, args.episodes, args.policy, args.noise,
+                                                           args.seed, out, args.id)
+    print(f"wrote {written}: {episodes} episodes of {run}'s {args.policy} policy"
+          + (f" with noise {args.noise:g}" if args.noise else "")
+          + f", {steps:,} transitions, mean return {mean_return:.2f} (Minari {_minari_version()}; "
+          f"--offline-data {written})")
+    return EXIT_OK
+
+
+def _minari_version() -> str:
+    import minari
+
+    return minari.__version__
 
 
 def _record_video(path: Path, which: str | None, out: str | None, episodes: int, deterministic: bool,

@@ -17,7 +17,7 @@ from softac.peers import PEERS
 
 from softac.cli.commands import (EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK, EXIT_RUN_FAILED,
                              cmd_baselines, cmd_bench, cmd_eval, cmd_export, cmd_plot, cmd_presets, cmd_report,
-                             cmd_sweep, cmd_train, cmd_video)
+                             cmd_dataset, cmd_sweep, cmd_train, cmd_video)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -81,6 +81,10 @@ def _train_arguments(t: argparse.ArgumentParser) -> None:
                    help="with --resume: train until the run has N steps (its budget becomes N)")
     t.add_argument("--seed", type=int)
     t.add_argument("--n-envs", type=_positive_int)
+    t.add_argument("--offline-data", metavar="SOURCE",
+                   help="learn from a dataset beside the env's transitions: a Minari dataset id or directory, a softac "
+                        "run directory (its replay buffer) or a `softac dataset` output (config key offline_data; "
+                        "offline_mode, offline_fraction)")
     t.add_argument("--env-workers", type=_positive_int, metavar="K",
                    help="step the n_envs envs in K worker processes (for slow simulators; the same results; "
                         "with --resume too)")
@@ -194,6 +198,19 @@ def build_parser() -> _Parser:
     x.add_argument("--checkpoint", choices=["best", "last"], help="which checkpoint of a run (default best, else last)")
     _add_allow_new_bounds(x)
 
+    d = sub.add_parser("dataset", help="a Minari dataset from a run: its replay buffer, or fresh episodes of its policy")
+    d.add_argument("run", metavar="RUN")
+    d.add_argument("--out", required=True, metavar="DIR", help="the dataset's directory (new); NAMESPACE/NAME-vN at its "
+                                                            "end names its Minari id")
+    d.add_argument("--episodes", type=_positive_int, metavar="N",
+                   help="N fresh episodes of the run's policy (default: the replay buffer of its last checkpoint)")
+    _add_policy(d)
+    d.add_argument("--noise", type=_finite_float, default=0.0, metavar="S",
+                   help="with --episodes: Gaussian noise of std S on each action, in [-1, 1] units (default 0)")
+    d.add_argument("--seed", type=int, default=0, help="with --episodes: episode i starts from reset(seed=SEED+i)")
+    d.add_argument("--id", metavar="NAMESPACE/NAME-vN", help="the dataset's Minari id (default from --out, else "
+                                                             "softac/ENV-replay-v0 or softac/ENV-policy-v0)")
+
     b = sub.add_parser("baselines", help="random, zero and heuristic policies' returns")
     b.add_argument("--env", default="InvertedPendulum-v5")
     b.add_argument("--episodes", type=_positive_int, default=10)
@@ -214,7 +231,7 @@ def build_parser() -> _Parser:
 
 COMMANDS = {"train": cmd_train, "eval": cmd_eval, "presets": cmd_presets, "bench": cmd_bench, "plot": cmd_plot,
             "video": cmd_video, "report": cmd_report, "export": cmd_export, "baselines": cmd_baselines,
-            "sweep": cmd_sweep}
+            "sweep": cmd_sweep, "dataset": cmd_dataset}
 
 
 def entry_point() -> int:

@@ -60,6 +60,15 @@ def _check_collection(config: Any) -> None:
     need(2 <= config.noise_sequence_length <= 1_000_000, "noise_sequence_length", "must be between 2 and 1,000,000")
     need(config.obs_norm_clip > 0.0, "obs_norm_clip", "must be > 0")
     need(config.her in ("auto", "on", "off"), "her", "must be auto, on or off")
+    need(config.offline_mode in ("mix", "prefill"), "offline_mode", "must be mix or prefill")
+    need(0.0 < config.offline_fraction < 1.0, "offline_fraction",
+         "must be in (0, 1): each batch part offline, part online (offline_mode prefill samples one replay)")
+    if config.offline_data:
+        need(config.n_step == 1, "n_step", "offline_data's transitions are one-step: set n_step=1")
+        need(config.her != "on", "her", "offline_data does not relabel goals yet: set her=off")
+        need(not config.pixels, "pixels", "offline_data holds vector observations only, not pixels")
+        need(not (config.offline_mode == "prefill" and config.buffer_obs_once), "buffer_obs_once",
+             "offline_mode prefill copies whole transitions: set buffer_obs_once=false")
     need(config.her_strategy in ("future", "final", "episode"), "her_strategy", "must be future, final or episode")
     need(1 <= config.her_k <= 1000, "her_k", "must be between 1 and 1000")
 
@@ -81,6 +90,7 @@ def _check_device_collection(config: Any) -> None:
     need(config.n_step == 1, "n_step", host_only.replace("set it off", "set it to 1"))
     need(config.env_workers == 0, "env_workers", "device collection steps its envs inside the update's jit: set 0")
     need(not config.pixels, "pixels", host_only)
+    need(not config.offline_data, "offline_data", host_only.replace("set it off", "unset it"))
 
 
 def _check_targets_and_critics(config: Any) -> None:
@@ -101,7 +111,12 @@ def _check_targets_and_critics(config: Any) -> None:
          "cannot be combined with crossq, which normalises with batch renormalisation")
     need(config.layer_norm_position in ("before", "after"), "layer_norm_position", "must be before or after")
     need(config.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
-    need(config.target_q in ("min", "each"), "target_q", "must be min or each")
+    need(config.target_q in ("min", "each", "subset"), "target_q", "must be min, each or subset")
+    if config.target_q == "subset":
+        need(1 <= config.target_q_subset <= config.n_critics, "target_q_subset",
+             f"must be between 1 and n_critics ({config.n_critics})")
+        need(config.n_atoms == 0 and config.n_quantiles == 0, "target_q",
+             "subset draws scalar critics (REDQ's): not with n_atoms or n_quantiles")
     need(config.actor_q in ("min", "mean"), "actor_q", "must be min or mean")
     need(not (config.n_quantiles and config.target_q != "min"), "target_q",
          "TQC's quantile critics pool their atoms for the target (n_quantiles > 0): leave target_q at min")
@@ -167,7 +182,8 @@ def _check_networks(config: Any) -> None:
     need(len(config.hidden_sizes) >= 1, "hidden_sizes", "needs at least one layer")
     need(all(1 <= h <= 65_536 for h in config.hidden_sizes), "hidden_sizes", "widths must be between 1 and 65536")
     need(config.activation in ACTIVATIONS, "activation", f"must be one of {', '.join(ACTIVATIONS)}")
-    need(config.init in ("default", "orthogonal", "lecun_uniform"), "init", "must be default, orthogonal or lecun_uniform")
+    need(config.init in ("default", "orthogonal", "lecun_uniform", "xavier_uniform"), "init",
+         "must be default, orthogonal, lecun_uniform or xavier_uniform")
     need(config.matmul_dtype in ("float32", "bfloat16", "auto"), "matmul_dtype", "must be float32, bfloat16 or auto")
 
 

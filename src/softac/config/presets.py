@@ -13,7 +13,7 @@ from softac.errors import ConfigError
 
 FALLBACK_PRESET = "default"
 GENERIC_PRESETS = ("default", "sb3", "cleanrl", "crossq", "crossq-avg", "crossq-wn", "sac-100k", "tqc", "simba", "droq",
-                   "drq", "xqc", "flashsac", "brax-sac", "fastsac")
+                   "drq", "xqc", "flashsac", "brax-sac", "fastsac", "rlpd")
 
 DMC_PRESET = "dmc"  # every DeepMind Control task without a preset of its own (issue 43); names no env itself
 

@@ -141,7 +141,8 @@ def update_settings(config: SACConfig, act_dim: int, matmul_dtype: str, images: 
                         network=c.network, dropout=c.critic_dropout, n_quantiles=c.n_quantiles,
                         drop_per_critic=c.top_quantiles_to_drop_per_net, targets=c.has_target_critics,
                         n_atoms=c.n_atoms, v_min=c.v_min, v_max=c.v_max, categorical_target=c.categorical_target,
-                        hl_gauss_sigma=c.hl_gauss_sigma, target_q=c.target_q, actor_q=c.actor_q),
+                        hl_gauss_sigma=c.hl_gauss_sigma, target_q=c.target_q, actor_q=c.actor_q,
+                        target_q_subset=c.target_q_subset if c.target_q == "subset" else 2),
         # the optimisers at rate 1, `scaled` applying each rate (AdamW's decay lr * weight_decay * p with the rest)
         actor_tx=optimizer(c, 1.0), critic_tx=optimizer(c, 1.0), alpha_tx=_adam(1.0, c.adam_b1, c.adam_b2),
         actor_lr=c.actor_lr, critic_lr=c.critic_lr, alpha_lr=c.alpha_lr,

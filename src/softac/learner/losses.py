@@ -55,7 +55,9 @@ class Critics:
     hl_gauss_sigma: float = 0.75  # hl_gauss: the Gaussian's standard deviation, in atom spacings
     # Polyak-averaged target critics give the next-state value (off: the online ones); None: SAC's yes, CrossQ's no
     targets: bool | None = None
-    target_q: str = "min"  # min: every critic toward the lowest next-state critic; each: each toward its own
+    target_q: str = "min"  # min: every critic toward the lowest next-state critic; each: each toward its own;
+    # subset: toward the lowest of `target_q_subset` next-state critics drawn for the update (REDQ, RLPD)
+    target_q_subset: int = 2
     actor_q: str = "min"  # min: the actor climbs the lowest critic; mean: the critics' mean
 
     @property
@@ -112,10 +114,18 @@ class Critics:
         values = self.values(q)
         return jnp.mean(values, axis=0) if self.actor_q == "mean" else jnp.min(values, axis=0)
 
-    def next_value(self, next_q: jax.Array) -> jax.Array:
+    def next_value(self, next_q: jax.Array, key: jax.Array | None = None) -> jax.Array:
         """The next-state Q the critics learn toward: the lowest critic's per row [batch] (clipped double Q,
-        Fujimoto et al. 2018), or with target_q=each every critic's own [n_critics, batch] (FastSAC)."""
-        return next_q if self.target_q == "each" else jnp.min(next_q, axis=0)
+        Fujimoto et al. 2018), or with target_q=each every critic's own [n_critics, batch] (FastSAC), or with
+        target_q=subset the lowest of `target_q_subset` critics drawn from `key`, one draw for the whole batch
+        (REDQ's in-target minimisation, Chen et al. 2021: a large ensemble without the minimum over all of it
+        turning pessimistic; RLPD draws 2 of 10 per update)."""
+        if self.target_q == "each":
+            return next_q
+        if self.target_q == "subset":
+            drawn = jax.random.permutation(key, next_q.shape[0])[: self.target_q_subset]
+            return jnp.min(next_q[drawn], axis=0)
+        return jnp.min(next_q, axis=0)
 
 
 def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, jax.Array | None]:
@@ -313,7 +323,9 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     elif critics.categorical:
         loss, metrics = categorical_error(q, next_q, next_log_prob, alpha, batch, gamma, n_step, critics)
     else:
-        loss, metrics = soft_bellman_error(q, critics.next_value(next_q), next_log_prob, alpha, batch, gamma, n_step)
+        subset_key = jax.random.fold_in(key, 0x5E7) if critics.target_q == "subset" else None  # others: keys as before
+        loss, metrics = soft_bellman_error(q, critics.next_value(next_q, subset_key), next_log_prob, alpha, batch,
+                                           gamma, n_step)
     return loss, (metrics, critic_stats)
 
 

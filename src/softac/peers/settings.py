@@ -33,7 +33,7 @@ def untranslatable_common(c: SACConfig) -> dict[str, bool]:
             "actor_q": c.actor_q != "min", "actor_layer_norm": c.actor_layer_norm,
             "zero_actor_head": c.zero_actor_head, "init": c.init != "default",
             "warmup_actions": c.warmup_actions != "uniform",
-            "layer_norm_position": c.layer_norm_position != "before"}  # action_repeat: the peer's env (peers.py)
+            "layer_norm_position": c.layer_norm_position != "before", "offline_data": bool(c.offline_data)}  # action_repeat: the peer's env (peers.py)
 
 
 def crossq_settings(c: SACConfig) -> dict[str, Any]:

@@ -1,8 +1,9 @@
 """`Collector`: the training envs and the replay buffer they fill.
 
 It steps the envs (in this process, or in env worker processes with env_workers > 0) with the actions the
-loop chose, stores each transition, and samples batches for the learner. Both parts are made on first
-use: an agent that only predicts never starts an env pool or allocates a buffer. Worker processes end with
+loop chose, stores each transition, and samples batches for the learner (with `offline_data`, part of each batch
+from the dataset: softac.replay.offline). The parts are made on first use: an agent that only predicts never starts
+an env pool, allocates a buffer or reads its dataset. Worker processes end with
 each learn(); their envs' state is kept ("parked") so the next learn() carries on exactly.
 """
 
@@ -20,6 +21,7 @@ from softac.config.sac_config import SACConfig
 from softac.envs.make import EnvFailed, EnvPool, EnvSource, SpaceInfo, StepResult, copy_env, env_name
 from softac.replay.her_buffer import HerReplayBuffer, HerSetup
 from softac.replay.image_buffer import FrameReplayBuffer
+from softac.replay.offline import OfflineData, OfflineDataError, mixed_batches, offline_rows
 
 if TYPE_CHECKING:
     from softac.envs.workers import WorkerEnvPool
@@ -60,8 +62,13 @@ def replay_buffer_for(config: SACConfig, spaces: SpaceInfo, her: HerSetup | None
 class Collector:
     """The env pool and the replay buffer of one training run."""
 
-    def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, her: HerSetup | None = None):
+    def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, her: HerSetup | None = None,
+                 offline_loader: Callable[[], OfflineData] | None = None):
         self.config, self.env_source, self.spaces, self.her = config, env_source, spaces, her
+        # offline_data (issue 68): read on first use by `offline_loader`; a resumed run's checkpoint names the
+        # checksum the dataset must still have
+        self.offline_loader, self.offline = offline_loader, None
+        self.offline_expected: dict[str, Any] | None = None
         self.buffer: Buffer | None = None
         self.pool: EnvPool | WorkerEnvPool | None = None
         self.started = False  # the envs were reset (or restored) once; they go on from where they are
@@ -92,6 +99,9 @@ class Collector:
         state, new ones are reset with seeds that depend on `num_steps`."""
         if self.buffer is None:
             self.buffer = self._make_buffer()
+            if self.config.offline_mode == "prefill" and self.load_offline() is not None and len(self.buffer) == 0:
+                self._prefill(self.offline)
+        self.load_offline()
         if self.pool is None:
             self.pool = self._make_pool()
             if self.parked_envs is not None:
@@ -153,8 +163,35 @@ class Collector:
         return self.buffer is not None and len(self.buffer) > 0
 
     def sample(self, rng: np.random.Generator, batch_size: int, batches: int) -> dict[str, np.ndarray]:
-        """`batches` batches of `batch_size` transitions, stacked (raw observations)."""
-        return self.buffer.sample(rng, batch_size, batches)
+        """`batches` batches of `batch_size` transitions, stacked (raw observations); with offline_data mixed in,
+        offline_fraction of each batch's rows from the dataset (RLPD's symmetric sampling), drawn from `rng` too."""
+        if self.offline is None or self.config.offline_mode != "mix":
+            return self.buffer.sample(rng, batch_size, batches)
+        k = offline_rows(batch_size, self.config.offline_fraction)
+        online = self.buffer.sample(rng, batch_size - k, batches)
+        return mixed_batches(online, self.offline.sample(rng, k, batches))
+
+    # ---- offline data (issue 68) ---------------------------------------------------------------------
+
+    def load_offline(self) -> OfflineData | None:
+        """The run's offline dataset, read once (None without offline_data); a resumed run's must be the one it
+        started with."""
+        if self.offline is None and self.offline_loader is not None:
+            data = self.offline_loader()
+            expected = self.offline_expected
+            if expected is not None and expected.get("checksum") != data.checksum:
+                raise OfflineDataError(f"offline data {data.source} changed since this run started (its checksum "
+                                       "differs from the checkpoint's): restore that dataset, or start a new run")
+            self.offline = data
+        return self.offline
+
+    def _prefill(self, data: OfflineData) -> None:
+        """offline_mode prefill: the dataset's transitions become the replay's first rows."""
+        if len(data) > self.buffer.capacity:
+            raise OfflineDataError(f"offline_mode prefill: {data.source} holds {len(data):,} transitions, more than "
+                                   f"buffer_size={self.buffer.capacity:,}")
+        self.buffer.add(data.obs, data.actions, data.rewards, data.next_obs, data.terminated,
+                        (data.terminated > 0) | data.truncated)
 
     def apply(self, fn: Callable[[Any], Any]) -> list[Any]:
         """Call `fn(env)` on each training env and return the results."""
@@ -171,6 +208,10 @@ class Collector:
     def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The buffer and the envs' state, when asked for and there (a `last` checkpoint, to resume)."""
         meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.buffer is not None)}
+        offline = self.offline_expected if self.offline is None else {
+            "source": self.offline.source, "checksum": self.offline.checksum, "transitions": len(self.offline)}
+        if offline is not None:
+            meta["offline"] = offline
         env_state = self.env_state() if include_buffer else None
         meta["has_envs"] = env_state is not None
         arrays: dict[str, np.ndarray] = {}
@@ -184,6 +225,7 @@ class Collector:
 
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], num_steps: int) -> None:
         """Take the buffer and envs a checkpoint holds (`num_steps`: where its run stands)."""
+        self.offline_expected = meta.get("offline")
         if meta.get("has_buffer"):
             self.buffer = self._make_buffer()
             self.buffer.load_state_dict(buffer_state(arrays))

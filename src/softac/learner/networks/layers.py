@@ -32,6 +32,10 @@ def init_layer(rng: np.random.Generator, fan_in: int, fan_out: int, init: str, g
         q *= np.sign(np.diag(r))
         w = gain * (q if fan_in >= fan_out else q.T)
         b = np.zeros(fan_out)
+    elif init == "xavier_uniform":  # Glorot & Bengio 2010, as RLPD's networks: U(+-sqrt(6 / (fan_in + fan_out))), zero biases
+        bound = math.sqrt(6.0 / (fan_in + fan_out))
+        w = rng.uniform(-bound, bound, (fan_in, fan_out))
+        b = np.zeros(fan_out)
     elif init == "lecun_uniform":  # Brax's networks (jax.nn.initializers.lecun_uniform): U(+-sqrt(3 / fan_in)), zero biases
         bound = math.sqrt(3.0 / fan_in)
         w = rng.uniform(-bound, bound, (fan_in, fan_out))

@@ -1,0 +1,99 @@
+"""`softac dataset`: a Minari dataset from a run (issue 68): its replay buffer as episodes, or fresh episodes of its
+policy (the deterministic action, with Gaussian noise of a given std in [-1, 1] units where asked), written with
+Minari's metadata (the env's spec where Gymnasium registers it, the algorithm, softac as author) so that
+`minari.load_dataset`, softac's `--offline-data` and other libraries read it."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from softac.replay.offline import OfflineDataError, write_minari
+from softac.run.offline_sources import buffer_episodes, run_buffer
+from softac.version import __version__
+
+
+def default_dataset_id(out: Path, env_id: str, mode: str) -> str:
+    """`namespace/name-vN` from `out` when its last two parts read so (a Minari datasets tree), else softac/ENV-MODE-v0."""
+    if re.fullmatch(r"[\w.-]+-v\d+", out.name) and out.parent.name:
+        return f"{out.parent.name}/{out.name}"
+    slug = re.sub(r"[^\w.-]+", "-", env_id.lower()).strip("-")
+    return f"softac/{slug}-{mode}-v0"
+
+
+def check_vector_env(env: Any, what: str) -> None:
+    import gymnasium as gym
+
+    if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
+        raise OfflineDataError(f"{what}: {type(env.observation_space).__name__} observations (goal envs' dicts, "
+                               "images) are not written as datasets yet; softac writes flat vector observations")
+
+
+def buffer_dataset(run: Path, make_env: Callable[[], Any], to_env: Callable[[np.ndarray], np.ndarray], out: Path,
+                   dataset_id: str | None) -> tuple[Path, int, int]:
+    """The run's replay buffer (its last checkpoint) as a Minari dataset: (out, episodes, transitions)."""
+    buffer = run_buffer(run)
+    env = make_env()
+    try:
+        check_vector_env(env, f"softac dataset {run}")
+        episodes = buffer_episodes(buffer, to_env)
+        env_id = buffer.config.env_id
+        written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "replay"), episodes,
+                               env_id, env.observation_space, env.action_space,
+                               f"softac {__version__} SAC (replay buffer)",
+                               f"The replay buffer of softac run {run} at step {buffer.saved.get('num_steps', '?')}: "
+                               f"{len(buffer.rewards):,} transitions of {env_id}.")
+    finally:
+        env.close()
+    return written, len(episodes), int(len(buffer.rewards))
+
+
+def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: Any, episodes: int, noise: float,
+                    seed: int) -> list[dict[str, np.ndarray]]:
+    """`episodes` episodes of the deterministic policy `act` (obs -> env action), its actions moved by Gaussian noise
+    of std `noise` in [-1, 1] units and clipped to the bounds; episode i starts from reset(seed=seed + i)."""
+    rng = np.random.default_rng([seed, 0xDA7A])
+    out = []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + i)
+        observations, actions, rewards, terminations, truncations = [obs], [], [], [], []
+        while True:
+            action = np.asarray(act(obs), np.float32)
+            if noise > 0:
+                moved = scaler.to_normalised(action) + noise * rng.standard_normal(action.shape)
+                action = np.asarray(scaler.to_env(np.clip(moved, -1.0, 1.0)), np.float32)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            observations.append(obs)
+            actions.append(action)
+            rewards.append(float(reward))
+            terminations.append(bool(terminated))
+            truncations.append(bool(truncated))
+            if terminated or truncated:
+                break
+        out.append({"observations": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
+                    "rewards": np.asarray(rewards, np.float32), "terminations": np.asarray(terminations),
+                    "truncations": np.asarray(truncations)})
+    return out
+
+
+def policy_dataset(agent: Any, run: Path, episodes: int, policy: str, noise: float, seed: int, out: Path,
+                   dataset_id: str | None) -> tuple[Path, int, int, float]:
+    """Fresh episodes of a loaded agent's policy as a Minari dataset: (out, episodes, transitions, mean return)."""
+    env = agent.make_env()
+    try:
+        check_vector_env(env, f"softac dataset {run}")
+        data = policy_episodes(lambda obs: agent.predict(obs, deterministic=True, policy=policy), agent.learner.scaler,
+                               env, episodes, noise, seed)
+        env_id = agent.config.env_id
+        mean_return = float(np.mean([ep["rewards"].sum() for ep in data]))
+        how = f"its {policy} policy's deterministic actions" + (f" with Gaussian noise of std {noise:g}" if noise else "")
+        written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "policy"), data, env_id,
+                               env.observation_space, env.action_space, f"softac {__version__} SAC ({policy} policy)",
+                               f"{episodes} episodes of softac run {run} at step {agent.num_steps}: {how}; mean "
+                               f"return {mean_return:.1f}.")
+    finally:
+        env.close()
+    return written, len(data), int(sum(len(ep["rewards"]) for ep in data)), mean_return

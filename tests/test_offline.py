@@ -1,0 +1,174 @@
+"""Training from data (issue 68): offline datasets from a softac run's replay buffer or Minari's format, mixed into
+each batch (RLPD's symmetric sampling) or copied into the replay first, exact resume with the dataset checked by
+checksum, `softac dataset` writing Minari datasets, REDQ's subset targets, and the refusals, each one line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import assert_clean_error, assert_same_learner, assert_same_run_state, run_cli, tiny_config
+from softac.config.sac_config import SACConfig
+from softac.errors import ConfigError
+
+ENV = "softac_test_envs:Drift-v0"  # 2 observations, actions in [-1, 3]; episodes terminate or hit 25 steps
+
+
+@pytest.fixture(scope="module")
+def source_run(tmp_path_factory) -> Path:
+    """A run of 2 envs whose last checkpoint holds its 400-row replay buffer, full and wrapped (600 steps)."""
+    from softac import SAC
+
+    run = tmp_path_factory.mktemp("offline") / "source"
+    SAC(tiny_config(ENV, n_envs=2, buffer_size=400, learning_starts=100, seed=3)).learn(600, run_dir=run,
+                                                                                         progress=False)
+    return run
+
+
+def test_redq_subset_targets_take_the_lowest_of_the_drawn_critics():
+    """target_q=subset: the lowest of M critics drawn once per update (Chen et al. 2021, as RLPD); M = n is the
+    minimum over all."""
+    from softac.learner.losses import Critics
+
+    next_q = jnp.asarray(np.random.default_rng(0).normal(size=(10, 6)), jnp.float32)
+    key = jax.random.PRNGKey(4)
+    drawn = np.asarray(jax.random.permutation(key, 10))[:2]
+    value = Critics("relu", target_q="subset", target_q_subset=2).next_value(next_q, key)
+    np.testing.assert_array_equal(np.asarray(value), np.asarray(next_q)[drawn].min(axis=0))
+    assert not np.array_equal(np.asarray(value), np.asarray(next_q).min(axis=0))  # a pair, not all ten
+    everyone = Critics("relu", target_q="subset", target_q_subset=10).next_value(next_q, key)
+    np.testing.assert_array_equal(np.asarray(everyone), np.asarray(next_q).min(axis=0))
+
+
+def test_offline_settings_are_checked_in_one_line():
+    for change, fragment in (({"target_q": "subset", "n_critics": 2, "target_q_subset": 3}, "target_q_subset=3"),
+                             ({"target_q": "subset", "n_atoms": 11}, "subset draws scalar critics"),
+                             ({"offline_data": "x", "n_step": 3}, "one-step"),
+                             ({"offline_fraction": 1.0}, "offline_fraction=1.0"),
+                             ({"offline_mode": "both"}, "offline_mode='both'"),
+                             ({"offline_data": "x", "offline_mode": "prefill", "buffer_obs_once": True},
+                              "buffer_obs_once")):
+        with pytest.raises(ConfigError, match=fragment):
+            SACConfig().replace(**change)
+
+
+def test_a_runs_buffer_becomes_its_envs_episodes(source_run):
+    """The wrapped ring's rows, oldest first, each env's in order: next_obs continues as the next row's obs inside an
+    episode, terminations and time-limit truncations stay apart, the newest episode of each env is cut by the
+    data's end (truncated), and the actions are back in the env's units."""
+    from softac.learner.policy import ActionScaler
+    from softac.run.offline_sources import buffer_episodes, run_buffer
+
+    buffer = run_buffer(source_run)
+    assert len(buffer.rewards) == 400 and sorted(np.bincount(buffer.env)) == [200, 200]
+    episodes = buffer_episodes(buffer, ActionScaler(np.array([-1.0]), np.array([3.0])).to_env)
+    assert sum(len(ep["rewards"]) for ep in episodes) == 400
+    for ep in episodes:
+        steps = ep["observations"][:, 1]  # Drift observes its step count: each episode's steps follow on
+        assert np.all(np.diff(steps) == 1) and len(ep["observations"]) == len(ep["rewards"]) + 1
+        assert ep["terminations"][-1] or ep["truncations"][-1]
+        assert not np.any(ep["terminations"][:-1] | ep["truncations"][:-1])
+        assert ep["actions"].min() >= -1.0 and ep["actions"].max() <= 3.0
+    assert any(ep["terminations"][-1] for ep in episodes) and any(ep["observations"][-1, 1] == 25 for ep in episodes)
+
+
+def test_offline_rows_fill_their_share_of_each_batch_and_count_in_obs_norm(source_run):
+    """offline_mode mix: the last round(0.25 * 32) = 8 rows of each batch are the dataset's (whole transitions of
+    it), the rest the env's; a fresh run counts the dataset's observations in obs_norm's statistics first."""
+    from softac import SAC
+
+    agent = SAC(tiny_config(ENV, offline_data=str(source_run), offline_fraction=0.25, obs_norm=True))
+    agent.learn(250, progress=False)
+    data = agent.collector.offline
+    assert len(data) == 400 and data.source == str(source_run)
+    assert agent.learner.obs_norm.count == 400 + 250
+    batch = agent.collector.sample(np.random.default_rng(0), 32, 3)
+    assert batch["obs"].shape == (3, 32, 2)
+    rows = {tuple(np.r_[o, n]) for o, n in zip(data.obs, data.next_obs)}
+    offline = [tuple(np.r_[o, n]) in rows for o, n in zip(batch["obs"][:, 24:].reshape(-1, 2),
+                                                         batch["next_obs"][:, 24:].reshape(-1, 2))]
+    assert all(offline)
+    actions = batch["actions"][:, 24:].reshape(-1)
+    assert np.all(np.abs(actions) <= 1.0)  # in [-1, 1], as the replay's
+
+
+def test_prefill_copies_the_dataset_into_the_replay_first(source_run):
+    from softac import SAC
+    from softac.replay.offline import OfflineDataError
+
+    agent = SAC(tiny_config(ENV, offline_data=str(source_run), offline_mode="prefill", learning_starts=0))
+    agent.learn(10, progress=False)
+    assert len(agent.collector.buffer) == 410
+    np.testing.assert_array_equal(agent.collector.buffer.obs[:400], agent.collector.offline.obs)
+    with pytest.raises(OfflineDataError, match="holds 400 transitions, more than buffer_size=300"):
+        SAC(tiny_config(ENV, offline_data=str(source_run), offline_mode="prefill", buffer_size=300)).learn(
+            10, progress=False)
+
+
+@pytest.mark.exact
+def test_a_run_with_offline_data_resumes_exactly(source_run, tmp_path):
+    """N + M == N+M with each batch half offline: the offline draws come from the run's checkpointed stream."""
+    from softac import SAC
+
+    cfg = tiny_config(ENV, offline_data=str(source_run), learning_starts=100, obs_norm=True)
+    straight = SAC(cfg)
+    straight.learn(300, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(170, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(130, run_dir=tmp_path / "split", progress=False)
+    assert_same_learner(straight, resumed)
+    assert_same_run_state(straight, resumed)
+    meta = json.loads((tmp_path / "split" / "checkpoints" / "last" / "meta.json").read_text())
+    assert meta["offline"] == {"source": str(source_run), "checksum": straight.collector.offline.checksum,
+                               "transitions": 400}
+
+
+def test_softac_dataset_writes_minari_datasets_that_train_and_resume(source_run, tmp_path):
+    """`softac dataset` as a user types it: the replay buffer, and fresh noisy episodes of the policy, each a Minari
+    dataset that minari.load_dataset reads by id and `softac train --offline-data` trains from; a resumed run
+    refuses a dataset that changed since it started."""
+    minari = pytest.importorskip("minari")
+    root = tmp_path / "datasets"
+    replay = run_cli("dataset", str(source_run), "--out", str(root / "softac" / "drift-replay-v0"))
+    assert replay.returncode == 0, replay.stderr
+    assert "400 transitions" in replay.stdout
+    fresh = run_cli("dataset", str(source_run), "--out", str(tmp_path / "fresh"), "--episodes", "3", "--noise", "0.3")
+    assert fresh.returncode == 0, fresh.stderr
+    assert "3 episodes" in fresh.stdout and "with noise 0.3" in fresh.stdout
+
+    import os
+
+    os.environ["MINARI_DATASETS_PATH"] = str(root)
+    try:
+        dataset = minari.load_dataset("softac/drift-replay-v0")
+        assert dataset.total_steps == 400 and dataset.storage.metadata["author"] == {"softac"}
+        episode = next(iter(dataset.iterate_episodes()))
+        assert episode.observations.shape[1] == 2 and episode.actions.max() <= 3.0
+    finally:
+        del os.environ["MINARI_DATASETS_PATH"]
+
+    run = tmp_path / "run"
+    train = run_cli("train", "--env", ENV, "--steps", "250", "--out", str(run), "--offline-data", str(tmp_path / "fresh"),
+                    "--no-progress", "--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200",
+                    "eval_interval=0")
+    assert train.returncode == 0, train.stderr
+    assert "offline data" in train.stderr and "in 3 episodes" in train.stderr and "mix (0.5 of each batch)" in train.stderr
+    shutil.rmtree(tmp_path / "fresh")
+    assert run_cli("dataset", str(source_run), "--out", str(tmp_path / "fresh"), "--episodes", "2").returncode == 0
+    resumed = run_cli("train", "--resume", str(run), "--steps", "10", "--no-progress")
+    assert_clean_error(resumed, "offline data", "changed since this run started")
+
+
+def test_bad_offline_data_is_one_line(source_run, tmp_path):
+    assert_clean_error(run_cli("train", "--env", "Pendulum-v1", "--out", str(tmp_path / "a"), "--offline-data",
+                               str(source_run)), "observes shape (2,) but Pendulum-v1 observes (3,)")
+    assert_clean_error(run_cli("train", "--env", ENV, "--out", str(tmp_path / "b"), "--offline-data",
+                               str(tmp_path / "nothing")), "not a Minari dataset directory, a softac run")
+    assert_clean_error(run_cli("dataset", str(source_run), "--out", str(tmp_path / "c"), "--noise", "0.1"),
+                       "give --episodes N too")
