@@ -141,6 +141,7 @@ def test_softac_dataset_writes_minari_datasets_that_train_and_resume(source_run,
     fresh = run_cli("dataset", str(source_run), "--out", str(tmp_path / "fresh"), "--episodes", "3", "--noise", "0.3")
     assert fresh.returncode == 0, fresh.stderr
     assert "3 episodes" in fresh.stdout and "with noise 0.3" in fresh.stdout
+    fresh_rows = int(fresh.stdout.split(" transitions")[0].rsplit(" ", 1)[1].replace(",", ""))
 
     import os
 
@@ -156,8 +157,11 @@ def test_softac_dataset_writes_minari_datasets_that_train_and_resume(source_run,
     run = tmp_path / "run"
     train = run_cli("train", "--env", ENV, "--steps", "250", "--out", str(run), "--offline-data", str(tmp_path / "fresh"),
                     "--no-progress", "--set", "hidden_sizes=32,32", "batch_size=32", "learning_starts=200",
-                    "eval_interval=0")
+                    "eval_interval=0", "obs_norm=true")
     assert train.returncode == 0, train.stderr
+    from softac import SAC
+
+    assert SAC.load(run, which="last").learner.obs_norm.count == fresh_rows + 250  # the dataset's counted first
     assert "offline data" in train.stderr and "in 3 episodes" in train.stderr and "mix (0.5 of each batch)" in train.stderr
     shutil.rmtree(tmp_path / "fresh")
     assert run_cli("dataset", str(source_run), "--out", str(tmp_path / "fresh"), "--episodes", "2").returncode == 0

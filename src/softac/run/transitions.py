@@ -40,10 +40,10 @@ class HostTransitions:
         """Envs ready to step from the run's current step (fresh, or as a checkpoint left them). A fresh run with
         offline_data counts the dataset's observations in obs_norm's statistics first, so that its rows and the
         env's are normalised alike from the first update (issue 68)."""
-        fresh = self.collector.offline is None and self.run_state.num_steps == 0 and self.run_state.num_episodes == 0
         self.collector.start(self.run_state.num_steps)
-        if fresh and self.collector.offline is not None and self.learner.obs_norm is not None:
-            self.learner.observe(self.collector.offline.obs)
+        norm, offline = self.learner.obs_norm, self.collector.offline
+        if offline is not None and norm is not None and norm.count == 0 and self.run_state.num_steps == 0:
+            self.learner.observe(offline.obs)
 
     def chunk(self, until: int) -> Chunk:
         """One vector step (`until`, the budget's end, is the device source's bound; one step never passes it)."""
