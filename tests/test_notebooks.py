@@ -40,7 +40,8 @@ def output_types(book: nbformat.NotebookNode) -> set[str]:
 
 def test_there_is_a_notebook_per_seed_document_and_one_on_a_custom_env():
     assert [p.name for p in NOTEBOOKS] == ["01_inverted_pendulum.ipynb", "02_agent_class.ipynb",
-                                           "03_vector_envs.ipynb", "04_pusher.ipynb", "05_custom_env.ipynb"]
+                                           "03_vector_envs.ipynb", "04_pusher.ipynb", "05_custom_env.ipynb",
+                                           "06_offline_data.ipynb"]
     for path in NOTEBOOKS:  # committed without outputs: what a user opens is the code, not a stale run
         book = nbformat.read(path, as_version=4)
         assert all(not cell.get("outputs") for cell in book.cells if cell.cell_type == "code"), path.name
@@ -53,9 +54,13 @@ def test_the_notebook_runs(path, tmp_path):
     book = execute(path, tmp_path)
     kinds = output_types(book)
     assert "error" not in kinds
-    if path.stem in ("01_inverted_pendulum", "04_pusher", "05_custom_env"):  # agent.show(): figures, table
+    if path.stem in ("01_inverted_pendulum", "04_pusher", "05_custom_env", "06_offline_data"):  # show(): figures
         assert {"image/png", "text/html"} <= kinds, kinds
         assert (tmp_path / "runs").is_dir()
+    if path.stem == "06_offline_data":  # two Minari datasets written, one read back by id, two agents compared
+        text = "".join(out.get("text", "") for cell in book.cells for out in cell.get("outputs", []))
+        assert "10 episodes, 2000 steps" in text and "with the data: mean return" in text, text
+        assert (tmp_path / "datasets" / "softac" / "pendulum-replay-v0" / "data" / "metadata.json").is_file()
     if path.stem == "01_inverted_pendulum":
         # learn()'s live bar is tqdm's notebook widget, and show(video=True) embeds the video
         assert "application/vnd.jupyter.widget-view+json" in kinds, kinds

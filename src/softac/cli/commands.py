@@ -219,6 +219,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_dataset(args: argparse.Namespace) -> int:
     from softac.outputs.dataset import buffer_dataset, policy_dataset
     from softac.run import checkpoint as ckpt
+    from softac.run.offline_sources import run_buffer
 
     run, out = Path(args.run), Path(args.out)
     if out.exists():
@@ -231,13 +232,14 @@ def cmd_dataset(args: argparse.Namespace) -> int:
 
     if args.episodes is None:
         agent = SAC.load(ckpt.resolve(run, "last"))
-        written, episodes, steps = buffer_dataset(run, agent.make_env, agent.learner.scaler.to_env, out, args.id)
+        written, episodes, steps = buffer_dataset(run_buffer(run), f"softac run {run}", agent.make_env,
+                                                  agent.learner.scaler.to_env, out, args.id)
         print(f"wrote {written}: the replay buffer of {run}, {steps:,} transitions in {episodes:,} episodes "
               f"(Minari {_minari_version()}; --offline-data {written})")
         return EXIT_OK
     agent = SAC.load(run)
-    written, episodes, steps, mean_return = policy_dataset(agent, run, args.episodes, args.policy, args.noise,
-                                                           args.seed, out, args.id)
+    written, episodes, steps, mean_return = policy_dataset(agent, f"softac run {run}", args.episodes, args.policy,
+                                                           args.noise, args.seed, out, args.id)
     print(f"wrote {written}: {episodes} episodes of {run}'s {args.policy} policy"
           + (f" with noise {args.noise:g}" if args.noise else "")
           + f", {steps:,} transitions, mean return {mean_return:.2f} (Minari {_minari_version()}; "

@@ -12,7 +12,7 @@ from typing import Any, Callable
 import numpy as np
 
 from softac.replay.offline import OfflineDataError, write_minari
-from softac.run.offline_sources import buffer_episodes, run_buffer
+from softac.run.offline_sources import RunBuffer, buffer_episodes
 from softac.version import __version__
 
 
@@ -32,19 +32,18 @@ def check_vector_env(env: Any, what: str) -> None:
                                "images) are not written as datasets yet; softac writes flat vector observations")
 
 
-def buffer_dataset(run: Path, make_env: Callable[[], Any], to_env: Callable[[np.ndarray], np.ndarray], out: Path,
-                   dataset_id: str | None) -> tuple[Path, int, int]:
-    """The run's replay buffer (its last checkpoint) as a Minari dataset: (out, episodes, transitions)."""
-    buffer = run_buffer(run)
+def buffer_dataset(buffer: RunBuffer, what: str, make_env: Callable[[], Any],
+                   to_env: Callable[[np.ndarray], np.ndarray], out: Path, dataset_id: str | None) -> tuple[Path, int, int]:
+    """A replay buffer (`what`: whose, for the description) as a Minari dataset: (out, episodes, transitions)."""
     env = make_env()
     try:
-        check_vector_env(env, f"softac dataset {run}")
+        check_vector_env(env, f"a dataset of {what}")
         episodes = buffer_episodes(buffer, to_env)
         env_id = buffer.config.env_id
         written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "replay"), episodes,
                                env_id, env.observation_space, env.action_space,
                                f"softac {__version__} SAC (replay buffer)",
-                               f"The replay buffer of softac run {run} at step {buffer.saved.get('num_steps', '?')}: "
+                               f"The replay buffer of {what} at step {buffer.saved.get('num_steps', '?')}: "
                                f"{len(buffer.rewards):,} transitions of {env_id}.")
     finally:
         env.close()
@@ -79,12 +78,13 @@ def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: A
     return out
 
 
-def policy_dataset(agent: Any, run: Path, episodes: int, policy: str, noise: float, seed: int, out: Path,
+def policy_dataset(agent: Any, what: str, episodes: int, policy: str, noise: float, seed: int, out: Path,
                    dataset_id: str | None) -> tuple[Path, int, int, float]:
-    """Fresh episodes of a loaded agent's policy as a Minari dataset: (out, episodes, transitions, mean return)."""
+    """Fresh episodes of an agent's policy (`what`: whose, for the description) as a Minari dataset: (out, episodes,
+    transitions, mean return)."""
     env = agent.make_env()
     try:
-        check_vector_env(env, f"softac dataset {run}")
+        check_vector_env(env, f"a dataset of {what}")
         data = policy_episodes(lambda obs: agent.predict(obs, deterministic=True, policy=policy), agent.learner.scaler,
                                env, episodes, noise, seed)
         env_id = agent.config.env_id
@@ -92,7 +92,7 @@ def policy_dataset(agent: Any, run: Path, episodes: int, policy: str, noise: flo
         how = f"its {policy} policy's deterministic actions" + (f" with Gaussian noise of std {noise:g}" if noise else "")
         written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "policy"), data, env_id,
                                env.observation_space, env.action_space, f"softac {__version__} SAC ({policy} policy)",
-                               f"{episodes} episodes of softac run {run} at step {agent.num_steps}: {how}; mean "
+                               f"{episodes} episodes of {what} at step {agent.num_steps}: {how}; mean "
                                f"return {mean_return:.1f}.")
     finally:
         env.close()

@@ -45,14 +45,18 @@ def run_buffer(path: str | Path) -> RunBuffer:
     path = Path(path)
     directory = path if ckpt.is_checkpoint(path) else ckpt.resolve(path, "last")
     meta, arrays = ckpt.load(directory)
-    config = saved_config(meta, directory)
     state = buffer_state(arrays)
     if not meta.get("has_buffer") or not state:
         raise OfflineDataError(f"{path} holds no replay buffer (a run's checkpoints/last has one; agent.save(path, "
                                "include_buffer=True) too)")
+    return replay_rows(state, saved_config(meta, directory), meta, str(path))
+
+
+def replay_rows(state: dict[str, np.ndarray], config: SACConfig, meta: dict[str, Any], where: str) -> RunBuffer:
+    """A replay buffer's state_dict (a checkpoint's, or a live agent's) as transitions, oldest first."""
     fields = {"obs", "actions", "rewards", "terminated"} | ({"final_obs"} if config.buffer_obs_once else {"next_obs"})
     if config.pixels or not fields <= set(state) or state["obs"].ndim != 2:
-        raise OfflineDataError(f"{path}: its replay buffer holds images or goal-relabelled episodes; softac reads "
+        raise OfflineDataError(f"{where}: its replay buffer holds images or goal-relabelled episodes; softac reads "
                                "vector transitions as offline data")
     n = int(config.n_envs)
     if config.buffer_obs_once:
