@@ -164,7 +164,8 @@ def test_softac_dataset_writes_minari_datasets_that_train_and_resume(source_run,
     assert SAC.load(run, which="last").learner.obs_norm.count == fresh_rows + 250  # the dataset's counted first
     assert "offline data" in train.stderr and "in 3 episodes" in train.stderr and "mix (0.5 of each batch)" in train.stderr
     shutil.rmtree(tmp_path / "fresh")
-    assert run_cli("dataset", str(source_run), "--out", str(tmp_path / "fresh"), "--episodes", "2").returncode == 0
+    rewritten = run_cli("dataset", str(source_run), "--out", str(tmp_path / "fresh"), "--steps", "30")
+    assert rewritten.returncode == 0 and ", 30 transitions" in rewritten.stdout, rewritten.stderr
     resumed = run_cli("train", "--resume", str(run), "--steps", "10", "--no-progress")
     assert_clean_error(resumed, "offline data", "changed since this run started")
 
@@ -175,4 +176,24 @@ def test_bad_offline_data_is_one_line(source_run, tmp_path):
     assert_clean_error(run_cli("train", "--env", ENV, "--out", str(tmp_path / "b"), "--offline-data",
                                str(tmp_path / "nothing")), "not a Minari dataset directory, a softac run")
     assert_clean_error(run_cli("dataset", str(source_run), "--out", str(tmp_path / "c"), "--noise", "0.1"),
-                       "give --episodes N too")
+                       "give --episodes N or --steps N")
+
+
+def test_fresh_episodes_stop_at_a_step_count_with_the_last_one_truncated():
+    """policy_episodes with `steps`: episodes until that many transitions, the last cut there and marked truncated
+    (so that it bootstraps), Gaussian noise in [-1, 1] units moving the actions inside the bounds."""
+    import gymnasium as gym
+
+    from softac.learner.policy import ActionScaler
+    from softac.outputs.dataset import policy_episodes
+
+    env = gym.make(ENV)
+    scaler = ActionScaler(np.array([-1.0]), np.array([3.0]))
+    episodes = policy_episodes(lambda obs: np.array([1.0], np.float32), scaler, env, None, 0.5, seed=1, steps=60)
+    assert sum(len(ep["rewards"]) for ep in episodes) == 60 and len(episodes) >= 3
+    last = episodes[-1]
+    assert last["truncations"][-1] or last["terminations"][-1]
+    actions = np.concatenate([ep["actions"] for ep in episodes])
+    assert actions.min() >= -1.0 and actions.max() <= 3.0 and actions.std() > 0.1  # noise of 0.5 * 2 in env units
+    again = policy_episodes(lambda obs: np.array([1.0], np.float32), scaler, env, None, 0.5, seed=1, steps=60)
+    np.testing.assert_array_equal(np.concatenate([ep["actions"] for ep in again]), actions)  # seeded

@@ -151,10 +151,11 @@ class SAC:
                 self.collector.close_workers()  # no worker process outlives the call, whatever ended it
 
     def write_dataset(self, out: str | Path, episodes: int | None = None, policy: str = "deployed", noise: float = 0.0,
-                      seed: int = 0, dataset_id: str | None = None) -> Path:
+                      seed: int = 0, dataset_id: str | None = None, steps: int | None = None) -> Path:
         """A Minari dataset at `out` (as `softac dataset`, issue 68): the agent's replay buffer as each env's
         episodes, or `episodes` fresh episodes of its deterministic `policy` with Gaussian noise of std `noise` in
-        [-1, 1] units; `dataset_id` (NAMESPACE/NAME-vN) by default from `out`. Returns `out`; train from it with
+        [-1, 1] units (or episodes until `steps` transitions, the last cut there); `dataset_id` (NAMESPACE/NAME-vN)
+        by default from `out`. Returns `out`; train from it with
         SAC(config, offline_data=out)."""
         from softac.errors import SoftacError
         from softac.outputs.dataset import buffer_dataset, policy_dataset
@@ -163,8 +164,8 @@ class SAC:
         what = f"a softac agent on {self.config.env_id}"
         if noise < 0:
             raise SoftacError(f"noise must be >= 0, got {noise}")
-        if episodes is not None:
-            return policy_dataset(self, what, episodes, policy, noise, seed, Path(out), dataset_id)[0]
+        if episodes is not None or steps is not None:
+            return policy_dataset(self, what, episodes, policy, noise, seed, Path(out), dataset_id, steps)[0]
         if getattr(self.collector, "buffer", None) is None:
             raise SoftacError("this agent has no replay buffer to write yet: train it, or pass episodes=N")
         rows = replay_rows(self.collector.buffer.state_dict(), self.config, {"num_steps": self.num_steps}, what)

@@ -226,11 +226,12 @@ def cmd_dataset(args: argparse.Namespace) -> int:
         raise SoftacError(f"{out} exists; pick a new --out")
     if args.noise < 0:
         raise SoftacError("--noise must be >= 0")
-    if args.episodes is None and (args.noise or args.policy != "deployed"):
-        raise SoftacError("--noise and --policy choose how fresh episodes act: give --episodes N too")
+    fresh = args.episodes is not None or args.steps is not None
+    if not fresh and (args.noise or args.policy != "deployed" or args.seed):
+        raise SoftacError("--noise, --policy and --seed choose how fresh episodes act: give --episodes N or --steps N")
     from softac.agent import SAC
 
-    if args.episodes is None:
+    if not fresh:
         agent = SAC.load(ckpt.resolve(run, "last"))
         written, episodes, steps = buffer_dataset(run_buffer(run), f"softac run {run}", agent.make_env,
                                                   agent.learner.scaler.to_env, out, args.id)
@@ -239,7 +240,7 @@ def cmd_dataset(args: argparse.Namespace) -> int:
         return EXIT_OK
     agent = SAC.load(run)
     written, episodes, steps, mean_return = policy_dataset(agent, f"softac run {run}", args.episodes, args.policy,
-                                                           args.noise, args.seed, out, args.id)
+                                                           args.noise, args.seed, out, args.id, args.steps)
     print(f"wrote {written}: {episodes} episodes of {run}'s {args.policy} policy"
           + (f" with noise {args.noise:g}" if args.noise else "")
           + f", {steps:,} transitions, mean return {mean_return:.2f} (Minari {_minari_version()}; "

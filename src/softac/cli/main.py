@@ -204,6 +204,8 @@ def build_parser() -> _Parser:
                                                             "end names its Minari id")
     d.add_argument("--episodes", type=_positive_int, metavar="N",
                    help="N fresh episodes of the run's policy (default: the replay buffer of its last checkpoint)")
+    d.add_argument("--steps", type=_positive_int, metavar="N",
+                   help="fresh episodes of the run's policy until N transitions (the last episode cut there)")
     _add_policy(d)
     d.add_argument("--noise", type=_finite_float, default=0.0, metavar="S",
                    help="with --episodes: Gaussian noise of std S on each action, in [-1, 1] units (default 0)")

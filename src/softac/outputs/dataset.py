@@ -50,14 +50,17 @@ def buffer_dataset(buffer: RunBuffer, what: str, make_env: Callable[[], Any],
     return written, len(episodes), int(len(buffer.rewards))
 
 
-def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: Any, episodes: int, noise: float,
-                    seed: int) -> list[dict[str, np.ndarray]]:
-    """`episodes` episodes of the deterministic policy `act` (obs -> env action), its actions moved by Gaussian noise
-    of std `noise` in [-1, 1] units and clipped to the bounds; episode i starts from reset(seed=seed + i)."""
+def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: Any, episodes: int | None,
+                    noise: float, seed: int, steps: int | None = None) -> list[dict[str, np.ndarray]]:
+    """`episodes` episodes of the deterministic policy `act` (obs -> env action), or episodes until `steps`
+    transitions (the last one cut there, truncated), its actions moved by Gaussian noise of std `noise` in [-1, 1]
+    units and clipped to the bounds; episode i starts from reset(seed=seed + i)."""
     rng = np.random.default_rng([seed, 0xDA7A])
-    out = []
-    for i in range(episodes):
+    out: list[dict[str, np.ndarray]] = []
+    total, i = 0, 0
+    while (episodes is None or i < episodes) and (steps is None or total < steps):
         obs, _ = env.reset(seed=seed + i)
+        i += 1
         observations, actions, rewards, terminations, truncations = [obs], [], [], [], []
         while True:
             action = np.asarray(act(obs), np.float32)
@@ -68,9 +71,10 @@ def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: A
             observations.append(obs)
             actions.append(action)
             rewards.append(float(reward))
+            total += 1
             terminations.append(bool(terminated))
-            truncations.append(bool(truncated))
-            if terminated or truncated:
+            truncations.append(bool(truncated) or (steps is not None and total >= steps and not terminated))
+            if terminations[-1] or truncations[-1]:
                 break
         out.append({"observations": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
                     "rewards": np.asarray(rewards, np.float32), "terminations": np.asarray(terminations),
@@ -78,21 +82,21 @@ def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: A
     return out
 
 
-def policy_dataset(agent: Any, what: str, episodes: int, policy: str, noise: float, seed: int, out: Path,
-                   dataset_id: str | None) -> tuple[Path, int, int, float]:
+def policy_dataset(agent: Any, what: str, episodes: int | None, policy: str, noise: float, seed: int, out: Path,
+                   dataset_id: str | None, steps: int | None = None) -> tuple[Path, int, int, float]:
     """Fresh episodes of an agent's policy (`what`: whose, for the description) as a Minari dataset: (out, episodes,
     transitions, mean return)."""
     env = agent.make_env()
     try:
         check_vector_env(env, f"a dataset of {what}")
         data = policy_episodes(lambda obs: agent.predict(obs, deterministic=True, policy=policy), agent.learner.scaler,
-                               env, episodes, noise, seed)
+                               env, episodes, noise, seed, steps)
         env_id = agent.config.env_id
         mean_return = float(np.mean([ep["rewards"].sum() for ep in data]))
         how = f"its {policy} policy's deterministic actions" + (f" with Gaussian noise of std {noise:g}" if noise else "")
         written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "policy"), data, env_id,
                                env.observation_space, env.action_space, f"softac {__version__} SAC ({policy} policy)",
-                               f"{episodes} episodes of {what} at step {agent.num_steps}: {how}; mean "
+                               f"{len(data)} episodes of {what} at step {agent.num_steps}: {how}; mean "
                                f"return {mean_return:.1f}.")
     finally:
         env.close()
