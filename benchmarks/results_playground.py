@@ -28,8 +28,18 @@ def steady_steps_per_s(run: Path, total_steps: int) -> float | None:
     return float(np.median([float(r["fps"]) for r in rows])) if rows else None
 
 
+def softac_settings(config: dict) -> str:
+    """What a softac trial of the brax-sac preset ran: Brax's networks and warm-up (the preset from 7c51039 on), or
+    the preset before them (uniform warm-up, PyTorch's init, a clamped log std, LayerNorm before each ReLU)."""
+    if config.get("framework", "softac") != "softac":
+        return "Brax's own"
+    brax_like = config.get("init") == "lecun_uniform" and config.get("warmup_actions") == "policy"
+    return "Brax's networks and warm-up" if brax_like else "before 7c51039"
+
+
 def playground_runs(d: Path) -> dict | None:
-    """One sweep's finished trials: framework, env, envs, seeds' final evaluations, wall seconds, steady steps/s."""
+    """One sweep's finished trials: framework, settings, env, envs, seeds' final evaluations, wall seconds, steady
+    steps/s."""
     trials = sorted(p.parent for p in d.glob("*/summary.json"))
     if not trials:
         return None
@@ -43,7 +53,8 @@ def playground_runs(d: Path) -> dict | None:
         finals.append(summary["last_eval"])
         walls.append(summary["wall_s"])
         speeds.append(steady_steps_per_s(run, int(config["total_steps"])))
-    return {"framework": framework, "env": env_id, "envs": sorted(envs), "finals": finals, "walls": walls,
+    return {"framework": framework, "settings": softac_settings(config), "env": env_id, "envs": sorted(envs),
+            "finals": finals, "walls": walls,
             "speeds": [s for s in speeds if s is not None], "steps": int(config["total_steps"]),
             "machines": machines_of(trials)}
 
@@ -61,14 +72,28 @@ def playground_section(sweeps: Path) -> list[str]:
              "each trial's progress rows in its second half (past the prefill and the compiles); the final "
              "evaluation is each framework's own, `eval_episodes` deterministic episodes at once (softac's from the "
              "same starts each time, Brax's from fresh ones). The throughput sweeps' evaluations come after a few "
-             "hundred updates and say little about learning.", "",
-             "| sweep | framework | env | envs | steps | seeds | env steps/s (median) | final eval (mean ± sd) | "
-             "wall s (median) | machine |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "hundred updates and say little about learning. Settings: softac's trials at the preset from 7c51039 "
+             "on (Brax's LeCun-uniform init, softplus std, LayerNorm after each activation and a warm-up from the "
+             "initial policy) or before it. Sweeps of the same settings are pooled in a row of their own (+).", "",
+             "| sweep | framework | settings | env | envs | steps | seeds | env steps/s (median) | "
+             "final eval (mean ± sd) | wall s (median) | machine |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    groups: dict[tuple, list[tuple[str, dict]]] = {}
     for name, r in runs:
-        finals = np.asarray(r["finals"], float)
-        speed = f"{np.median(r['speeds']):,.0f}" if r["speeds"] else "-"
-        lines.append(f"| {name} | {r['framework']} | {r['env']} | {', '.join(map(str, r['envs']))} | {r['steps']:,} | "
-                     f"{len(finals)} | {speed} | {finals.mean():.1f} ± {finals.std(ddof=1) if len(finals) > 1 else 0.0:.1f} | "
-                     f"{np.median(r['walls']):,.0f} | {short_machines(r['machines'])} |")
+        lines.append(_row(name, r))
+        groups.setdefault((r["framework"], r["settings"], r["env"], tuple(r["envs"]), r["steps"]), []).append((name, r))
+    for members in groups.values():
+        if len(members) > 1:
+            pooled = {**members[0][1], **{k: sum((r[k] for _, r in members), []) for k in ("finals", "walls", "speeds")},
+                      "machines": " and ".join(sorted({m for _, r in members for m in r["machines"].split(" and ")}))}
+            lines.append(_row(" + ".join(name for name, _ in members), pooled))
     return lines + [""]
+
+
+def _row(name: str, r: dict) -> str:
+    finals = np.asarray(r["finals"], float)
+    speed = f"{np.median(r['speeds']):,.0f}" if r["speeds"] else "-"
+    spread = finals.std(ddof=1) if len(finals) > 1 else 0.0
+    return (f"| {name} | {r['framework']} | {r['settings']} | {r['env']} | {', '.join(map(str, r['envs']))} | "
+            f"{r['steps']:,} | {len(finals)} | {speed} | {finals.mean():.1f} ± {spread:.1f} | "
+            f"{np.median(r['walls']):,.0f} | {short_machines(r['machines'])} |")

@@ -471,9 +471,10 @@ def test_the_front_figure_draws_short_labels_the_named_and_best_published_on_eve
 
 
 def test_the_playground_section_sets_softacs_device_loop_beside_braxs_sac(tmp_path):
-    """benchmarks/results_playground.py: per sweep the envs (softac's n_envs, Brax's num_envs), the median over seeds
-    of each trial's steady env steps per second (its progress rows in the run's second half, past the compiles),
-    the final evaluations' mean and sd over seeds and the median wall time."""
+    """benchmarks/results_playground.py: per sweep the settings and the envs (softac's n_envs, Brax's num_envs), the
+    median over seeds of each trial's steady env steps per second (its progress rows in the run's second half, past
+    the compiles), the final evaluations' mean and sd over seeds and the median wall time; sweeps of one setting
+    pooled in a row of their own."""
     import yaml
 
     def trial(sweep: str, seed: int, config: dict, fps: list[float], final: float, wall: float) -> None:
@@ -488,13 +489,22 @@ def test_the_playground_section_sets_softacs_device_loop_beside_braxs_sac(tmp_pa
 
     trial("playground-Cartpole-softac", 0, {"n_envs": 128}, [5.0, 10.0, 100.0, 110.0], 400.0, 60.0)  # steady 105
     trial("playground-Cartpole-softac", 1, {"n_envs": 128}, [5.0, 10.0, 120.0, 120.0], 500.0, 80.0)  # steady 120
+    brax_like = {"n_envs": 128, "init": "lecun_uniform", "warmup_actions": "policy"}
+    trial("playground-Cartpole-softac-new", 0, brax_like, [1.0, 1.0, 90.0, 90.0], 300.0, 50.0)
+    trial("playground-Cartpole-softac-new-s1", 1, brax_like, [1.0, 1.0, 100.0, 100.0], 700.0, 70.0)
     trial("playground-Cartpole-brax-sac", 0, {"framework": "brax-sac", "brax": {"num_envs": 128}}, [1.0, 2.0, 3.0, 50.0],
           600.0, 90.0)  # steady 26.5
     trial("Hopper-v4-softac", 0, {"n_envs": 1}, [1.0], 1.0, 1.0)  # not a Playground sweep
     section = load_benchmark_script("results_doc").playground_section(tmp_path / "sweeps")
     rows = [line for line in section if line.startswith("| playground-")]
+    head = "| playground:CartpoleSwingup | 128 | 400 |"
     assert rows == [
-        "| playground-Cartpole-brax-sac | brax-sac | playground:CartpoleSwingup | 128 | 400 | 1 | 26 | 600.0 ± 0.0 | 90 "
+        f"| playground-Cartpole-brax-sac | brax-sac | Brax's own {head} 1 | 26 | 600.0 ± 0.0 | 90 | Intel Xeon (AMX) |",
+        f"| playground-Cartpole-softac | softac | before 7c51039 {head} 2 | 112 | 450.0 ± 70.7 | 70 | Intel Xeon (AMX) |",
+        f"| playground-Cartpole-softac-new | softac | Brax's networks and warm-up {head} 1 | 90 | 300.0 ± 0.0 | 50 "
         "| Intel Xeon (AMX) |",
-        "| playground-Cartpole-softac | softac | playground:CartpoleSwingup | 128 | 400 | 2 | 112 | 450.0 ± 70.7 | 70 "
-        "| Intel Xeon (AMX) |"]
+        f"| playground-Cartpole-softac-new-s1 | softac | Brax's networks and warm-up {head} 1 | 100 | 700.0 ± 0.0 | 70 "
+        "| Intel Xeon (AMX) |",
+        # the two sweeps of one setting, pooled: seeds 0 and 1
+        f"| playground-Cartpole-softac-new + playground-Cartpole-softac-new-s1 | softac | Brax's networks and warm-up "
+        f"{head} 2 | 95 | 500.0 ± 282.8 | 60 | Intel Xeon (AMX) |"]

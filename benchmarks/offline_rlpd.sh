@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Issue 68's measurement: RLPD (`--preset rlpd`) from datasets softac makes from its own runs, beside crossq-avg from
+# scratch and RLPD's settings without the data, on Hopper-v5 and HalfCheetah-v5, each trial alone on one pinned CPU.
+#   sources:  for each env, two crossq-avg runs of seed 1000 (not a measured seed): "expert", 100k steps (its best
+#             checkpoint acts), and "medium", stopped once its evaluation reaches a third of crossq-avg's 100k-step
+#             return on v4 (docs/results.md: Hopper 2,781 -> 927, HalfCheetah 6,405 -> 2,135; a selection rule only).
+#   datasets: 100k transitions of each source's deterministic policy (`softac dataset --steps 100000`), in DATA.
+#   trials:   seeds 0..SEEDS-1, 100k env steps, evaluations every 5k (the 10k, 25k, 50k and 100k rows): rlpd with the
+#             medium data, with the expert data, without data; crossq-avg from scratch.
+# Each part skips what exists, so a stopped script picks up where it was. Cost, one Xeon core (AMX): rlpd's 20 updates
+# of 10 critics per env step are its bulk (docs/performance.md has the probe); a GPU (`--device gpu`) or several
+# sessions' cores. Run from a benchmark worktree (benchmarks/worktree.sh), then copy the trials back with
+# benchmarks/keep_trials.sh. Usage: CPU=1 PY=python ENVS="Hopper-v5" SEEDS=5 PARTS="sources datasets trials" \
+#   bash benchmarks/offline_rlpd.sh
+set -euo pipefail
+CPU=${CPU:-1}
+PY=${PY:-python}
+ENVS=${ENVS:-Hopper-v5 HalfCheetah-v5}
+SEEDS=${SEEDS:-5}
+PARTS=${PARTS:-sources datasets trials}
+SRC=${SRC:-benchmarks/offline-sources}
+DATA=${DATA:-benchmarks/offline-datasets}
+OUT=benchmarks/sweeps
+softac() { taskset -c "$CPU" "$PY" -m softac "$@"; }
+medium_return() { case $1 in Hopper-*) echo 927;; HalfCheetah-*) echo 2135;; *) echo "no medium return for $1" >&2; exit 2;; esac; }
+
+for env in $ENVS; do
+  if [[ " $PARTS " == *" sources "* ]]; then
+    [ -e "$SRC/$env-expert" ] || softac train --env "$env" --preset crossq-avg --seed 1000 --steps 100000 \
+      --out "$SRC/$env-expert" --no-progress
+    [ -e "$SRC/$env-medium" ] || softac train --env "$env" --preset crossq-avg --seed 1000 --steps 100000 \
+      --target-return "$(medium_return "$env")" --out "$SRC/$env-medium" --no-progress
+  fi
+  if [[ " $PARTS " == *" datasets "* ]]; then
+    for level in medium expert; do
+      [ -e "$DATA/softac/$env-$level-v0" ] || softac dataset "$SRC/$env-$level" --steps 100000 --seed 1000 \
+        --out "$DATA/softac/$env-$level-v0"
+    done
+  fi
+  if [[ " $PARTS " == *" trials "* ]]; then
+    sweep() { softac sweep --env "$env" --seeds "$SEEDS" --steps 100000 --max-concurrent 1 "$@"; }
+    for level in medium expert; do
+      sweep --preset rlpd --out "$OUT/offline-$env-rlpd-$level" \
+        --set offline_data="$(realpath "$DATA/softac/$env-$level-v0")" eval_interval=5000
+    done
+    sweep --preset rlpd --out "$OUT/offline-$env-rlpd-no-data" --set eval_interval=5000
+    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg" --set eval_interval=5000
+  fi
+done
