@@ -45,6 +45,7 @@ class ChunkSpec(NamedTuple):
     batch_size: int
     learning_starts: int
     uniform_warmup: bool  # warmup_actions uniform: uniform actions before learning_starts (else the policy's)
+    random_action_prob: float  # > 0: that share of the rows uniform (each env, each step), as the host's Explorer
     linear_lr: bool
     length: int  # vector steps
     obs_clip: float  # > 0: obs_norm's clip, the observations normalised by running statistics; 0: raw
@@ -63,7 +64,7 @@ class DeviceTransitions:
         cfg, settings = learner.config, learner.functions.settings
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts,
-                              cfg.warmup_actions == "uniform", cfg.lr_schedule == "linear",
+                              cfg.warmup_actions == "uniform", float(cfg.random_action_prob), cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
                               cfg.reward_scale, float(cfg.gamma), float(cfg.v_max))
         self.numbers = numbers_of(settings)
@@ -270,6 +271,11 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
                                    policy_actions)
         else:
             actions = policy_actions()
+        if spec.random_action_prob > 0:  # drawn only when asked: other runs keep their random numbers
+            replace_key, uniform_key = jax.random.split(jax.random.fold_in(act_key, 1))
+            replace = jax.random.uniform(replace_key, (n,)) < spec.random_action_prob
+            uniform = jax.random.uniform(uniform_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0)
+            actions = jnp.where(replace[:, None], uniform, actions)
         batch, s = envs.step(batch, actions)
         replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
                                       s.terminated | s.truncated)
