@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import assert_clean_error, assert_same_learner, assert_same_run_state, run_cli, tiny_config
+from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed, tiny_config
 from softac.config.sac_config import SACConfig
 from softac.errors import ConfigError
 
@@ -114,16 +114,9 @@ def test_prefill_copies_the_dataset_into_the_replay_first(source_run):
 @pytest.mark.exact
 def test_a_run_with_offline_data_resumes_exactly(source_run, tmp_path):
     """N + M == N+M with each batch half offline: the offline draws come from the run's checkpointed stream."""
-    from softac import SAC
-
     cfg = tiny_config(ENV, offline_data=str(source_run), learning_starts=100, obs_norm=True)
-    straight = SAC(cfg)
-    straight.learn(300, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(170, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(130, run_dir=tmp_path / "split", progress=False)
-    assert_same_learner(straight, resumed)
-    assert_same_run_state(straight, resumed)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 170, 130)
+    assert_same_training(straight, resumed)
     meta = json.loads((tmp_path / "split" / "checkpoints" / "last" / "meta.json").read_text())
     assert meta["offline"] == {"source": str(source_run), "checksum": straight.collector.offline.checksum,
                                "transitions": 400}
