@@ -62,13 +62,32 @@ def test_a_runs_buffer_becomes_its_envs_episodes(source_run):
     """The wrapped ring's rows, oldest first, each env's in order: next_obs continues as the next row's obs inside an
     episode, terminations and time-limit truncations stay apart, the newest episode of each env is cut by the
     data's end (truncated), and the actions are back in the env's units."""
-    from softac.learner.policy import ActionScaler
-    from softac.run.offline_sources import buffer_episodes, run_buffer
+    from softac.run.offline_sources import run_buffer
 
     buffer = run_buffer(source_run)
     assert len(buffer.rewards) == 400 and sorted(np.bincount(buffer.env)) == [200, 200]
+    assert_whole_episodes(buffer, 400)
+
+
+def test_an_obs_once_runs_buffer_reads_as_whole_transitions(tmp_path):
+    """A buffer that stores each observation once: its valid rows, each next observation rebuilt (the next row's,
+    or the episode's final one from the side ring), the same episodes' shape."""
+    from softac import SAC
+    from softac.run.offline_sources import run_buffer
+
+    SAC(tiny_config(ENV, n_envs=2, buffer_size=400, buffer_obs_once=True, learning_starts=600)).learn(
+        600, run_dir=tmp_path / "run", progress=False)
+    buffer = run_buffer(tmp_path / "run")
+    assert 390 <= len(buffer.rewards) < 400  # a full ring's oldest N rows (and any that lost their final) left out
+    assert_whole_episodes(buffer, len(buffer.rewards))
+
+
+def assert_whole_episodes(buffer, rows: int) -> None:
+    from softac.learner.policy import ActionScaler
+    from softac.run.offline_sources import buffer_episodes
+
     episodes = buffer_episodes(buffer, ActionScaler(np.array([-1.0]), np.array([3.0])).to_env)
-    assert sum(len(ep["rewards"]) for ep in episodes) == 400
+    assert sum(len(ep["rewards"]) for ep in episodes) == rows
     for ep in episodes:
         steps = ep["observations"][:, 1]  # Drift observes its step count: each episode's steps follow on
         assert np.all(np.diff(steps) == 1) and len(ep["observations"]) == len(ep["rewards"]) + 1
