@@ -32,18 +32,32 @@ def source_run(tmp_path_factory) -> Path:
 
 
 def test_redq_subset_targets_take_the_lowest_of_the_drawn_critics():
-    """target_q=subset: the lowest of M critics drawn once per update (Chen et al. 2021, as RLPD); M = n is the
-    minimum over all."""
-    from softac.learner.losses import Critics
+    """target_q=subset: the soft target from the lowest of M target critics drawn once per update (Chen et al. 2021,
+    as RLPD), only those evaluated at the next state; by hand from the critics' own outputs."""
+    from softac.learner import build, losses
+    from softac.learner.losses import Batch
 
-    next_q = jnp.asarray(np.random.default_rng(0).normal(size=(10, 6)), jnp.float32)
-    key = jax.random.PRNGKey(4)
-    drawn = np.asarray(jax.random.permutation(key, 10))[:2]
-    value = Critics("relu", target_q="subset", target_q_subset=2).next_value(next_q, key)
-    np.testing.assert_array_equal(np.asarray(value), np.asarray(next_q)[drawn].min(axis=0))
-    assert not np.array_equal(np.asarray(value), np.asarray(next_q).min(axis=0))  # a pair, not all ten
-    everyone = Critics("relu", target_q="subset", target_q_subset=10).next_value(next_q, key)
-    np.testing.assert_array_equal(np.asarray(everyone), np.asarray(next_q).min(axis=0))
+    cfg = SACConfig().replace(hidden_sizes=[16], n_critics=10, target_q="subset", target_q_subset=2)
+    fns = build.build(cfg, 3, 1)
+    state = fns.init(0)
+    critics, policy = fns.settings.critics, fns.settings.policy
+    rng = np.random.default_rng(1)
+    batch = Batch(*(jnp.asarray(a, jnp.float32) for a in (rng.normal(size=(5, 3)), rng.uniform(-1, 1, (5, 1)),
+                                                          rng.normal(size=5), rng.normal(size=(5, 3)), np.zeros(5),
+                                                          np.ones(5))))
+    key = jax.random.PRNGKey(7)
+    target = jax.tree_util.tree_map(lambda p: p * 1.5, state.critic)  # targets apart from the online critics
+    loss, _ = losses.critic_loss(state.critic, target, state.actor, jnp.float32(0.2), batch, key, policy, critics, 0.99)
+
+    drawn = np.asarray(jax.random.permutation(jax.random.fold_in(key, 0x5E7), 10))[:2]
+    next_actions, next_log_prob = policy.sample(state.actor, (), batch.next_obs, key)
+    next_q = np.asarray(critics.q_values(target, (), batch.next_obs, next_actions))  # all ten, by hand
+    soft = batch.rewards + 0.99 * (next_q[drawn].min(axis=0) - 0.2 * np.asarray(next_log_prob))
+    q = np.asarray(critics.q_values(state.critic, (), batch.obs, batch.actions))
+    np.testing.assert_allclose(float(loss), 0.5 * np.sum(np.mean((q - soft) ** 2, axis=1)), rtol=1e-5)
+    everyone = batch.rewards + 0.99 * (next_q.min(axis=0) - 0.2 * np.asarray(next_log_prob))
+    assert abs(float(loss) - 0.5 * np.sum(np.mean((q - everyone) ** 2, axis=1))) > 1e-4  # a pair, not all ten
+    assert len(set(drawn)) == 2
 
 
 def test_offline_settings_are_checked_in_one_line():

@@ -270,10 +270,16 @@ def test_droq_critic_loss_is_sacs_on_the_critics_with_their_drawn_masks():
          actor_layer_norm=True, activation="silu", zero_actor_head=True, adam_b2=0.95, weight_decay=0.001,
          gradient_steps=8, policy_delay=4, log_std_mode="tanh", log_std_min=-5.0, log_std_max=0.0),
     dict(crossq=True, target_q="each", actor_q="mean"),
+    # RLPD's (issue 68): REDQ's subset target over an ensemble of LayerNorm critics, the actor on their mean; with
+    # CrossQ's joint pass and target critics too
+    dict(n_critics=5, target_q="subset", target_q_subset=2, actor_q="mean", critic_layer_norm=True,
+         init="xavier_uniform", gradient_steps=4, policy_delay=4),
+    dict(crossq=True, target_critics="on", n_critics=4, target_q="subset", target_q_subset=2),
 ])
 def test_variants_compose_where_the_maths_allows(keys):
     """TQC's quantile critics with CrossQ (with and without target critics), with SimBa networks and with DroQ's
-    dropout; SAC without target critics with AdamW; FastSAC's parts: each builds and updates to finite values."""
+    dropout; SAC without target critics with AdamW; FastSAC's parts; RLPD's: each builds and updates to finite
+    values."""
     cfg = SACConfig().replace(**{"hidden_sizes": [16, 16], "batch_size": 8, **keys})
     fns = build.build(cfg, 3, 2)
     state, totals = fns.update(fns.init(0), _batches(np.random.default_rng(0), cfg.gradient_steps, 8))

@@ -114,18 +114,19 @@ class Critics:
         values = self.values(q)
         return jnp.mean(values, axis=0) if self.actor_q == "mean" else jnp.min(values, axis=0)
 
-    def next_value(self, next_q: jax.Array, key: jax.Array | None = None) -> jax.Array:
+    def target_subset(self, key: jax.Array, n_critics: int) -> jax.Array | None:
+        """With target_q=subset, the `target_q_subset` critics drawn from `key` for one update's targets, one draw
+        for the whole batch (REDQ's in-target minimisation, Chen et al. 2021: a large ensemble without the minimum
+        over all of it turning pessimistic; RLPD draws 2 of 10 per update); else None (every critic)."""
+        if self.target_q != "subset":
+            return None
+        return jax.random.permutation(key, n_critics)[: self.target_q_subset]
+
+    def next_value(self, next_q: jax.Array) -> jax.Array:
         """The next-state Q the critics learn toward: the lowest critic's per row [batch] (clipped double Q,
-        Fujimoto et al. 2018), or with target_q=each every critic's own [n_critics, batch] (FastSAC), or with
-        target_q=subset the lowest of `target_q_subset` critics drawn from `key`, one draw for the whole batch
-        (REDQ's in-target minimisation, Chen et al. 2021: a large ensemble without the minimum over all of it
-        turning pessimistic; RLPD draws 2 of 10 per update)."""
-        if self.target_q == "each":
-            return next_q
-        if self.target_q == "subset":
-            drawn = jax.random.permutation(key, next_q.shape[0])[: self.target_q_subset]
-            return jnp.min(next_q[drawn], axis=0)
-        return jnp.min(next_q, axis=0)
+        Fujimoto et al. 2018; with target_q=subset, of the drawn critics `next_q` holds), or with target_q=each
+        every critic's own [n_critics, batch] (FastSAC)."""
+        return next_q if self.target_q == "each" else jnp.min(next_q, axis=0)
 
 
 def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, jax.Array | None]:
@@ -140,7 +141,8 @@ def dropout_keys(key: jax.Array, critics: Critics) -> tuple[jax.Array | None, ja
 
 def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batch, next_actions: jax.Array,
                  critics: Critics, renorm: jax.Array | bool, target_stats: Any = (),
-                 key: jax.Array | None = None, target_batch: Batch | None = None) -> tuple[jax.Array, jax.Array, Any]:
+                 key: jax.Array | None = None, target_batch: Batch | None = None,
+                 drawn: jax.Array | None = None) -> tuple[jax.Array, jax.Array, Any]:
     """Q(s, a) of every critic, Q(s', a') of every critic the next-state value comes from, and the critics'
     new running statistics.
 
@@ -150,12 +152,15 @@ def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batc
     pair is out of distribution for the normalisation); with target critics (CrossQ+WN, Palenicek et al.
     2025) the target critics make the same joint pass in training mode, with their own running statistics
     for the renormalisation, and Q(s', a') is taken from their half. `target_batch`: the observations as the
-    target critics read them (image features through a target encoder), else `batch`'s."""
+    target critics read them (image features through a target encoder), else `batch`'s. `drawn` (target_q=subset):
+    the critics Q(s', a') comes from; only those run the next-state pass where it is a pass of its own."""
     target_batch = batch if target_batch is None else target_batch
     online_key, next_key = dropout_keys(key, critics) if key is not None else (None, None)
     if critics.batch_renorm is None:
         q = critics.q_values(critic, critic_stats, batch.obs, batch.actions, online_key)
         source, next_obs = (target_critic, target_batch.next_obs) if critics.has_targets else (critic, batch.next_obs)
+        if drawn is not None:  # REDQ's M of N: the others' next-state values are never used
+            source = jax.tree_util.tree_map(lambda p: p[drawn], source)
         return q, critics.q_values(source, critic_stats, next_obs, next_actions, next_key), critic_stats
     obs = jnp.concatenate([batch.obs, batch.next_obs])
     actions = jnp.concatenate([batch.actions, next_actions])
@@ -165,7 +170,7 @@ def q_and_next_q(critic: Any, critic_stats: Any, target_critic: Any, batch: Batc
         target_obs = jnp.concatenate([target_batch.obs, target_batch.next_obs])
         next_q = jnp.split(critics.q_values_training(target_critic, target_stats, target_obs, actions, renorm)[0], 2,
                            axis=1)[1]
-    return q, next_q, critic_stats
+    return q, (next_q if drawn is None else next_q[drawn]), critic_stats
 
 
 def soft_bellman_error(q: jax.Array, next_q: jax.Array, next_log_prob: jax.Array, alpha: jax.Array, batch: Batch,
@@ -315,17 +320,17 @@ def soft_q_loss(critic: Any, critic_stats: Any, target_critic: Any, actor: Any, 
     them, where they differ from `batch`'s (a target encoder's features).
     """
     next_actions, next_log_prob = policy.sample(actor, actor_stats, batch.next_obs, key)
+    n_critics = jax.tree_util.tree_leaves(critic)[0].shape[0]
+    drawn = critics.target_subset(jax.random.fold_in(key, 0x5E7), n_critics)  # None but with target_q=subset
     q, next_q, critic_stats = q_and_next_q(critic, critic_stats, target_critic, batch, next_actions, critics, renorm,
-                                           target_stats, key, target_batch)
+                                           target_stats, key, target_batch, drawn)
     if critics.n_quantiles:
         atoms, keep = truncated_target_atoms(next_q, critics.drop_per_critic)
         loss, metrics = quantile_huber_error(q, atoms, keep, next_log_prob, alpha, batch, gamma, n_step)
     elif critics.categorical:
         loss, metrics = categorical_error(q, next_q, next_log_prob, alpha, batch, gamma, n_step, critics)
     else:
-        subset_key = jax.random.fold_in(key, 0x5E7) if critics.target_q == "subset" else None  # others: keys as before
-        loss, metrics = soft_bellman_error(q, critics.next_value(next_q, subset_key), next_log_prob, alpha, batch,
-                                           gamma, n_step)
+        loss, metrics = soft_bellman_error(q, critics.next_value(next_q), next_log_prob, alpha, batch, gamma, n_step)
     return loss, (metrics, critic_stats)
 
 
