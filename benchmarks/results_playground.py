@@ -74,7 +74,11 @@ def playground_section(sweeps: Path) -> list[str]:
              "same starts each time, Brax's from fresh ones). The throughput sweeps' evaluations come after a few "
              "hundred updates and say little about learning. Settings: softac's trials at the preset from 7c51039 "
              "on (Brax's LeCun-uniform init, softplus std, LayerNorm after each activation and a warm-up from the "
-             "initial policy) or before it. Sweeps of the same settings are pooled in a row of their own (+).", "",
+             "initial policy) or before it. Sweeps of the same settings are pooled in a row of their own (+). Two "
+             "sweeps of 2026-12-07, brax-sac-500k-s3 and softac-500k-s0, shared the machine with test runs on the "
+             "other core: their env steps per second and wall times are below what they run alone, and so are the "
+             "pooled rows'. Speeds compare on brax-sac-500k beside softac-500k-s3 (each alone on the machine but "
+             "for one other pinned trial); returns on all six seeds.", "",
              "| sweep | framework | settings | env | envs | steps | seeds | env steps/s (median) | "
              "final eval (mean ± sd) | wall s (median) | machine |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
