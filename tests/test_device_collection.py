@@ -33,9 +33,10 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("exploration_noise", "pink"), ("n_step", 3)):
+    for key, value in (("exploration_noise", "pink"), ("offline_data", "runs/x")):
         with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
             device_config(**{key: value})
+    assert device_config(n_step=3).n_step == 3  # n-step returns on the device (test_device_envs)
 
 
 pytestmark = pytest.mark.playground
@@ -104,10 +105,10 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
 def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     """buffer_obs_once on the device: 240 + 160 env steps against 400, the 200-row replay past full (its oldest
     rows invalid, the episodes' final observations in the side ring), the learner, the replay's arrays and the
-    envs alike; the checkpoint keeps one observation array."""
+    envs alike; the checkpoint keeps one observation array. With 3-step returns, walked over the obs-once rows."""
     from softac import SAC
 
-    cfg = device_config(buffer_obs_once=True, buffer_size=200, learning_starts=120)
+    cfg = device_config(buffer_obs_once=True, buffer_size=200, learning_starts=120, n_step=3)
     straight = SAC(cfg)
     straight.learn(400, run_dir=tmp_path / "straight", progress=False)
     SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
@@ -142,6 +143,7 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     assert again.returncode == 0, again.stderr
     assert json.loads(again.stdout)["mean_return"] == pytest.approx(float(read_csv(run / "eval.csv")[-1]["mean_return"]),
                                                                    rel=1e-5)
-    refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set", "n_step=3")
-    assert_clean_error(refused, "n_step=3: is not run by device collection yet")
+    refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set",
+                      "exploration_noise=pink")
+    assert_clean_error(refused, "exploration_noise='pink': is not run by device collection yet")
     assert not (tmp_path / "r").exists()

@@ -108,7 +108,7 @@ def test_the_device_replay_writes_n_rows_a_step_round_the_ring_and_samples_what_
     drawn = device_buffer.sample(young, jax.random.PRNGKey(0), 3, 50)
     assert drawn.obs.shape == (3, 50, 2) and drawn.rewards.shape == (3, 50)
     np.testing.assert_array_equal(np.asarray(drawn.rewards), 7.0)  # only the 4 rows written, never the empty ones
-    assert device_buffer.bytes_per_row(17, 6) == 4 * (2 * 17 + 6 + 2)
+    assert device_buffer.bytes_per_row(17, 6) == 4 * (2 * 17 + 6 + 2) + 1  # and the episode-end flag
 
 
 def test_collection_into_the_replay_runs_in_one_jitted_scan():
@@ -179,3 +179,42 @@ def test_the_obs_once_device_replay_holds_what_the_hosts_obs_once_buffer_holds()
     held = {(tuple(o), tuple(x)) for o, x in zip(np.asarray(plain.obs)[valid], np.asarray(plain.next_obs)[valid])}
     assert pairs <= held and len(pairs) > 40  # only valid rows' transitions, as the plain layout holds them
     assert device_buffer.bytes_per_row(obs_dim, act_dim, True, capacity, n) < device_buffer.bytes_per_row(obs_dim, act_dim)
+
+
+@pytest.mark.parametrize("once", [False, True], ids=["plain", "obs-once"])
+def test_the_device_replays_n_step_returns_are_the_hosts(once):
+    """n_step 3 on the device: for every row held after the ring wrapped, the same last row, discounted reward sum
+    and step count as the host's buffer of the same layout fed the same steps (episode ends stop a walk, rows not
+    written yet are not entered; obs once: invalid rows not entered either), and the sampled batch's next
+    observation and termination are the last row's."""
+    from softac.replay.buffer import ObsOnceReplayBuffer, ReplayBuffer
+
+    n, obs_dim, act_dim, capacity, gamma = 4, 3, 2, 48, 0.9
+    replay = device_buffer.empty(capacity, obs_dim, act_dim, once=once, n_envs=n)
+    host = (ObsOnceReplayBuffer(capacity, obs_dim, act_dim, n, n_step=3, gamma=gamma) if once
+            else ReplayBuffer(capacity, obs_dim, act_dim, n_envs=n, n_step=3, gamma=gamma))
+    insert = jax.jit(device_buffer.insert)
+    for step in _steps_with_episode_ends(np.random.default_rng(1), 17, n, obs_dim, act_dim):  # 68 rows into 48
+        replay = insert(replay, *(jnp.asarray(a) for a in step))
+        host.add(*step)
+    rows = np.arange(capacity)
+    rows = rows[host.valid] if once else rows
+    last, rewards, steps = jax.jit(device_buffer.n_step_rows, static_argnums=(2, 3, 4))(replay, jnp.asarray(rows), n, 3,
+                                                                                        gamma)
+    host_last, host_rewards, host_steps = host._n_step_rows(rows)
+    np.testing.assert_array_equal(np.asarray(last), host_last)
+    np.testing.assert_array_equal(np.asarray(steps), host_steps)
+    np.testing.assert_allclose(np.asarray(rewards), host_rewards, rtol=1e-6, atol=1e-6)
+    assert set(np.asarray(steps).astype(int)) == {1, 2, 3}  # walks cut by episode ends and by the newest rows
+
+    drawn = jax.jit(device_buffer.sample, static_argnums=(2, 3, 4, 5, 6))(replay, jax.random.PRNGKey(2), 2, 64, n, 3,
+                                                                          gamma)
+    assert drawn.steps.shape == (2, 64) and float(drawn.steps.max()) <= 3.0
+    by_obs = {tuple(np.asarray(replay.obs)[r]): i for i, r in enumerate(rows)}
+    for o, x, term, total in zip(np.asarray(drawn.obs).reshape(-1, obs_dim), np.asarray(drawn.next_obs).reshape(-1, obs_dim),
+                                 np.asarray(drawn.terminated).reshape(-1), np.asarray(drawn.rewards).reshape(-1)):
+        i = by_obs[tuple(o)]
+        end = host_last[i]
+        expected_next = host.next_obs_of(np.array([end]))[0] if once else host.next_obs[end]
+        np.testing.assert_array_equal(x, expected_next)
+        assert term == host.terminated[end] and total == pytest.approx(host_rewards[i], rel=1e-6, abs=1e-6)

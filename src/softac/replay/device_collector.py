@@ -135,6 +135,8 @@ class DeviceCollector:
             raise CheckpointError("its replay buffer was written with buffer_obs_once="
                                   f"{str(not once).lower()}; resume with the same setting")
         size = len(rows["rewards"])
+        if not once and "done" not in rows:  # checkpoints from before n-step returns on the device (always n_step 1)
+            rows = {**rows, "done": rows["terminated"] > 0}
         if size > self.capacity or (once and len(rows["final_obs"]) != replay.final_obs.shape[0]):
             raise CheckpointError(f"its replay buffer holds {size:,} transitions, more than buffer_size allows "
                                   f"({self.capacity:,}), or another n_envs' layout")

@@ -52,6 +52,7 @@ class ChunkSpec(NamedTuple):
     reward_scale: str  # off, std or std_max (learner.normalization.RunningReturnScale), with:
     gamma: float
     v_max: float
+    n_step: int  # > 1: n-step returns drawn from the replay (device_buffer.n_step_rows)
 
 
 class DeviceTransitions:
@@ -66,7 +67,7 @@ class DeviceTransitions:
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts,
                               cfg.warmup_actions == "uniform", float(cfg.random_action_prob), cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
-                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max))
+                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step))
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
@@ -284,12 +285,12 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
         after = before + n
 
         def learn(state, totals):
-            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size, n)
+            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size, n, spec.n_step,
+                                         spec.gamma)
             # raw observations in the buffer, normalised when drawn with the statistics of that moment (as the host's)
             rewards = drawn.rewards / reward_divisor(returns, spec.reward_scale, spec.v_max) if returns else drawn.rewards
             batches = Batch(normalized(stats, drawn.obs, spec.obs_clip), drawn.actions, rewards,
-                            normalized(stats, drawn.next_obs, spec.obs_clip), drawn.terminated,
-                            jnp.ones_like(drawn.rewards))
+                            normalized(stats, drawn.next_obs, spec.obs_clip), drawn.terminated, drawn.steps)
             scale = (1.0 - (1.0 - end_fraction) * jnp.minimum(after / total, 1.0)).astype(jnp.float32) \
                 if spec.linear_lr else None
             return update_program(spec.program, numbers, state, batches, totals, scale)
