@@ -192,12 +192,14 @@ def network_bound(layers: list, x: np.ndarray, e: np.ndarray, activation: str, m
         rounding = np.maximum(gamma(n + 1) * magnitude, folded_rounding)
         e = e + rounding + TINY * (n + 1) * (1.0 + np.abs(w).max())
         x = z
+        affine = (np.asarray(layer.get("ln_scale", np.ones(x.shape[-1])), np.float64),
+                  np.asarray(layer.get("ln_bias", np.zeros(x.shape[-1])), np.float64))
         if i < len(layers) - 1 and layer_norm and layer_norm != "after":
-            x, e = _layer_norm(x, e, np.ones(x.shape[-1]), np.zeros(x.shape[-1]), LAYER_NORM_EPS)
+            x, e = _layer_norm(x, e, *affine, LAYER_NORM_EPS)
         if i < len(layers) - 1:
             x, e = _activation_error(activation, x, e)
         if i < len(layers) - 1 and layer_norm == "after":
-            x, e = _layer_norm(x, e, np.ones(x.shape[-1]), np.zeros(x.shape[-1]), LAYER_NORM_EPS)
+            x, e = _layer_norm(x, e, *affine, LAYER_NORM_EPS)
     return x, e
 
 

@@ -58,9 +58,11 @@ TRAINED = {  # a few hundred steps each, so that the weights, obs statistics and
     # FastSAC's actor (issue 67): LayerNorm (no scale or bias) before each SiLU, a zero-initialised output layer
     "fastsac": lambda: tiny_config("Pusher-v5", learning_starts=100, activation="silu", actor_layer_norm=True,
                                    zero_actor_head=True, log_std_mode="tanh", log_std_min=-5.0, log_std_max=0.0),
-    # Brax's MLP: LayerNorm after each hidden activation, LeCun-uniform weights, a softplus std
+    # Brax's MLP: LayerNorm (with its learned scale and bias) after each hidden activation, LeCun-uniform weights, a
+    # softplus std
     "brax": lambda: tiny_config("Pusher-v5", learning_starts=100, actor_layer_norm=True, layer_norm_position="after",
-                                init="lecun_uniform", log_std_mode="softplus", log_std_min=-6.9, warmup_actions="policy"),
+                                layer_norm_affine=True, init="lecun_uniform", log_std_mode="softplus",
+                                log_std_min=-6.9, warmup_actions="policy"),
 }
 
 
@@ -179,6 +181,8 @@ def test_exports_of_trained_agents_act_as_predict(trained, kind, tmp_path):
     if kind == "crossq-averaged":  # what is exported is the average, which has drifted apart from the actor
         averaged, online = agent.learner.deployed_policy()[0], agent.learner.state.actor
         assert np.abs(np.asarray(averaged[0]["w"]) - np.asarray(online[0]["w"])).max() > 1e-3
+    if kind == "brax":  # the LayerNorms' learned affine the export carries is not the initial one
+        assert np.abs(np.asarray(agent.learner.state.actor[0]["ln_scale"]) - 1.0).max() > 1e-3
     obs = env_observations(agent)
     if agent.learner.obs_norm is not None:
         assert np.abs(agent.learner.normalize_obs(obs)).max() == agent.config.obs_norm_clip  # the clip is exercised

@@ -308,11 +308,20 @@ def test_a_zero_actor_head_starts_every_state_at_the_mean_action_zero_and_one_lo
 @pytest.mark.numerics
 def test_braxs_networks_lecun_uniform_weights_and_layer_norm_after_each_activation():
     """init lecun_uniform: weights U(+-sqrt(3 / fan_in)) (variance 1 / fan_in), biases 0; layer_norm_position after:
-    each hidden layer is LayerNorm(relu(x W + b)), as Brax's MLP with layer_norm, the critics' and the actor's."""
+    each hidden layer is LayerNorm(relu(x W + b)) * scale + bias, as Brax's MLP with layer_norm (Flax's LayerNorm
+    learns the scale and bias: layer_norm_affine), the critics' and the actor's."""
     cfg = SACConfig().replace(hidden_sizes=[64, 64], init="lecun_uniform", critic_layer_norm=True,
-                              actor_layer_norm=True, layer_norm_position="after")
+                              actor_layer_norm=True, layer_norm_position="after", layer_norm_affine=True)
     fns = build.build(cfg, 5, 2)
     state = fns.init(0)
+    assert np.all(np.asarray(state.actor[0]["ln_scale"]) == 1.0) and state.critic[1]["ln_bias"].shape == (2, 64)
+    moved = np.random.default_rng(3)  # the affine as training leaves it: away from 1 and 0
+
+    def move(layers):
+        return [{**layer, **({k: jnp.asarray(layer[k] + moved.normal(scale=0.3, size=np.shape(layer[k])), jnp.float32)
+                              for k in ("ln_scale", "ln_bias")} if "ln_scale" in layer else {})} for layer in layers]
+
+    state = state._replace(actor=move(state.actor), critic=move(state.critic))
     w = np.asarray(state.critic[1]["w"])  # [critic, 64, 64]
     assert np.abs(w).max() <= np.sqrt(3.0 / 64) and np.var(w) == pytest.approx(1.0 / 64, rel=0.1)
     assert not np.any(np.asarray(state.critic[0]["b"])) and not np.any(np.asarray(state.actor[-1]["b"]))
@@ -321,6 +330,7 @@ def test_braxs_networks_lecun_uniform_weights_and_layer_norm_after_each_activati
         for layer in layers[:-1]:
             h = np.maximum(x @ np.asarray(layer["w"], np.float64) + np.asarray(layer["b"], np.float64), 0.0)
             x = (h - h.mean(-1, keepdims=True)) / np.sqrt(h.var(-1, keepdims=True) + 1e-5)
+            x = x * np.asarray(layer["ln_scale"], np.float64) + np.asarray(layer["ln_bias"], np.float64)
         return x @ np.asarray(layers[-1]["w"], np.float64) + np.asarray(layers[-1]["b"], np.float64)
 
     rng = np.random.default_rng(2)

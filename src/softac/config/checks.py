@@ -109,6 +109,8 @@ def _check_targets_and_critics(config: Any) -> None:
     need(not (config.crossq and config.critic_layer_norm), "critic_layer_norm",
          "cannot be combined with crossq, which normalises with batch renormalisation")
     need(config.layer_norm_position in ("before", "after"), "layer_norm_position", "must be before or after")
+    need(not config.layer_norm_affine or config.critic_layer_norm or config.actor_layer_norm, "layer_norm_affine",
+         "needs critic_layer_norm or actor_layer_norm")
     need(config.target_critics in ("auto", "on", "off"), "target_critics", "must be auto, on or off")
     need(config.target_q in ("min", "each", "subset"), "target_q", "must be min, each or subset")
     if config.target_q == "subset":

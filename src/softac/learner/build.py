@@ -36,6 +36,11 @@ def fresh_networks(config: SACConfig, obs_dim: int, act_dim: int, rng: np.random
     critic = init_critics(rng, obs_dim, act_dim, c.critic_widths, c.init, c.n_critics, norm=norm, network=c.network,
                           out_dim=c.critic_outputs)
     kind = network_kind(c.network, norm)
+    if c.layer_norm_affine:  # Flax's LayerNorm (Brax, RLPD): a scale and bias per unit, from 1 and 0
+        from softac.learner.networks.mlp import with_layer_norm_affine
+
+        actor = with_layer_norm_affine(actor) if c.actor_layer_norm else actor
+        critic = with_layer_norm_affine(critic) if c.critic_layer_norm else critic
     if c.zero_actor_head:  # FastSAC: zero mean and one log std in every state to start
         kind.head(actor).update(w=np.zeros_like(kind.head(actor)["w"]), b=np.zeros_like(kind.head(actor)["b"]))
     if c.weight_norm:  # on the sphere from the start, so the running statistics see one scale throughout

@@ -47,6 +47,8 @@ policy.npz holds
                                   of the LayerNorm (no scale or bias) before each hidden activation
     hidden_ln_after               int8 1, only where that LayerNorm comes after each hidden activation instead
                                   (layer_norm_position after)
+    lnI_scale, lnI_bias           float32, only with layer_norm_affine: hidden layer I's LayerNorm's learned
+                                  scale and bias
     obs_keys, obs_key_sizes       only for envs that observe a dict (goal envs): its keys in the order the
                                   flat observation concatenates them, and each one's size (beside an image:
                                   the state keys, after the encoder's features)
@@ -186,11 +188,13 @@ def mlp_forward(params: dict, x: np.ndarray) -> np.ndarray:
             x = (x - params[f"p{i}_mean"]) * params[f"p{i}_inv_std"] * params[f"p{i}_scale"] + params[f"p{i}_bias"]
         ln_after = bool(params.get("hidden_ln_after", False))
         if i < len(bf16) - 1 and "hidden_ln_eps" in params and not ln_after:
-            x = layer_norm(x, np.float32(1.0), np.float32(0.0), params["hidden_ln_eps"])
+            x = layer_norm(x, params.get(f"ln{i}_scale", np.float32(1.0)), params.get(f"ln{i}_bias", np.float32(0.0)),
+                           params["hidden_ln_eps"])
         if i < len(bf16) - 1:
             x = activation(x)
         if i < len(bf16) - 1 and "hidden_ln_eps" in params and ln_after:
-            x = layer_norm(x, np.float32(1.0), np.float32(0.0), params["hidden_ln_eps"])
+            x = layer_norm(x, params.get(f"ln{i}_scale", np.float32(1.0)), params.get(f"ln{i}_bias", np.float32(0.0)),
+                           params["hidden_ln_eps"])
     return x
 
 

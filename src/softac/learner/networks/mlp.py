@@ -29,6 +29,22 @@ def init_mlp(rng: np.random.Generator, sizes: list[int], init: str, out_gain: fl
     return layers
 
 
+def with_layer_norm_affine(params: Params) -> Params:
+    """Each hidden layer of an MLP (or a stacked ensemble of them) given its LayerNorm's scale (1) and bias (0), the
+    affine Flax's LayerNorm learns (layer_norm_affine): drawn from no generator, so the weights stay as drawn."""
+    def add(layer: dict) -> dict:
+        shape = np.shape(layer["b"])
+        return {**layer, "ln_scale": np.ones(shape, np.float32), "ln_bias": np.zeros(shape, np.float32)}
+
+    return [add(layer) for layer in params[:-1]] + [params[-1]]
+
+
+def _normed(h: jax.Array, layer: dict) -> jax.Array:
+    """A hidden layer's LayerNorm, with its learned scale and bias where the layer has them."""
+    h = layer_norm(h)
+    return h * layer["ln_scale"] + layer["ln_bias"] if "ln_scale" in layer else h
+
+
 def mlp(params: Params, x: jax.Array, activation: str, matmul_dtype: str = "float32",
         normalize: bool | str = False, masks: list[jax.Array] | None = None) -> jax.Array:
     """`normalize` puts a LayerNorm (no affine) before each hidden activation (True or "before": Ball et al. 2023,
@@ -46,9 +62,9 @@ def mlp_features(params: Params, x: jax.Array, activation: str, matmul_dtype: st
         if masks is not None:
             h = h * masks[i]
         if normalize == "after":
-            x = layer_norm(act(h))
+            x = _normed(act(h), layer)
         else:
-            x = act(layer_norm(h) if normalize else h)
+            x = act(_normed(h, layer) if normalize else h)
     return x
 
 
@@ -106,6 +122,9 @@ def export_arrays(actor: Params, actor_stats: Params, batch_renorm: Any, matmul_
         if i == len(actor) - 1:
             w, b = np.ascontiguousarray(w[:, :act_dim]), np.ascontiguousarray(b[:act_dim])
         arrays[f"w{i}"], arrays[f"b{i}"] = (round_bf16(w) if bf16 else w), b
+        if "ln_scale" in layer:  # the hidden LayerNorm's learned affine (layer_norm_affine)
+            arrays[f"ln{i}_scale"] = np.asarray(layer["ln_scale"], np.float32)
+            arrays[f"ln{i}_bias"] = np.asarray(layer["ln_bias"], np.float32)
         arrays.update({f"n{i}_{k}": v for k, v in steps.items()})
         flags.append(bf16)
     if any(flags):
