@@ -49,7 +49,7 @@ class SACConfig:
     offline_data: str = _f("", "transitions to learn from beside the env's own (issue 68): a Minari dataset (its id, downloaded by Minari where the machine reaches its host, or its directory), a softac run directory (its last checkpoint's replay buffer) or a `softac dataset` output; referenced, not copied, and checked by checksum on resume")
     offline_mode: str = _f("mix", "with offline_data: mix (each batch drawn part from the dataset, offline_fraction of it, part from the env's replay: RLPD's symmetric sampling, Ball et al. 2023) or prefill (the dataset copied into the replay buffer before the first step, then sampled as the env's own transitions)")
     offline_fraction: float = _f(0.5, "with offline_data and offline_mode mix: the share of each batch drawn from the dataset (RLPD's 0.5)")
-    buffer_obs_once: bool = _f(False, "store each observation once (next_obs rebuilt from the following row; the host's buffer and the device's): Pusher 221 -> 145 B per transition, CheetahRun on the device 168 -> 114")
+    buffer_obs_once: bool = _f(False, "store each observation once (next_obs rebuilt from the following row; the host's buffer and the device's): Pusher 221 -> 145 B per transition, CheetahRun on the device 169 -> 114")
     batch_size: int = _f(256, "transitions per gradient step")
     obs_norm: bool = _f(False, "normalise observations by a running mean/std (as SB3's VecNormalize); saved in checkpoints")
     obs_norm_clip: float = _f(10.0, "with obs_norm: clip normalised observations to [-clip, clip]")
