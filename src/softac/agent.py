@@ -83,8 +83,8 @@ class SAC:
             return None
         from softac.run.offline_sources import load_offline_data
 
-        return partial(load_offline_data, config.offline_data, env_name(self.env_source) if not isinstance(
-            self.env_source, str) else self.env_source, self.spaces, self.learner.scaler.to_normalised)
+        return partial(load_offline_data, config.offline_data, config.env_id, self.spaces,
+                       self.learner.scaler.to_normalised)
 
     @property
     def config(self) -> SACConfig:
@@ -157,19 +157,10 @@ class SAC:
         [-1, 1] units (or episodes until `steps` transitions, the last cut there); `dataset_id` (NAMESPACE/NAME-vN)
         by default from `out`. Returns `out`; train from it with
         SAC(config, offline_data=out)."""
-        from softac.errors import SoftacError
-        from softac.outputs.dataset import buffer_dataset, policy_dataset
-        from softac.run.offline_sources import replay_rows
+        from softac.outputs.dataset import write_agent_dataset
 
-        what = f"a softac agent on {self.config.env_id}"
-        if noise < 0:
-            raise SoftacError(f"noise must be >= 0, got {noise}")
-        if episodes is not None or steps is not None:
-            return policy_dataset(self, what, episodes, policy, noise, seed, Path(out), dataset_id, steps)[0]
-        if getattr(self.collector, "buffer", None) is None:
-            raise SoftacError("this agent has no replay buffer to write yet: train it, or pass episodes=N")
-        rows = replay_rows(self.collector.buffer.state_dict(), self.config, {"num_steps": self.num_steps}, what)
-        return buffer_dataset(rows, what, self.make_env, self.learner.scaler.to_env, Path(out), dataset_id)[0]
+        return write_agent_dataset(self, f"a softac agent on {self.config.env_id}", out, dataset_id, episodes, policy,
+                                   noise, seed, steps).path
 
     def save(self, path: str | Path, include_buffer: bool = False) -> Path:
         """Save the agent (networks, optimisers, alpha, RNGs; the buffer and envs too if asked)."""

@@ -217,34 +217,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
-    from softac.outputs.dataset import buffer_dataset, policy_dataset
+    from softac.agent import SAC
+    from softac.outputs.dataset import write_agent_dataset
     from softac.run import checkpoint as ckpt
-    from softac.run.offline_sources import run_buffer
 
-    run, out = Path(args.run), Path(args.out)
-    if out.exists():
-        raise SoftacError(f"{out} exists; pick a new --out")
-    if args.noise < 0:
-        raise SoftacError("--noise must be >= 0")
+    run = Path(args.run)
     fresh = args.episodes is not None or args.steps is not None
     if not fresh and (args.noise or args.policy != "deployed" or args.seed):
         raise SoftacError("--noise, --policy and --seed choose how fresh episodes act: give --episodes N or --steps N")
-    from softac.agent import SAC
-
+    # the buffer: the last checkpoint's (the loaded agent's collector holds it); fresh episodes: its best policy
+    agent = SAC.load(run if fresh else ckpt.resolve(run, "last"))
+    written = write_agent_dataset(agent, f"softac run {run}", args.out, args.id, args.episodes, args.policy,
+                                  args.noise, args.seed, args.steps)
     if not fresh:
-        agent = SAC.load(ckpt.resolve(run, "last"))
-        written, episodes, steps = buffer_dataset(run_buffer(run), f"softac run {run}", agent.make_env,
-                                                  agent.learner.scaler.to_env, out, args.id)
-        print(f"wrote {written}: the replay buffer of {run}, {steps:,} transitions in {episodes:,} episodes "
-              f"(Minari {_minari_version()}; --offline-data {written})")
+        print(f"wrote {written.path}: the replay buffer of {run}, {written.transitions:,} transitions in "
+              f"{written.episodes:,} episodes (Minari {_minari_version()}; --offline-data {written.path})")
         return EXIT_OK
-    agent = SAC.load(run)
-    written, episodes, steps, mean_return = policy_dataset(agent, f"softac run {run}", args.episodes, args.policy,
-                                                           args.noise, args.seed, out, args.id, args.steps)
-    print(f"wrote {written}: {episodes} episodes of {run}'s {args.policy} policy"
+    print(f"wrote {written.path}: {written.episodes} episodes of {run}'s {args.policy} policy"
           + (f" with noise {args.noise:g}" if args.noise else "")
-          + f", {steps:,} transitions, mean return {mean_return:.2f} (Minari {_minari_version()}; "
-          f"--offline-data {written})")
+          + f", {written.transitions:,} transitions, mean return {written.mean_return:.2f} (Minari "
+          f"{_minari_version()}; --offline-data {written.path})")
     return EXIT_OK
 
 

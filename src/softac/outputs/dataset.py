@@ -6,14 +6,44 @@ Minari's metadata (the env's spec where Gymnasium registers it, the algorithm, s
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from softac.replay.offline import OfflineDataError, write_minari
-from softac.run.offline_sources import RunBuffer, buffer_episodes
+from softac.run.offline_sources import RunBuffer, buffer_episodes, replay_rows
 from softac.version import __version__
+
+
+@dataclass
+class WrittenDataset:
+    path: Path
+    episodes: int
+    transitions: int
+    mean_return: float | None  # the fresh episodes' (None for a replay buffer)
+
+
+def write_agent_dataset(agent: Any, what: str, out: str | Path, dataset_id: str | None = None,
+                        episodes: int | None = None, policy: str = "deployed", noise: float = 0.0, seed: int = 0,
+                        steps: int | None = None) -> WrittenDataset:
+    """A Minari dataset at `out` from an agent (`what`: whose, for the description): its replay buffer as each env's
+    episodes, or, with `episodes` or `steps`, fresh episodes of its policy (policy_episodes). `out` is checked
+    before any episode is run."""
+    out = Path(out)
+    if out.exists():
+        raise OfflineDataError(f"{out} exists; pick a new --out")
+    if noise < 0:
+        raise OfflineDataError(f"noise must be >= 0, got {noise:g}")
+    if episodes is not None or steps is not None:
+        return policy_dataset(agent, what, episodes, policy, noise, seed, out, dataset_id, steps)
+    buffer = getattr(agent.collector, "buffer", None)
+    if buffer is None:
+        raise OfflineDataError(f"{what} holds no replay buffer (a run's checkpoints/last has one, as agent.save(path, "
+                               "include_buffer=True) has): train it, or write fresh episodes (--episodes N)")
+    rows = replay_rows(buffer.state_dict(), agent.config, {"num_steps": agent.num_steps}, what)
+    return buffer_dataset(agent, rows, what, out, dataset_id)
 
 
 def default_dataset_id(out: Path, env_id: str, mode: str) -> str:
@@ -32,13 +62,12 @@ def check_vector_env(env: Any, what: str) -> None:
                                "images) are not written as datasets yet; softac writes flat vector observations")
 
 
-def buffer_dataset(buffer: RunBuffer, what: str, make_env: Callable[[], Any],
-                   to_env: Callable[[np.ndarray], np.ndarray], out: Path, dataset_id: str | None) -> tuple[Path, int, int]:
-    """A replay buffer (`what`: whose, for the description) as a Minari dataset: (out, episodes, transitions)."""
-    env = make_env()
+def buffer_dataset(agent: Any, buffer: RunBuffer, what: str, out: Path, dataset_id: str | None) -> WrittenDataset:
+    """An agent's replay buffer, as transitions, as a Minari dataset."""
+    env = agent.make_env()
     try:
         check_vector_env(env, f"a dataset of {what}")
-        episodes = buffer_episodes(buffer, to_env)
+        episodes = buffer_episodes(buffer, agent.learner.scaler.to_env)
         env_id = buffer.config.env_id
         written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "replay"), episodes,
                                env_id, env.observation_space, env.action_space,
@@ -47,7 +76,7 @@ def buffer_dataset(buffer: RunBuffer, what: str, make_env: Callable[[], Any],
                                f"{len(buffer.rewards):,} transitions of {env_id}.")
     finally:
         env.close()
-    return written, len(episodes), int(len(buffer.rewards))
+    return WrittenDataset(written, len(episodes), int(len(buffer.rewards)), None)
 
 
 def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: Any, episodes: int | None,
@@ -83,9 +112,8 @@ def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: A
 
 
 def policy_dataset(agent: Any, what: str, episodes: int | None, policy: str, noise: float, seed: int, out: Path,
-                   dataset_id: str | None, steps: int | None = None) -> tuple[Path, int, int, float]:
-    """Fresh episodes of an agent's policy (`what`: whose, for the description) as a Minari dataset: (out, episodes,
-    transitions, mean return)."""
+                   dataset_id: str | None, steps: int | None = None) -> WrittenDataset:
+    """Fresh episodes of an agent's policy as a Minari dataset."""
     env = agent.make_env()
     try:
         check_vector_env(env, f"a dataset of {what}")
@@ -100,4 +128,4 @@ def policy_dataset(agent: Any, what: str, episodes: int | None, policy: str, noi
                                f"return {mean_return:.1f}.")
     finally:
         env.close()
-    return written, len(data), int(sum(len(ep["rewards"]) for ep in data)), mean_return
+    return WrittenDataset(written, len(data), int(sum(len(ep["rewards"]) for ep in data)), mean_return)

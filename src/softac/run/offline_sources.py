@@ -133,7 +133,8 @@ def _from_run(source: str, path: Path, env_name: str, spaces: SpaceInfo) -> Offl
     high = np.asarray(saved_spaces.get("high", spaces.high), np.float64)
     check_dataset_spaces(source, buffer.obs.shape[1:], low, high, env_name, spaces.obs_dim, spaces.low, spaces.high)
     check_offline_memory(len(buffer.rewards), spaces.obs_dim, spaces.act_dim, source)
-    episodes = int(buffer.done.sum()) + len(np.unique(buffer.env[~buffer.done])) if len(buffer.done) else 0
+    # buffer_episodes' count: each episode end, and each env whose newest episode the data cuts
+    episodes = int(buffer.done.sum()) + sum(not buffer.done[buffer.env == e][-1] for e in np.unique(buffer.env))
     return OfflineData(obs=buffer.obs, actions=buffer.actions, rewards=buffer.rewards, next_obs=buffer.next_obs,
                        terminated=buffer.terminated.astype(np.float32),
                        truncated=buffer.done & ~(buffer.terminated > 0), source=source, checksum=buffer.checksum,
