@@ -95,13 +95,20 @@ class DeviceEnvs:
     def _repeat(self, states: Any, actions: jax.Array) -> tuple[Any, jax.Array, jax.Array]:
         """The env's step `action_repeat` times with one action, rewards summed; an env whose episode ends inside
         the repeat stays at its last state."""
-        rewards = jnp.zeros(self.n, jnp.float32)
-        done = jnp.zeros(self.n, bool)
-        for _ in range(self.action_repeat):
+        if self.action_repeat == 1:
             stepped = self._step(states, actions)
-            states = stepped if self.action_repeat == 1 else _where(done, states, stepped)
+            return stepped, jnp.asarray(stepped.reward, jnp.float32), jnp.asarray(stepped.done) > 0
+
+        # a scan, not a Python loop: one env step in the program however many repeats (as Brax's EpisodeWrapper),
+        # so that an MJX env's step is traced and compiled once, not action_repeat times (issue 64)
+        def repeat(carry, _):
+            states, rewards, done = carry
+            stepped = self._step(states, actions)
             rewards = rewards + jnp.where(done, 0.0, jnp.asarray(stepped.reward, jnp.float32))
-            done = done | (jnp.asarray(stepped.done) > 0)
+            return (_where(done, states, stepped), rewards, done | (jnp.asarray(stepped.done) > 0)), None
+
+        start = (states, jnp.zeros(self.n, jnp.float32), jnp.zeros(self.n, bool))
+        (states, rewards, done), _ = jax.lax.scan(repeat, start, None, length=self.action_repeat)
         return states, rewards, done
 
     def _reset_ended(self, states: Any, ended: jax.Array, key: jax.Array) -> Any:
