@@ -223,3 +223,167 @@ def test_fresh_episodes_stop_at_a_step_count_with_the_last_one_truncated():
     assert actions.min() >= -1.0 and actions.max() <= 3.0 and actions.std() > 0.1  # noise of 0.5 * 2 in env units
     again = policy_episodes(lambda obs: np.array([1.0], np.float32), scaler, env, None, 0.5, seed=1, steps=60)
     np.testing.assert_array_equal(np.concatenate([ep["actions"] for ep in again]), actions)  # seeded
+
+
+GOAL_ENV = "softac_test_envs:PointGoal-v0"  # observation [x, y, t/20], achieved [x, y], desired goal; 20-step episodes
+
+
+@pytest.fixture(scope="module")
+def goal_run(tmp_path_factory) -> Path:
+    """A goal env's run of 2 envs whose 150-row HER buffer wrapped (200 steps: 10 episodes of 20)."""
+    from softac import SAC
+
+    run = tmp_path_factory.mktemp("offline-goal") / "source"
+    SAC(tiny_config(GOAL_ENV, n_envs=2, buffer_size=150, learning_starts=60, seed=3)).learn(200, run_dir=run,
+                                                                                             progress=False)
+    return run
+
+
+def test_a_goal_runs_episodes_are_relabelled_by_her_in_each_batch(goal_run):
+    """A goal env's HER buffer read as offline data: its rows episode after episode, each step's observation
+    continuing the last (t/20 counts up), whole episodes of 20 but for each env's oldest (the ring cut its start);
+    in a batch about her_k / (her_k + 1) of the dataset's rows get a goal their episode achieved at or after them
+    (future), with the env's reward for it, and the rest keep their own goal and reward."""
+    from softac import SAC
+    from softac.envs.goals import dict_layout
+    from softac.replay.offline import OfflineDataError
+    from softac_test_envs import PointGoalEnv
+
+    agent = SAC(tiny_config(GOAL_ENV, offline_data=str(goal_run), learning_starts=60))
+    agent.learn(60, progress=False)
+    data = agent.collector.offline
+    layout = dict_layout(PointGoalEnv().observation_space)
+    steps, achieved, desired = (layout.slices[k] for k in ("observation", "achieved_goal", "desired_goal"))
+    assert len(data) == 150 and data.episodes == 8 and data.t is not None
+    ends = np.flatnonzero(data.truncated)
+    assert np.all(data.length[ends] == data.t[ends] + 1) and sorted(set(data.length)) == [15, 20]
+    inside = np.flatnonzero(~data.truncated[:-1])
+    np.testing.assert_array_equal(data.next_obs[inside], data.obs[inside + 1])
+    np.testing.assert_allclose(data.obs[:, steps][:, 2] * 20 - data.t, np.where(data.length == 15, 5, 0), atol=1e-4)
+
+    her = agent.collector.her
+    batch = data.sample(np.random.default_rng(5), 400, 1, her)
+    obs, next_obs, rewards = batch["obs"][0], batch["next_obs"][0], batch["rewards"][0]
+    own = {tuple(row) for row in data.obs}
+    kept = np.array([tuple(row) in own for row in obs])
+    assert 0.7 < 1 - kept.mean() < 0.9  # her_k 4: 0.8 relabelled (a few draw their own goal back)
+    env = PointGoalEnv()
+    np.testing.assert_array_equal(rewards, env.compute_reward(next_obs[:, achieved], next_obs[:, desired], {}))
+    for o, n in zip(obs[~kept], next_obs[~kept]):
+        match = np.flatnonzero(np.all(data.obs[:, :layout.slices["desired_goal"].start] == o[:desired.start], axis=1)
+                               & np.all(data.obs[:, steps] == o[steps], axis=1))
+        row = match[0]
+        later = data.next_obs[row:row + data.length[row] - data.t[row], achieved]
+        assert any(np.array_equal(goal, o[desired]) for goal in later)  # a goal its episode reached later
+        np.testing.assert_array_equal(n[desired], o[desired])
+    with pytest.raises(OfflineDataError, match="cannot be copied into a goal env's HER buffer"):
+        SAC(tiny_config(GOAL_ENV, offline_data=str(goal_run), offline_mode="prefill")).learn(10, progress=False)
+
+
+@pytest.mark.exact
+def test_a_goal_env_with_offline_data_resumes_exactly(goal_run, tmp_path):
+    """N + M == N+M with the dataset's rows relabelled in each batch: HER's draws come from the run's stream."""
+    cfg = tiny_config(GOAL_ENV, offline_data=str(goal_run), learning_starts=60)
+    straight, resumed = straight_and_resumed(cfg, tmp_path, 110, 90)
+    assert_same_training(straight, resumed)
+
+
+def test_softac_dataset_writes_a_goal_envs_dict_observations(goal_run, tmp_path):
+    """A goal env's dataset records the env's Dict space and dict observations (Minari's recover_environment, other
+    libraries), from the replay buffer and from fresh episodes; --offline-data reads it back flattened, and an env
+    observing something else is refused in one line naming both."""
+    minari = pytest.importorskip("minari")
+    replay = run_cli("dataset", str(goal_run), "--out", str(tmp_path / "replay"))
+    assert replay.returncode == 0, replay.stderr
+    fresh = run_cli("dataset", str(goal_run), "--out", str(tmp_path / "fresh"), "--episodes", "2")
+    assert fresh.returncode == 0, fresh.stderr
+    from minari.dataset.minari_dataset import MinariDataset
+
+    from softac import SAC
+    from softac.run.offline_sources import run_buffer
+
+    written = MinariDataset(tmp_path / "replay" / "data")
+    assert type(written.observation_space).__name__ == "Dict" and written.total_steps == 150
+    first = next(iter(written.iterate_episodes()))
+    assert set(first.observations) == {"observation", "achieved_goal", "desired_goal"}
+    assert first.observations["observation"].shape == (len(first.rewards) + 1, 3)
+    assert np.all(first.observations["desired_goal"] == first.observations["desired_goal"][0])  # one goal an episode
+    assert len(list(MinariDataset(tmp_path / "fresh" / "data").iterate_episodes())) == 2
+
+    agent = SAC(tiny_config(GOAL_ENV, offline_data=str(tmp_path / "replay"), learning_starts=60))
+    agent.learn(60, progress=False)
+    data, rows = agent.collector.offline, run_buffer(goal_run, agent.spaces.layout)
+    assert len(data) == 150 and data.t is not None
+    np.testing.assert_array_equal(np.sort(data.obs, axis=0), np.sort(rows.obs, axis=0))  # the same rows, flattened
+    assert_clean_error(run_cli("train", "--env", ENV, "--out", str(tmp_path / "x"), "--offline-data",
+                               str(tmp_path / "replay")),
+                       "observes a dict of achieved_goal (2), desired_goal (2), observation (3) values but "
+                       f"{ENV} observes shape (2,)")
+
+
+def test_a_run_too_large_for_the_memory_is_refused_before_its_checkpoint_is_read(source_run, monkeypatch):
+    import softac.base.memory as memory
+    from softac import SAC
+    from softac.replay.offline import OfflineDataError
+    from softac.run import checkpoint as ckpt
+    from softac.run.offline_sources import load_offline_data
+
+    agent = SAC(tiny_config(ENV))
+    monkeypatch.setattr(memory, "available_memory_bytes", lambda: 1000)
+    monkeypatch.setattr(ckpt, "load", lambda *args, **kwargs: pytest.fail("the checkpoint was read"))
+    with pytest.raises(OfflineDataError, match=r"^offline data .*source: its checkpoint's arrays need [\d.]+ KiB but "
+                                               r"only 1000.0 B is available$"):
+        load_offline_data(str(source_run), ENV, agent.spaces, agent.learner.scaler.to_normalised)
+
+
+IMAGE_ENV = "softac_test_envs:DotImage-v0"  # 16x16 RGB frames, stacked in 2s; 20-step episodes
+IMAGE = dict(encoder_channels=8, encoder_features=16, augment_pad=2, frame_stack=2, n_envs=2, buffer_size=120)
+
+
+def test_an_image_runs_frames_become_a_dataset_and_an_image_runs_offline_data(tmp_path):
+    """An image run's frame buffer (each frame stored once) read as frame stacks [2, 16, 16, 3] uint8, oldest first,
+    each env's episodes in turn and each episode's stacks held once (a row's next observation the stack after its
+    own); written as a Minari dataset of the env's uint8 frame stacks (its replay buffer, and fresh episodes),
+    which reads back as the same rows; mixed into an image run's batches in the env's shape; prefill, and images
+    with state values packed beside them, refused in one line."""
+    minari = pytest.importorskip("minari")  # noqa: F841
+    from minari.dataset.minari_dataset import MinariDataset
+
+    from softac import SAC
+    from softac.replay.offline import OfflineDataError
+    from softac.run.offline_sources import load_offline_data, run_buffer
+
+    source = tmp_path / "source"
+    collected = SAC(tiny_config(IMAGE_ENV, **IMAGE, learning_starts=400, seed=2))
+    collected.learn(160, run_dir=source, progress=False)  # 160 rows into 120: wrapped, no update needed
+    agent = SAC(tiny_config(IMAGE_ENV, **IMAGE, learning_starts=20, offline_data=str(source)))
+    data = load_offline_data(str(source), IMAGE_ENV, agent.spaces, agent.learner.scaler.to_normalised)
+    rows = run_buffer(source)
+    order = np.concatenate([np.flatnonzero(rows.env == e) for e in (0, 1)])
+    assert data.next_obs is None and data.obs.dtype == np.uint8 and data.obs.shape[1:] == (2, 16, 16, 3)
+    assert len(data) == len(rows.rewards) and 100 <= len(data) <= 120 and len(data.obs) == len(data) + data.episodes
+    current, following = data.observations(np.arange(len(data)))
+    np.testing.assert_array_equal(current, rows.obs[order])
+    np.testing.assert_array_equal(following, rows.next_obs[order])
+    np.testing.assert_array_equal(following[:, 0], current[:, 1])  # the stack moves on by one frame
+
+    collected.write_dataset(tmp_path / "replay")
+    collected.write_dataset(tmp_path / "fresh", episodes=1)
+    written = MinariDataset(tmp_path / "replay" / "data")
+    assert written.observation_space.shape == (2, 16, 16, 3) and written.observation_space.dtype == np.uint8
+    fresh = next(iter(MinariDataset(tmp_path / "fresh" / "data").iterate_episodes()))
+    assert fresh.observations.shape == (21, 2, 16, 16, 3) and fresh.observations.dtype == np.uint8
+    again = load_offline_data(str(tmp_path / "replay"), IMAGE_ENV, agent.spaces, agent.learner.scaler.to_normalised)
+    np.testing.assert_array_equal(again.obs, data.obs)
+    np.testing.assert_array_equal(again.obs_row, data.obs_row)
+
+    agent.learn(40, progress=False)
+    batch = agent.collector.sample(np.random.default_rng(0), 32, 1)
+    assert batch["obs"].dtype == np.uint8 and batch["obs"].shape == (1, 32, 2, 16, 16, 3)
+    held = {stack.tobytes() for stack in data.obs}
+    assert all(stack.tobytes() in held for stack in batch["next_obs"][0, 16:])  # the dataset's half
+    with pytest.raises(OfflineDataError, match="cannot be copied into an image run's frame buffer"):
+        SAC(tiny_config(IMAGE_ENV, **IMAGE, offline_data=str(source), offline_mode="prefill")).learn(10, progress=False)
+    packed = SAC(tiny_config("softac_test_envs:DotStateImage-v0", **IMAGE))
+    with pytest.raises(OfflineDataError, match="an image with state values .* is not read as offline data"):
+        load_offline_data(str(source), "DotStateImage-v0", packed.spaces, packed.learner.scaler.to_normalised)

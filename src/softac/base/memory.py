@@ -21,6 +21,13 @@ def available_memory_bytes() -> int:
         return 1 << 62
 
 
+def memory_shortfall(need: float, fraction: float = 0.8) -> str | None:
+    """None where `need` bytes fit in `fraction` of the memory available now, else what a refusal says of it:
+    "<need> but only <available> is available"."""
+    have = available_memory_bytes()
+    return None if need <= fraction * have else f"{human_bytes(need)} but only {human_bytes(have)} is available"
+
+
 def human_bytes(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if n < 1024 or unit == "TiB":

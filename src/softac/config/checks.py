@@ -65,8 +65,6 @@ def _check_collection(config: Any) -> None:
          "must be in (0, 1): each batch part offline, part online (offline_mode prefill samples one replay)")
     if config.offline_data:
         need(config.n_step == 1, "n_step", "offline_data's transitions are one-step: set n_step=1")
-        need(config.her != "on", "her", "offline_data does not relabel goals yet: set her=off")
-        need(not config.pixels, "pixels", "offline_data holds vector observations only, not pixels")
         need(not (config.offline_mode == "prefill" and config.buffer_obs_once), "buffer_obs_once",
              "offline_mode prefill copies whole transitions: set buffer_obs_once=false")
     need(config.her_strategy in ("future", "final", "episode"), "her_strategy", "must be future, final or episode")

@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from softac.replay.offline import OfflineDataError, write_minari
-from softac.run.offline_sources import RunBuffer, buffer_episodes, replay_rows
+from softac.run.offline_sources import buffer_episodes, replay_rows
 from softac.version import __version__
 
 
@@ -42,8 +42,7 @@ def write_agent_dataset(agent: Any, what: str, out: str | Path, dataset_id: str 
     if buffer is None:
         raise OfflineDataError(f"{what} holds no replay buffer (a run's checkpoints/last has one, as agent.save(path, "
                                "include_buffer=True) has): train it, or write fresh episodes (--episodes N)")
-    rows = replay_rows(buffer.state_dict(), agent.config, {"num_steps": agent.num_steps}, what)
-    return buffer_dataset(agent, rows, what, out, dataset_id)
+    return buffer_dataset(agent, buffer, what, out, dataset_id)
 
 
 def default_dataset_id(out: Path, env_id: str, mode: str) -> str:
@@ -54,29 +53,62 @@ def default_dataset_id(out: Path, env_id: str, mode: str) -> str:
     return f"softac/{slug}-{mode}-v0"
 
 
-def check_vector_env(env: Any, what: str) -> None:
+def observation_format(env: Any, what: str) -> tuple[Any, Callable[[np.ndarray], Any]]:
+    """The observation space a dataset of `env` records, and the conversion of the flat observations softac holds
+    to it: the env's own Dict of Boxes for a dict-observing env (a goal env's), which softac flattens, so that the
+    dataset is in the env's terms (Minari's recover_environment, other libraries); a vector env's Box as it is."""
     import gymnasium as gym
 
-    if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
-        raise OfflineDataError(f"{what}: {type(env.observation_space).__name__} observations (goal envs' dicts, "
-                               "images) are not written as datasets yet; softac writes flat vector observations")
+    from softac.envs.goals import dict_layout, dict_observation_space
+
+    from softac.envs.pixels import ImageWithState, is_frame_stack_space, wrapper_of
+
+    space = env.observation_space
+    if wrapper_of(env, ImageWithState) is not None:
+        raise OfflineDataError(f"{what}: an image with state values (packed into softac's frames) is not written as "
+                               "a dataset; softac writes vectors, dicts of them and frame stacks")
+    if is_frame_stack_space(space):  # the env's frame stacks [k, h, w, c] as they are
+        return space, lambda stacks: stacks
+    if not isinstance(space, gym.spaces.Box) or len(space.shape) != 1:
+        raise OfflineDataError(f"{what}: {type(space).__name__} observations of shape {space.shape} are not written "
+                               "as datasets; softac writes vectors, dicts of them and frame stacks")
+    original = dict_observation_space(env)
+    if original is None:
+        return space, lambda flat: flat
+    kinds = sorted({type(sub).__name__ for sub in original.spaces.values()})
+    if kinds != ["Box"]:
+        raise OfflineDataError(f"{what}: its dict observation holds {', '.join(kinds)} entries; softac writes dicts "
+                               "of Box entries")
+    layout = dict_layout(original)
+
+    def to_dict(flat: np.ndarray) -> dict[str, np.ndarray]:
+        return {k: flat[:, layout.slices[k]].reshape(len(flat), *sub.shape).astype(sub.dtype)
+                for k, sub in original.spaces.items()}
+
+    return original, to_dict
 
 
-def buffer_dataset(agent: Any, buffer: RunBuffer, what: str, out: Path, dataset_id: str | None) -> WrittenDataset:
-    """An agent's replay buffer, as transitions, as a Minari dataset."""
+def _in_format(episodes: list[dict[str, np.ndarray]], convert: Callable[[np.ndarray], Any]) -> list[dict[str, Any]]:
+    return [{**ep, "observations": convert(ep["observations"])} for ep in episodes]
+
+
+def buffer_dataset(agent: Any, replay: Any, what: str, out: Path, dataset_id: str | None) -> WrittenDataset:
+    """An agent's replay buffer, as each env's episodes, as a Minari dataset."""
     env = agent.make_env()
     try:
-        check_vector_env(env, f"a dataset of {what}")
-        episodes = buffer_episodes(buffer, agent.learner.scaler.to_env)
-        env_id = buffer.config.env_id
-        written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "replay"), episodes,
-                               env_id, env.observation_space, env.action_space,
+        space, convert = observation_format(env, f"a dataset of {what}")
+        rows = replay_rows(replay.state_dict(), agent.config, {"num_steps": agent.num_steps}, what,
+                           agent.spaces.layout)
+        episodes = buffer_episodes(rows, agent.learner.scaler.to_env)
+        env_id = agent.config.env_id
+        written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "replay"),
+                               _in_format(episodes, convert), env_id, space, env.action_space,
                                f"softac {__version__} SAC (replay buffer)",
-                               f"The replay buffer of {what} at step {buffer.saved.get('num_steps', '?')}: "
-                               f"{len(buffer.rewards):,} transitions of {env_id}.")
+                               f"The replay buffer of {what} at step {agent.num_steps}: "
+                               f"{len(rows.rewards):,} transitions of {env_id}.")
     finally:
         env.close()
-    return WrittenDataset(written, len(episodes), int(len(buffer.rewards)), None)
+    return WrittenDataset(written, len(episodes), int(len(rows.rewards)), None)
 
 
 def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: Any, episodes: int | None,
@@ -105,7 +137,9 @@ def policy_episodes(act: Callable[[np.ndarray], np.ndarray], scaler: Any, env: A
             truncations.append(bool(truncated) or (steps is not None and total >= steps and not terminated))
             if terminations[-1] or truncations[-1]:
                 break
-        out.append({"observations": np.asarray(observations, np.float32), "actions": np.asarray(actions, np.float32),
+        stacked = np.asarray(observations)  # frame stacks stay uint8, vectors become float32
+        out.append({"observations": stacked if stacked.dtype == np.uint8 else stacked.astype(np.float32),
+                    "actions": np.asarray(actions, np.float32),
                     "rewards": np.asarray(rewards, np.float32), "terminations": np.asarray(terminations),
                     "truncations": np.asarray(truncations)})
     return out
@@ -116,14 +150,14 @@ def policy_dataset(agent: Any, what: str, episodes: int | None, policy: str, noi
     """Fresh episodes of an agent's policy as a Minari dataset."""
     env = agent.make_env()
     try:
-        check_vector_env(env, f"a dataset of {what}")
+        space, convert = observation_format(env, f"a dataset of {what}")
         data = policy_episodes(lambda obs: agent.predict(obs, deterministic=True, policy=policy), agent.learner.scaler,
                                env, episodes, noise, seed, steps)
         env_id = agent.config.env_id
         mean_return = float(np.mean([ep["rewards"].sum() for ep in data]))
         how = f"its {policy} policy's deterministic actions" + (f" with Gaussian noise of std {noise:g}" if noise else "")
-        written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "policy"), data, env_id,
-                               env.observation_space, env.action_space, f"softac {__version__} SAC ({policy} policy)",
+        written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "policy"), _in_format(data, convert),
+                               env_id, space, env.action_space, f"softac {__version__} SAC ({policy} policy)",
                                f"{len(data)} episodes of {what} at step {agent.num_steps}: {how}; mean "
                                f"return {mean_return:.1f}.")
     finally:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from softac.errors import SoftacError
-from softac.base.memory import available_memory_bytes, human_bytes, transition_bytes
+from softac.base.memory import memory_shortfall, transition_bytes
 
 
 class BufferMemoryError(SoftacError):
@@ -14,12 +14,10 @@ class BufferMemoryError(SoftacError):
 
 def check_buffer_memory(capacity: int, bytes_each: float, memory_fraction: float = 0.8) -> None:
     """Refuse, before allocating anything, a buffer the machine cannot hold."""
-    need = capacity * bytes_each
-    have = available_memory_bytes()
-    if need > memory_fraction * have:
-        raise BufferMemoryError(
-            f"replay buffer of {capacity:,} transitions needs {human_bytes(need)} but only "
-            f"{human_bytes(have)} is available; lower buffer_size (--set buffer_size=N)")
+    short = memory_shortfall(capacity * bytes_each, memory_fraction)
+    if short is not None:
+        raise BufferMemoryError(f"replay buffer of {capacity:,} transitions needs {short}; lower buffer_size "
+                                "(--set buffer_size=N)")
 
 
 class RingBuffer:

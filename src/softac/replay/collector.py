@@ -169,7 +169,8 @@ class Collector:
             return self.buffer.sample(rng, batch_size, batches)
         k = offline_rows(batch_size, self.config.offline_fraction)
         online = self.buffer.sample(rng, batch_size - k, batches)
-        return mixed_batches(online, self.offline.sample(rng, k, batches))
+        her = self.her if isinstance(self.buffer, HerReplayBuffer) else None  # the dataset's goals relabelled too
+        return mixed_batches(online, self.offline.sample(rng, k, batches, her))
 
     # ---- offline data (issue 68) ---------------------------------------------------------------------
 
@@ -187,6 +188,13 @@ class Collector:
 
     def _prefill(self, data: OfflineData) -> None:
         """offline_mode prefill: the dataset's transitions become the replay's first rows."""
+        if isinstance(self.buffer, HerReplayBuffer):
+            raise OfflineDataError(f"offline_mode prefill: {data.source} cannot be copied into a goal env's HER "
+                                   "buffer (it keeps each env's episodes n_envs rows apart); use offline_mode mix, "
+                                   "where HER relabels the dataset's episodes too")
+        if isinstance(self.buffer, FrameReplayBuffer):
+            raise OfflineDataError(f"offline_mode prefill: {data.source} cannot be copied into an image run's frame "
+                                   "buffer (it stores each env's frames as they come); use offline_mode mix")
         if len(data) > self.buffer.capacity:
             raise OfflineDataError(f"offline_mode prefill: {data.source} holds {len(data):,} transitions, more than "
                                    f"buffer_size={self.buffer.capacity:,}")

@@ -28,6 +28,27 @@ from softac.replay.buffer import RingBuffer, check_buffer_memory
 HER_STRATEGIES = ("future", "final", "episode")
 
 
+def goal_steps(rng: np.random.Generator, t: np.ndarray, length: np.ndarray, strategy: str) -> np.ndarray:
+    """For transitions at steps `t` of finished episodes of `length` steps, the step whose achieved goal becomes
+    each one's new goal: at or after it (`future`: its next_obs's achieved goal), the last (`final`), any
+    (`episode`)."""
+    if strategy == "final":
+        return length - 1
+    if strategy == "future":
+        return t + np.floor(rng.random(t.shape) * (length - t)).astype(np.int64)
+    return np.floor(rng.random(t.shape) * length).astype(np.int64)
+
+
+def relabel_goals(obs: np.ndarray, next_obs: np.ndarray, rewards: np.ndarray, which: np.ndarray, goals: np.ndarray,
+                  layout: DictLayout, reward_fn: RewardFn) -> None:
+    """Rows `which` of a batch (flat observations, in place) given the desired goal `goals`, and the reward the
+    env's compute_reward gives for it."""
+    desired, achieved = layout.slices["desired_goal"], layout.slices["achieved_goal"]
+    obs[which, desired] = goals
+    next_obs[which, desired] = goals
+    rewards[which] = reward_fn(next_obs[which, achieved], goals)
+
+
 class HerReplayBuffer(RingBuffer):
     """Transitions of a goal env, each observation kept as its three parts, relabelled at sample time.
 
@@ -110,13 +131,8 @@ class HerReplayBuffer(RingBuffer):
 
     def _goal_rows(self, rng: np.random.Generator, idx: np.ndarray) -> np.ndarray:
         """For each row (of a finished episode), the row whose achieved goal becomes its new goal."""
-        t, length = self.t[idx], self.length[idx]
-        if self.strategy == "final":
-            chosen = length - 1
-        elif self.strategy == "future":  # a transition at or after this one: its next_obs's achieved goal
-            chosen = t + np.floor(rng.random(idx.shape) * (length - t)).astype(np.int64)
-        else:
-            chosen = np.floor(rng.random(idx.shape) * length).astype(np.int64)
+        t = self.t[idx]
+        chosen = goal_steps(rng, t, self.length[idx], self.strategy)
         rows = (idx + (chosen - t) * self.n_envs) % self.capacity
         if self.strategy == "episode":  # earlier rows of a long episode may have been overwritten
             rows = np.where(self.episode[rows] == self.episode[idx], rows, idx)
@@ -130,11 +146,8 @@ class HerReplayBuffer(RingBuffer):
         obs, next_obs, rewards = self.flat_obs[idx], self.flat_next_obs[idx], self.rewards[idx]
         which = np.flatnonzero(relabel)
         if which.size:
-            desired, achieved = self.layout.slices["desired_goal"], self.layout.slices["achieved_goal"]
-            goals = self.flat_next_obs[self._goal_rows(rng, idx[which]), achieved]
-            obs[which, desired] = goals
-            next_obs[which, desired] = goals
-            rewards[which] = self.reward_fn(next_obs[which, achieved], goals)
+            goals = self.flat_next_obs[self._goal_rows(rng, idx[which]), self.layout.slices["achieved_goal"]]
+            relabel_goals(obs, next_obs, rewards, which, goals, self.layout, self.reward_fn)
         shape = (n_batches, batch_size)
         return {"obs": obs.reshape(*shape, -1), "actions": self.actions[idx].reshape(*shape, -1),
                 "rewards": rewards.reshape(shape), "next_obs": next_obs.reshape(*shape, -1),

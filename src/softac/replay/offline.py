@@ -6,7 +6,10 @@ A dataset is Minari's format (Farama's, for Gymnasium: episodes of observations 
 terminations and truncations [T]) or a softac run's replay buffer (softac.run.offline_sources reads those). Inside
 softac its actions are in [-1, 1] as the replay's are; Minari's files hold them in the env's units. Terminations and
 truncations stay apart: only a termination stops the bootstrap. Observations are stored raw and normalised when
-drawn, with the statistics of that moment, as the replay's are (obs_norm).
+drawn, with the statistics of that moment, as the replay's are (obs_norm). A dict observation (a goal env's, Minari's
+Dict space) is flattened as the env's is (its DictLayout); a goal env's dataset keeps its episodes whole, so that
+HER relabels its rows in each batch as it relabels the replay's (Andrychowicz et al. 2017, on demonstrations as
+Nair et al. 2018).
 """
 
 from __future__ import annotations
@@ -22,8 +25,11 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from softac.base.memory import available_memory_bytes, human_bytes, transition_bytes
+from softac.base.memory import human_bytes, memory_shortfall, transition_bytes
+from softac.envs.goals import DictLayout
+from softac.envs.make import SpaceInfo
 from softac.errors import SoftacError
+from softac.replay.her_buffer import HerSetup, goal_steps, relabel_goals
 
 
 class OfflineDataError(SoftacError):
@@ -32,31 +38,63 @@ class OfflineDataError(SoftacError):
 
 @dataclass
 class OfflineData:
-    """Transitions as arrays, one row each: observations raw, actions in [-1, 1]."""
-    obs: np.ndarray  # [n, obs_dim] float32
+    """Transitions as arrays, one row each: observations raw, actions in [-1, 1]. Image observations (frame stacks,
+    uint8) are held once an episode: `obs` is each episode's [T+1] observations in turn, row r's observation is
+    obs[obs_row[r]] and its next one the one after, and `next_obs` is None."""
+    obs: np.ndarray  # [n, obs_dim] float32 (images: [n + episodes, k, h, w, c] uint8)
     actions: np.ndarray  # [n, act_dim] float32, in [-1, 1]
     rewards: np.ndarray  # [n] float32
-    next_obs: np.ndarray  # [n, obs_dim] float32: the true next observation (at a truncation, the final one)
+    next_obs: np.ndarray | None  # [n, obs_dim] float32: the true next observation (at a truncation, the final one)
     terminated: np.ndarray  # [n] float32: 1 where the episode terminated (no bootstrap)
     truncated: np.ndarray  # [n] bool: the episode was cut there (a time limit, or the data's end)
     source: str  # what it was loaded from, as the user named it
     checksum: str  # sha256 of the files it was read from: a resumed run checks it
     episodes: int
+    # a goal env's data, its episodes whole and in order: each row's step in its episode, and the episode's length
+    # (HER's relabelling); None where rows are not laid out by episode
+    t: np.ndarray | None = None
+    length: np.ndarray | None = None
+    obs_row: np.ndarray | None = None  # images: each row's observation in `obs`
 
     def __len__(self) -> int:
         return len(self.rewards)
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.obs, self.actions, self.rewards, self.next_obs, self.terminated,
-                                      self.truncated))
+        arrays = (self.obs, self.actions, self.rewards, self.next_obs, self.terminated, self.truncated, self.t,
+                  self.length, self.obs_row)
+        return sum(a.nbytes for a in arrays if a is not None)
 
-    def sample(self, rng: np.random.Generator, batch_size: int, n_batches: int = 1) -> dict[str, np.ndarray]:
-        """`n_batches` batches of `batch_size` rows drawn uniformly, as the replay's sample lays them out."""
+    def observations(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The observations and next observations of rows `idx` (any shape)."""
+        if self.obs_row is None:
+            return self.obs[idx], self.next_obs[idx]
+        rows = self.obs_row[idx]
+        return self.obs[rows], self.obs[rows + 1]
+
+    def sample(self, rng: np.random.Generator, batch_size: int, n_batches: int = 1,
+               her: HerSetup | None = None) -> dict[str, np.ndarray]:
+        """`n_batches` batches of `batch_size` rows drawn uniformly, as the replay's sample lays them out; with
+        `her` (a goal env), a share her_k / (her_k + 1) of them given a goal their episode achieved, as the HER
+        buffer's rows are."""
         idx = rng.integers(0, len(self), size=(n_batches, batch_size))
-        return {"obs": self.obs[idx], "actions": self.actions[idx], "rewards": self.rewards[idx],
-                "next_obs": self.next_obs[idx], "terminated": self.terminated[idx],
-                "steps": np.ones(idx.shape, np.float32)}
+        obs, next_obs = self.observations(idx)
+        out = {"obs": obs, "actions": self.actions[idx], "rewards": self.rewards[idx], "next_obs": next_obs,
+               "terminated": self.terminated[idx], "steps": np.ones(idx.shape, np.float32)}
+        if her is not None and self.t is not None:
+            self._relabel(rng, idx.reshape(-1), out, her)
+        return out
+
+    def _relabel(self, rng: np.random.Generator, idx: np.ndarray, batch: dict[str, np.ndarray], her: HerSetup) -> None:
+        which = np.flatnonzero(rng.random(idx.shape) < her.k / (her.k + 1.0))
+        if not which.size:
+            return
+        rows, t = idx[which], self.t[idx[which]]
+        goals = self.next_obs[rows + goal_steps(rng, t, self.length[rows], her.strategy) - t,
+                              her.layout.slices["achieved_goal"]]
+        obs, next_obs = (batch[k].reshape(len(idx), -1) for k in ("obs", "next_obs"))
+        rewards = batch["rewards"].reshape(-1)
+        relabel_goals(obs, next_obs, rewards, which, goals, her.layout, her.reward_fn)
 
     def describe(self) -> str:
         return (f"offline data {self.source}: {len(self):,} transitions in {self.episodes:,} episodes, "
@@ -74,50 +112,103 @@ def offline_rows(batch_size: int, fraction: float) -> int:
     return min(max(1, int(round(batch_size * fraction))), batch_size - 1)
 
 
-def check_offline_memory(rows: int, obs_dim: int, act_dim: int, source: str, memory_fraction: float = 0.8) -> None:
+def offline_bytes(rows: int, episodes: int, spaces: SpaceInfo) -> int:
+    """What `rows` transitions in `episodes` episodes take as OfflineData: float32 vector rows, or each episode's
+    frame stacks once (uint8) beside the rows' actions, rewards and flags."""
+    if spaces.image_shape is None:
+        return rows * transition_bytes(spaces.obs_dim, spaces.act_dim)
+    return (rows + episodes) * int(np.prod(spaces.image_shape)) + rows * (4 * spaces.act_dim + 4 + 4 + 1 + 8)
+
+
+def check_offline_memory(rows: int, episodes: int, spaces: SpaceInfo, source: str,
+                         memory_fraction: float = 0.8) -> None:
     """Refuse, before reading it, a dataset the machine cannot hold beside what is running."""
-    need, have = rows * transition_bytes(obs_dim, act_dim), available_memory_bytes()
-    if need > memory_fraction * have:
-        raise OfflineDataError(f"offline data {source}: its {rows:,} transitions need {human_bytes(need)} but only "
-                               f"{human_bytes(have)} is available")
+    short = memory_shortfall(offline_bytes(rows, episodes, spaces), memory_fraction)
+    if short is not None:
+        raise OfflineDataError(f"offline data {source}: its {rows:,} transitions need {short}")
 
 
-def check_dataset_spaces(source: str, obs_shape: tuple, act_low: np.ndarray, act_high: np.ndarray,
-                         env_name: str, obs_dim: int, low: np.ndarray, high: np.ndarray) -> None:
-    """The dataset's observations and actions must be the env's: one line naming both where they are not."""
-    if tuple(obs_shape) != (obs_dim,):
+def env_obs_shape(spaces: SpaceInfo) -> tuple[int, ...]:
+    """The shape of what softac's env observes: a frame stack [k, h, w, c], else a flat vector."""
+    return tuple(spaces.image_shape) if spaces.image_shape is not None else (spaces.obs_dim,)
+
+
+def check_dataset_spaces(source: str, obs_shape: tuple, act_low: np.ndarray, act_high: np.ndarray, env_name: str,
+                         spaces: SpaceInfo, layout: DictLayout | None = None) -> None:
+    """The dataset's observations and actions must be the env's (`spaces`): one line naming both where they are
+    not. `layout`: a dict-observing dataset's (the env's must match it key by key)."""
+    ours = spaces.layout
+    if layout is not None:
+        if ours is None or layout.keys != ours.keys or layout.slices != ours.slices:
+            raise OfflineDataError(f"offline data {source} observes {describe_observations(layout)} but {env_name} "
+                                   f"observes {describe_observations(ours, env_obs_shape(spaces))}")
+    elif tuple(obs_shape) != env_obs_shape(spaces):
         raise OfflineDataError(f"offline data {source} observes shape {tuple(obs_shape)} but {env_name} observes "
-                               f"({obs_dim},)")
+                               f"{env_obs_shape(spaces)}")
     act_low, act_high = np.asarray(act_low, np.float64).ravel(), np.asarray(act_high, np.float64).ravel()
+    low, high = np.asarray(spaces.low, np.float64), np.asarray(spaces.high, np.float64)
     if act_low.shape != low.shape or not (np.allclose(act_low, low) and np.allclose(act_high, high)):
         raise OfflineDataError(f"offline data {source} acts in [{_bounds(act_low)}, {_bounds(act_high)}] but "
                                f"{env_name} in [{_bounds(low)}, {_bounds(high)}]")
+
+
+def describe_observations(layout: DictLayout | None, shape: tuple[int, ...] = ()) -> str:
+    """`a dict of achieved_goal (2), desired_goal (2), observation (3) values`, or `shape (dim,)`."""
+    if layout is None:
+        return f"shape {tuple(shape)}"
+    return "a dict of " + ", ".join(f"{k} ({layout.slices[k].stop - layout.slices[k].start})" for k in layout.keys) \
+        + " values"
+
+
+def episode_steps(ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's step in its episode and the episode's length, for rows laid out episode after episode, `ends`
+    marking each episode's last row (the last row always ends one)."""
+    ends = np.asarray(ends, bool).copy()
+    ends[-1] = True
+    last = np.flatnonzero(ends)
+    lengths = np.diff(np.concatenate([[-1], last]))
+    starts = last - lengths + 1
+    episode = np.repeat(np.arange(len(last)), lengths)
+    return np.arange(len(ends)) - starts[episode], lengths[episode]
 
 
 def _bounds(a: np.ndarray) -> str:
     return np.array2string(np.asarray(a, np.float64), precision=3, separator=", ", threshold=8)
 
 
-def from_episodes(episodes: Iterable[Any], to_normalised: Any, source: str, checksum: str) -> OfflineData:
+def from_episodes(episodes: Iterable[Any], to_normalised: Any, source: str, checksum: str,
+                  layout: DictLayout | None = None, keep_episodes: bool = False,
+                  image_shape: tuple[int, ...] | None = None) -> OfflineData:
     """Transitions from Minari-style episodes (observations [T+1], actions [T] in env units, rewards, terminations,
     truncations): row t is (o_t, a_t, r_t, o_t+1). An episode whose last step neither terminated nor truncated
-    (the data ends inside it) is marked truncated there: its last transition still bootstraps."""
+    (the data ends inside it) is marked truncated there: its last transition still bootstraps. Dict observations
+    are flattened by `layout`; `keep_episodes` records each row's step and episode length (HER); frame stacks of
+    `image_shape` are kept once an episode (OfflineData.obs_row)."""
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("obs", "actions", "rewards", "next_obs", "terminated",
-                                                          "truncated")}
-    count = 0
+                                                          "truncated", "obs_row")}
+    count, held = 0, 0
     for ep in episodes:
-        observations = np.asarray(ep.observations, np.float32)
-        if observations.ndim != 2:
+        observations = ep.observations
+        if isinstance(observations, dict) and layout is not None:
+            observations = layout.flatten(observations)
+        observations = np.asarray(observations, np.uint8 if image_shape is not None else np.float32)
+        if (observations.shape[1:] != tuple(image_shape)) if image_shape is not None else observations.ndim != 2:
             raise OfflineDataError(f"offline data {source}: episode {count} has observations of shape "
-                                   f"{observations.shape}; softac reads flat vector observations")
+                                   f"{observations.shape[1:]}; softac reads flat vectors, dicts of them, or its "
+                                   "env's frame stacks")
         t = len(ep.rewards)
         if t == 0:
             continue
         truncated = np.asarray(ep.truncations, bool).copy()
         terminated = np.asarray(ep.terminations, bool)
         truncated[-1] |= not terminated[-1]
-        parts["obs"].append(observations[:t])
-        parts["next_obs"].append(observations[1:t + 1])
+        if image_shape is None:
+            parts["obs"].append(observations[:t])
+            parts["next_obs"].append(observations[1:t + 1])
+        else:  # each frame stack once: row i's next observation is the one after its own
+            parts["obs"].append(observations[:t + 1])
+            parts["obs_row"].append(held + np.arange(t))
+            held += t + 1
         parts["actions"].append(np.asarray(to_normalised(np.asarray(ep.actions, np.float32)), np.float32))
         parts["rewards"].append(np.asarray(ep.rewards, np.float32))
         parts["terminated"].append(terminated.astype(np.float32))
@@ -125,7 +216,9 @@ def from_episodes(episodes: Iterable[Any], to_normalised: Any, source: str, chec
         count += 1
     if count == 0:
         raise OfflineDataError(f"offline data {source} holds no transitions")
-    arrays = {k: np.concatenate(v) for k, v in parts.items()}
+    arrays = {k: np.concatenate(v) if v else None for k, v in parts.items()}
+    if keep_episodes:
+        arrays["t"], arrays["length"] = episode_steps((arrays["terminated"] > 0) | arrays["truncated"])
     return OfflineData(**arrays, source=source, checksum=checksum, episodes=count)
 
 
@@ -193,19 +286,28 @@ def load_minari(source: str) -> tuple[Any, Path]:
         raise OfflineDataError(f"offline data {source}: Minari cannot read it ({first})") from None
 
 
-def minari_transitions(source: str, env_name: str, obs_dim: int, low: np.ndarray, high: np.ndarray,
-                       to_normalised: Any) -> OfflineData:
-    """A Minari dataset's transitions, its spaces checked against the env's and its size against the memory."""
+def minari_transitions(source: str, env_name: str, spaces: SpaceInfo, to_normalised: Any) -> OfflineData:
+    """A Minari dataset's transitions for an env of `spaces`, its spaces checked against the env's and its size
+    against the memory; a goal env's keep their episodes whole (HER)."""
     import gymnasium as gym
+
+    from softac.envs.goals import dict_layout
 
     dataset, data_dir = load_minari(source)
     obs_space, act_space = dataset.observation_space, dataset.action_space
-    if not isinstance(obs_space, gym.spaces.Box) or not isinstance(act_space, gym.spaces.Box):
+    dict_box = isinstance(obs_space, gym.spaces.Dict) and all(isinstance(s, gym.spaces.Box)
+                                                               for s in obs_space.spaces.values())
+    if not (isinstance(obs_space, gym.spaces.Box) or dict_box) or not isinstance(act_space, gym.spaces.Box):
         raise OfflineDataError(f"offline data {source} observes {type(obs_space).__name__} and acts in "
-                               f"{type(act_space).__name__}; softac reads Box observations and actions")
-    check_dataset_spaces(source, obs_space.shape, act_space.low, act_space.high, env_name, obs_dim, low, high)
-    check_offline_memory(int(dataset.total_steps), obs_dim, len(low), source)
-    return from_episodes(dataset.iterate_episodes(), to_normalised, source, files_checksum(data_dir))
+                               f"{type(act_space).__name__}; softac reads Box observations (or a Dict of Boxes) "
+                               "and Box actions")
+    check_dataset_spaces(source, getattr(obs_space, "shape", None) or (), act_space.low, act_space.high, env_name,
+                         spaces, dict_layout(obs_space) if dict_box else None)
+    if spaces.image_shape is not None and obs_space.dtype != np.uint8:
+        raise OfflineDataError(f"offline data {source} observes {obs_space.dtype} images but {env_name} uint8 ones")
+    check_offline_memory(int(dataset.total_steps), int(dataset.total_episodes), spaces, source)
+    return from_episodes(dataset.iterate_episodes(), to_normalised, source, files_checksum(data_dir), spaces.layout,
+                         spaces.goal_env, spaces.image_shape)
 
 
 def write_minari(out: Path, dataset_id: str, episodes: list[dict[str, np.ndarray]], env_id: str | None,

@@ -155,6 +155,16 @@ def load(directory: str | Path, attempts: int = 5) -> tuple[dict[str, Any], dict
     return meta, _read_arrays(directory, meta)
 
 
+def arrays_bytes(directory: str | Path) -> int:
+    """The size of a checkpoint's arrays file: what loading it takes in memory (an uncompressed .npz), known
+    before it is read."""
+    directory = Path(directory)
+    try:
+        return (directory / _read_meta(directory)["arrays_file"]).stat().st_size
+    except OSError:
+        raise CheckpointError(f"corrupt checkpoint {directory}: its arrays file is missing") from None
+
+
 def _read_meta(directory: Path) -> dict[str, Any]:
     try:
         meta = json.loads((directory / META).read_text())
