@@ -33,9 +33,10 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("exploration_noise", "pink"), ("offline_data", "runs/x")):
+    for key, value in (("exploration_noise", "pink"), ("offline_mode", "prefill")):
         with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
-            device_config(**{key: value})
+            device_config(**{key: value}, offline_data="runs/x")
+    assert device_config(offline_data="runs/x").offline_data == "runs/x"  # mixed into each batch (test below)
     assert device_config(n_step=3).n_step == 3  # n-step returns on the device (test_device_envs)
 
 
@@ -124,6 +125,60 @@ def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     # successor was written over the oldest rows, so all 200 rows can be drawn
     assert len(arrays_a["buffer/valid"]) == 200 and arrays_a["buffer/valid"].all()
     assert sorted(arrays_a["buffer/final_owner"][arrays_a["buffer/final_owner"] >= 0]) == [196, 197, 198, 199]
+
+
+@pytest.mark.exact
+def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tmp_path, monkeypatch):
+    """offline_data on the device (issue 68): a host-collected run's replay as the dataset, put on the device whole,
+    half of each batch drawn from it inside the chunk (RLPD's symmetric sampling, from the chunks' key); obs_norm
+    counts the dataset first; 240 + 160 == 400; the checkpoint records the dataset, and a device run's replay reads
+    back as offline data row for row."""
+    import jax
+
+    from softac import SAC
+    from softac.replay import device_buffer
+    from softac.run import device_transitions
+    from softac.run.offline_sources import run_buffer
+
+    source = tmp_path / "source"
+    SAC(device_config(collect_on="host", learning_starts=400)).learn(400, run_dir=source, progress=False)
+    traced = []
+    mixed_rows = device_transitions.mixed_rows
+    monkeypatch.setattr(device_transitions, "mixed_rows",
+                        lambda drawn, offline, key, rows: traced.append((drawn.obs.shape, offline.obs.shape, rows))
+                        or mixed_rows(drawn, offline, key, rows))
+    cfg = device_config(offline_data=str(source))
+    straight = SAC(cfg)
+    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(160, run_dir=tmp_path / "split", progress=False)
+    assert_same_learner(straight, resumed)
+    assert_same_run_state(straight, resumed)
+    (_, arrays_a), (_, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
+    for name in arrays_a:
+        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    assert traced and traced[0] == ((1, 16, 5), (400, 5), 16)  # half of each 32-row batch from the dataset
+    assert straight.learner.obs_norm.count == 400 + 400
+    meta = json.loads((tmp_path / "split" / "checkpoints" / "last" / "meta.json").read_text())
+    assert meta["offline"]["source"] == str(source) and meta["offline"]["transitions"] == 400
+
+    # the mix itself: the replay's rows first, the dataset's after, as the host's mixed_batches
+    drawn = device_buffer.sample(straight.collector.replay, jax.random.PRNGKey(0), 2, 16, 4)
+    batch = mixed_rows(drawn, straight.collector.offline_device, jax.random.PRNGKey(1), 16)
+    assert batch.obs.shape == (2, 32, 5) and np.all(np.asarray(batch.steps) == 1)
+    data = straight.collector.offline
+    dataset = {tuple(np.r_[o, n]) for o, n in zip(data.obs, data.next_obs)}
+    rows = [tuple(np.r_[o, n]) for o, n in zip(np.asarray(batch.obs).reshape(64, 5),
+                                                np.asarray(batch.next_obs).reshape(64, 5))]
+    assert all(row in dataset for i, row in enumerate(rows) if i % 32 >= 16)
+    assert not any(row in dataset for i, row in enumerate(rows) if i % 32 < 16)
+
+    written = run_buffer(tmp_path / "straight")  # a device run as a source: its replay as transitions
+    own = straight.collector.replay_rows()
+    assert len(written.rewards) == 400 and sorted(np.bincount(written.env)) == [100] * 4
+    np.testing.assert_array_equal(written.obs, own["obs"])
+    np.testing.assert_array_equal(written.next_obs, own["next_obs"])
 
 
 def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_path):

@@ -36,11 +36,11 @@ if TYPE_CHECKING:
     import gymnasium as gym
 
 
-def device_collector(config: SACConfig, env_source: EnvSource, spaces: Any) -> DeviceCollector:
+def device_collector(config: SACConfig, env_source: EnvSource, spaces: Any, offline_loader: Any = None) -> DeviceCollector:
     from softac.envs.playground import device_env
 
     env = device_env(config.env_id)
-    return DeviceCollector(config, env_source, spaces, env.env, env.episode_length, env.action_repeat)
+    return DeviceCollector(config, env_source, spaces, env.env, env.episode_length, env.action_repeat, offline_loader)
 
 
 class SAC:
@@ -72,8 +72,9 @@ class SAC:
 
         self.learner = Learner(config, self.spaces)  # what the agent knows
         # its training envs and replay buffer: on the host, or N envs on the device (MuJoCo Playground's; issue 67)
-        self.collector = (device_collector(config, self.env_source, self.spaces) if config.collects_on_device
-                          else Collector(config, self.env_source, self.spaces, her, self._offline_loader(config)))
+        offline = self._offline_loader(config)
+        self.collector = (device_collector(config, self.env_source, self.spaces, offline) if config.collects_on_device
+                          else Collector(config, self.env_source, self.spaces, her, offline))
         # where its training stands (counters, RNGs, exploration noise, evaluations, its run)
         self.run_state = RunState.new(config.seed, exploration_noise(config, self.spaces.act_dim))
 

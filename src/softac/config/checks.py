@@ -73,9 +73,9 @@ def _check_collection(config: Any) -> None:
 
 def _check_device_collection(config: Any) -> None:
     """What the device's collection (issue 67) runs: Playground's envs, Gaussian exploration from the policy (with
-    random_action_prob's uniform rows), n-step
-    targets (observations raw or normalised, obs_norm; rewards raw or scaled, reward_scale); the host's parts it has
-    no counterpart of yet are refused by name."""
+    random_action_prob's uniform rows), n-step targets (observations raw or normalised, obs_norm; rewards raw or
+    scaled, reward_scale), offline data mixed into each batch; the host's parts it has no counterpart of yet are
+    refused by name."""
     if not config.collects_on_device:
         return
     need = _requirer(config)
@@ -87,7 +87,8 @@ def _check_device_collection(config: Any) -> None:
     need(config.exploration_noise == "gaussian", "exploration_noise", host_only.replace("set it off", "use gaussian"))
     need(config.env_workers == 0, "env_workers", "device collection steps its envs inside the update's jit: set 0")
     need(not config.pixels, "pixels", host_only)
-    need(not config.offline_data, "offline_data", host_only.replace("set it off", "unset it"))
+    need(not (config.offline_data and config.offline_mode == "prefill"), "offline_mode",
+         host_only.replace("set it off", "use mix"))
 
 
 def _check_targets_and_critics(config: Any) -> None:

@@ -21,7 +21,7 @@ from softac.config.sac_config import SACConfig
 from softac.envs.make import EnvFailed, EnvPool, EnvSource, SpaceInfo, StepResult, copy_env, env_name
 from softac.replay.her_buffer import HerReplayBuffer, HerSetup
 from softac.replay.image_buffer import FrameReplayBuffer
-from softac.replay.offline import OfflineData, OfflineDataError, mixed_batches, offline_rows
+from softac.replay.offline import OfflineData, OfflineDataError, OfflineSource, mixed_batches, offline_rows
 
 if TYPE_CHECKING:
     from softac.envs.workers import WorkerEnvPool
@@ -65,10 +65,8 @@ class Collector:
     def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, her: HerSetup | None = None,
                  offline_loader: Callable[[], OfflineData] | None = None):
         self.config, self.env_source, self.spaces, self.her = config, env_source, spaces, her
-        # offline_data (issue 68): read on first use by `offline_loader`; a resumed run's checkpoint names the
-        # checksum the dataset must still have
-        self.offline_loader, self.offline = offline_loader, None
-        self.offline_expected: dict[str, Any] | None = None
+        # offline_data (issue 68): read on first use; a resumed run's checkpoint names the checksum it must still have
+        self.offline_source = OfflineSource(offline_loader)
         self.buffer: Buffer | None = None
         self.pool: EnvPool | WorkerEnvPool | None = None
         self.started = False  # the envs were reset (or restored) once; they go on from where they are
@@ -79,6 +77,11 @@ class Collector:
     @property
     def bytes_per_transition(self) -> float:
         return replay_buffer_for(self.config, self.spaces, self.her)[1]
+
+    @property
+    def offline(self) -> OfflineData | None:
+        """The run's offline dataset once read (None before, or without offline_data)."""
+        return self.offline_source.data
 
     def _make_buffer(self) -> Buffer:
         return replay_buffer_for(self.config, self.spaces, self.her)[0]()
@@ -177,14 +180,7 @@ class Collector:
     def load_offline(self) -> OfflineData | None:
         """The run's offline dataset, read once (None without offline_data); a resumed run's must be the one it
         started with."""
-        if self.offline is None and self.offline_loader is not None:
-            data = self.offline_loader()
-            expected = self.offline_expected
-            if expected is not None and expected.get("checksum") != data.checksum:
-                raise OfflineDataError(f"offline data {data.source} changed since this run started (its checksum "
-                                       "differs from the checkpoint's): restore that dataset, or start a new run")
-            self.offline = data
-        return self.offline
+        return self.offline_source.load()
 
     def _prefill(self, data: OfflineData) -> None:
         """offline_mode prefill: the dataset's transitions become the replay's first rows."""
@@ -215,11 +211,8 @@ class Collector:
 
     def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The buffer and the envs' state, when asked for and there (a `last` checkpoint, to resume)."""
-        meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.buffer is not None)}
-        offline = self.offline_expected if self.offline is None else {
-            "source": self.offline.source, "checksum": self.offline.checksum, "transitions": len(self.offline)}
-        if offline is not None:
-            meta["offline"] = offline
+        meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.buffer is not None),
+                                **self.offline_source.checkpoint_meta()}
         env_state = self.env_state() if include_buffer else None
         meta["has_envs"] = env_state is not None
         arrays: dict[str, np.ndarray] = {}
@@ -233,7 +226,7 @@ class Collector:
 
     def restore(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], num_steps: int) -> None:
         """Take the buffer and envs a checkpoint holds (`num_steps`: where its run stands)."""
-        self.offline_expected = meta.get("offline")
+        self.offline_source.restore(meta)
         if meta.get("has_buffer"):
             self.buffer = self._make_buffer()
             self.buffer.load_state_dict(buffer_state(arrays))

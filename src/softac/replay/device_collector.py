@@ -5,12 +5,13 @@ envs' batch (`envs.device_envs.EnvBatch`: their state pytree, the observations t
 reset key), the replay buffer of device arrays (`replay.device_buffer`) and the key its chunks draw actions and
 batches from. To the training loop it is a collector like the host's: a host copy of the env for evaluation and
 videos (`make_env`), the bytes a transition takes, its parts of a checkpoint and their restore. Its memory is
-stated and checked before anything is allocated.
+stated and checked before anything is allocated. With offline_data (issue 68), the dataset is read once and put
+on the device whole (`OfflineOnDevice`), for the chunks to draw each batch's offline rows from.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -23,6 +24,7 @@ from softac.errors import CheckpointError, SoftacError
 from softac.replay import device_buffer
 from softac.replay.buffer import BufferMemoryError
 from softac.replay.device_buffer import DeviceReplay
+from softac.replay.offline import OfflineData, OfflineDataError, OfflineSource
 
 BUFFER_PREFIX, ENVS_PREFIX = "buffer/", "envs/"  # checkpoint array names, as the host collector's
 KEY_NAME = "collect_key"
@@ -38,12 +40,24 @@ def device_memory_bytes() -> int:
     return available_memory_bytes()
 
 
+class OfflineOnDevice(NamedTuple):
+    """An offline dataset's transitions as device arrays (observations raw, actions in [-1, 1])."""
+    obs: Any
+    actions: Any
+    rewards: Any
+    next_obs: Any
+    terminated: Any
+
+
 class DeviceCollector:
     """N envs on the device and their replay buffer, made on first use (`start`)."""
 
     def __init__(self, config: SACConfig, env_source: EnvSource, spaces: SpaceInfo, device_env: Any,
-                 episode_length: int, env_action_repeat: int = 1):
+                 episode_length: int, env_action_repeat: int = 1,
+                 offline_loader: Callable[[], OfflineData] | None = None):
         self.config, self.env_source, self.spaces = config, env_source, spaces
+        self.offline_source = OfflineSource(offline_loader)
+        self.offline_device: OfflineOnDevice | None = None
         repeat = config.action_repeat  # softac's own repeat on top of the env's: agent steps as on the host
         self.envs = DeviceEnvs(device_env, config.n_envs, -(-episode_length // repeat), env_action_repeat * repeat)
         self.capacity = device_buffer.capacity_for(config.buffer_size, config.n_envs)
@@ -75,12 +89,33 @@ class DeviceCollector:
         """A host copy of the training env (evaluation and videos run on it)."""
         return copy_env(self.env_source, render_mode, **kwargs)
 
+    @property
+    def offline(self) -> OfflineData | None:
+        """The run's offline dataset once read (None before, or without offline_data)."""
+        return self.offline_source.data
+
+    def load_offline(self) -> OfflineData | None:
+        """The run's offline dataset, read once and put on the device (its memory checked beside the replay's)."""
+        data = self.offline_source.load()
+        if data is not None and self.offline_device is None:
+            import jax.numpy as jnp
+
+            need, have = self.capacity * self.bytes_per_transition + data.nbytes, device_memory_bytes()
+            if need > 0.8 * have:
+                raise OfflineDataError(f"offline data {data.source}: its {len(data):,} transitions and the replay "
+                                       f"need {human_bytes(need)} on the device but only {human_bytes(have)} is "
+                                       "available")
+            self.offline_device = OfflineOnDevice(*(jnp.asarray(a, jnp.float32) for a in (
+                data.obs, data.actions, data.rewards, data.next_obs, data.terminated)))
+        return data
+
     def start(self, num_steps: int) -> None:
         """The buffer and the envs, when not there: fresh envs reset from a key of the seed and `num_steps`."""
         import jax
 
         if self.replay is None:
             self.replay = self.empty_replay()
+        self.load_offline()
         if not self.started:
             key = jax.random.PRNGKey(self.config.seed)
             env_key, self.key = jax.random.split(jax.random.fold_in(key, num_steps))
@@ -102,7 +137,8 @@ class DeviceCollector:
     def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The replay's rows held and its position, the envs' batch and the key (a `last` checkpoint, to resume)."""
         meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.replay is not None),
-                                "has_envs": bool(include_buffer and self.started)}
+                                "has_envs": bool(include_buffer and self.started),
+                                **self.offline_source.checkpoint_meta()}
         arrays: dict[str, np.ndarray] = {}
         if meta["has_buffer"]:
             arrays.update({BUFFER_PREFIX + name: value for name, value in self.replay_rows().items()})
@@ -152,6 +188,7 @@ class DeviceCollector:
         import jax
         import jax.numpy as jnp
 
+        self.offline_source.restore(meta)
         if meta.get("has_buffer"):
             self.replay = self.replay_from_rows({name[len(BUFFER_PREFIX):]: value for name, value in arrays.items()
                                                  if name.startswith(BUFFER_PREFIX)})

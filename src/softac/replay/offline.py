@@ -21,7 +21,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -99,6 +99,33 @@ class OfflineData:
     def describe(self) -> str:
         return (f"offline data {self.source}: {len(self):,} transitions in {self.episodes:,} episodes, "
                 f"{human_bytes(self.nbytes)}")
+
+
+class OfflineSource:
+    """A run's offline dataset, read on first use by `loader` (None: the run has none); a resumed run's must still
+    have the checksum its checkpoint recorded. Both collectors (the host's and the device's) hold one."""
+
+    def __init__(self, loader: Callable[[], OfflineData] | None):
+        self.loader, self.data = loader, None
+        self.expected: dict[str, Any] | None = None  # what a checkpoint recorded: source, checksum, transitions
+
+    def load(self) -> OfflineData | None:
+        if self.data is None and self.loader is not None:
+            data = self.loader()
+            if self.expected is not None and self.expected.get("checksum") != data.checksum:
+                raise OfflineDataError(f"offline data {data.source} changed since this run started (its checksum "
+                                       "differs from the checkpoint's): restore that dataset, or start a new run")
+            self.data = data
+        return self.data
+
+    def checkpoint_meta(self) -> dict[str, Any]:
+        """The checkpoint's record of the dataset ({} without one)."""
+        if self.data is None:
+            return {} if self.expected is None else {"offline": self.expected}
+        return {"offline": {"source": self.data.source, "checksum": self.data.checksum, "transitions": len(self.data)}}
+
+    def restore(self, meta: dict[str, Any]) -> None:
+        self.expected = meta.get("offline")
 
 
 def mixed_batches(online: dict[str, np.ndarray], offline: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -23,8 +23,9 @@ import numpy as np
 from softac.envs.make import Episode
 from softac.learner.learner import Learner
 from softac.replay.device_collector import DeviceCollector
+from softac.replay.offline import offline_rows
 from softac.run.run_state import RunState
-from softac.run.transitions import Chunk
+from softac.run.transitions import Chunk, count_offline_observations
 
 MAX_CHUNK = 1000  # vector steps in one call at most: the host comes back for the progress bar and Ctrl-C
 
@@ -53,6 +54,7 @@ class ChunkSpec(NamedTuple):
     gamma: float
     v_max: float
     n_step: int  # > 1: n-step returns drawn from the replay (device_buffer.n_step_rows)
+    offline_rows: int  # > 0: each batch's rows drawn from the offline dataset (offline_data, mix; issue 68)
 
 
 class DeviceTransitions:
@@ -63,15 +65,17 @@ class DeviceTransitions:
 
         self.learner, self.collector, self.run_state = learner, collector, run_state
         cfg, settings = learner.config, learner.functions.settings
+        mixed = offline_rows(cfg.batch_size, cfg.offline_fraction) if cfg.offline_data else 0
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts,
                               cfg.warmup_actions == "uniform", float(cfg.random_action_prob), cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
-                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step))
+                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step), mixed)
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
         self.collector.start(self.run_state.num_steps)
+        count_offline_observations(self.learner, self.collector.offline, self.run_state)
 
     def episodes(self, episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """Evaluation's episodes on the device (`device_episodes`): their returns and lengths."""
@@ -90,8 +94,9 @@ class DeviceTransitions:
         carry = (learner.state, totals, collector.replay, collector.batch, collector.key, obs_stats(learner),
                  return_stats(learner))
         schedule = (jnp.float32(max(cfg.total_steps, 1)), jnp.float32(cfg.lr_end_fraction))
+        offline = collector.offline_device if self.spec.offline_rows else ()
         carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
-                                                   jnp.int32(count), schedule)
+                                                   jnp.int32(count), schedule, offline)
         learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats, return_scale = carry
         keep_obs_stats(learner, stats)
         keep_return_stats(learner, return_scale)
@@ -238,10 +243,11 @@ def finished_episodes(lengths: np.ndarray, returns: np.ndarray, before: int, n: 
             for s, e in zip(steps, envs)]
 
 
-def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, count: Any,
-                  schedule: tuple) -> tuple[tuple, tuple]:
+def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, count: Any, schedule: tuple,
+                  offline: Any = ()) -> tuple[tuple, tuple]:
     """`count` (at most spec.length) vector steps from env step `start`: carry (SACState, metric totals, replay,
-    envs' batch, key) -> the carry after, and each step's ended episodes' returns and lengths [length, N]."""
+    envs' batch, key) -> the carry after, and each step's ended episodes' returns and lengths [length, N].
+    `offline`: the dataset on the device (DeviceCollector.offline_device) where spec.offline_rows > 0."""
     import jax
     import jax.numpy as jnp
 
@@ -285,8 +291,11 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
         after = before + n
 
         def learn(state, totals):
-            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, spec.batch_size, n, spec.n_step,
+            online_rows = spec.batch_size - spec.offline_rows
+            drawn = device_buffer.sample(replay, sample_key, spec.gradient_steps, online_rows, n, spec.n_step,
                                          spec.gamma)
+            if spec.offline_rows:  # RLPD's symmetric sampling: each batch's offline rows after its online ones
+                drawn = mixed_rows(drawn, offline, jax.random.fold_in(sample_key, 2), spec.offline_rows)
             # raw observations in the buffer, normalised when drawn with the statistics of that moment (as the host's)
             rewards = drawn.rewards / reward_divisor(returns, spec.reward_scale, spec.v_max) if returns else drawn.rewards
             batches = Batch(normalized(stats, drawn.obs, spec.obs_clip), drawn.actions, rewards,
@@ -304,6 +313,18 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
         return jax.lax.cond(i < count, lambda c: step(c, start + i * n), lambda c: (c, _no_episodes(n)), carry)
 
     return jax.lax.scan(maybe_step, carry, jnp.arange(spec.length, dtype=jnp.int32))
+
+
+def mixed_rows(drawn: Any, offline: Any, key: Any, rows: int) -> Any:
+    """The replay's batches (device_buffer.Sampled, [gradient_steps, rows', ...]) with `rows` more each drawn
+    uniformly from the offline dataset, one-step transitions, as the host's mixed_batches lays them out."""
+    import jax
+    import jax.numpy as jnp
+
+    idx = jax.random.randint(key, (drawn.rewards.shape[0], rows), 0, offline.rewards.shape[0])
+    more = (offline.obs[idx], offline.actions[idx], offline.rewards[idx], offline.next_obs[idx],
+            offline.terminated[idx], jnp.ones(idx.shape, drawn.steps.dtype))
+    return type(drawn)(*(jnp.concatenate([a, b.astype(a.dtype)], axis=1) for a, b in zip(drawn, more)))
 
 
 def _no_episodes(n: int) -> tuple:

@@ -71,13 +71,19 @@ def replay_rows(state: dict[str, np.ndarray], config: SACConfig, meta: dict[str,
     n = int(config.n_envs)
     if "frames" in state:
         return _frame_rows(state, config, meta)
+    capacity = int(config.buffer_size)
+    if "position" in state and "pos_size" not in state:  # a device run's replay (issue 67): its rows as the host's
+        capacity = max(n, (capacity // n) * n)  # device_buffer.capacity_for: written N at a time
+        pos_size = [int(state["position"]), len(state["rewards"])] + (
+            [int(state["final_pos"])] if "final_pos" in state else [])
+        state = {**state, "pos_size": np.array(pos_size, np.int64)}
     fields = {"obs", "actions", "rewards", "terminated"} | ({"final_obs"} if config.buffer_obs_once else {"next_obs"})
     if not fields <= set(state) or state["obs"].ndim != 2:
         raise OfflineDataError(f"{where}: its replay buffer is not one softac reads as offline data (vector, dict "
                                "or frame-stack observations)")
     if config.buffer_obs_once:
         pos, size = (int(v) for v in state["pos_size"][:2])
-        buffer = ObsOnceReplayBuffer(config.buffer_size, state["obs"].shape[1], state["actions"].shape[1], n)
+        buffer = ObsOnceReplayBuffer(capacity, state["obs"].shape[1], state["actions"].shape[1], n)
         buffer.load_state_dict(state)
         rows = _chronological(pos, size, buffer.capacity)
         env = _envs(rows, size, buffer.capacity, n)
@@ -87,9 +93,9 @@ def replay_rows(state: dict[str, np.ndarray], config: SACConfig, meta: dict[str,
         arrays_out = dict(obs=buffer.obs[rows], actions=buffer.actions[rows], rewards=buffer.rewards[rows],
                           next_obs=buffer.next_obs_of(rows), terminated=buffer.terminated[rows], done=done)
     else:
-        pos, size = (int(v) for v in state["pos_size"])
-        rows = _chronological(pos, size, config.buffer_size)
-        env = _envs(rows, size, config.buffer_size, n)
+        pos, size = (int(v) for v in state["pos_size"][:2])
+        rows = _chronological(pos, size, capacity)
+        env = _envs(rows, size, capacity, n)
         arrays_out = {k: state[k][rows] for k in ("obs", "actions", "rewards", "next_obs", "terminated")}
         arrays_out["done"] = state["done"][rows] if "done" in state else state["terminated"][rows] > 0
     return RunBuffer(**arrays_out, env=env, config=config, saved=meta, checksum=str(meta.get("sha256", "")))

@@ -19,7 +19,16 @@ from softac.envs.make import Episode
 from softac.learner.learner import Learner
 from softac.replay.collector import Collector
 from softac.replay.exploration import Explorer
+from softac.replay.offline import OfflineData
 from softac.run.run_state import RunState
+
+
+def count_offline_observations(learner: Learner, offline: OfflineData | None, run_state: RunState) -> None:
+    """A fresh run's obs_norm counts its offline dataset's observations before its first step, so that the
+    dataset's rows and the env's are normalised alike from the first update (issue 68)."""
+    norm = learner.obs_norm
+    if offline is not None and norm is not None and norm.count == 0 and run_state.num_steps == 0:
+        learner.observe(offline.obs)
 
 
 class Chunk(NamedTuple):
@@ -41,9 +50,7 @@ class HostTransitions:
         offline_data counts the dataset's observations in obs_norm's statistics first, so that its rows and the
         env's are normalised alike from the first update (issue 68)."""
         self.collector.start(self.run_state.num_steps)
-        norm, offline = self.learner.obs_norm, self.collector.offline
-        if offline is not None and norm is not None and norm.count == 0 and self.run_state.num_steps == 0:
-            self.learner.observe(offline.obs)
+        count_offline_observations(self.learner, self.collector.offline, self.run_state)
 
     def chunk(self, until: int) -> Chunk:
         """One vector step (`until`, the budget's end, is the device source's bound; one step never passes it)."""
