@@ -106,10 +106,12 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
 def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     """buffer_obs_once on the device: 240 + 160 env steps against 400, the 200-row replay past full (its oldest
     rows invalid, the episodes' final observations in the side ring), the learner, the replay's arrays and the
-    envs alike; the checkpoint keeps one observation array. With 3-step returns, walked over the obs-once rows."""
+    envs alike; the checkpoint keeps one observation array. With 3-step returns, walked over the obs-once rows,
+    and FlashSAC's held exploration noise (its hold carried across the split in the run state)."""
     from softac import SAC
 
-    cfg = device_config(buffer_obs_once=True, buffer_size=200, learning_starts=120, n_step=3)
+    cfg = device_config(buffer_obs_once=True, buffer_size=200, learning_starts=120, n_step=3,
+                        exploration_noise="repeat")
     straight = SAC(cfg)
     straight.learn(400, run_dir=tmp_path / "straight", progress=False)
     SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
@@ -125,6 +127,25 @@ def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     # successor was written over the oldest rows, so all 200 rows can be drawn
     assert len(arrays_a["buffer/valid"]) == 200 and arrays_a["buffer/valid"].all()
     assert sorted(arrays_a["buffer/final_owner"][arrays_a["buffer/final_owner"] >= 0]) == [196, 197, 198, 199]
+    assert straight.run_state.noise.count >= 1 and np.any(straight.run_state.noise.noise != 0)
+
+
+def test_held_noise_on_the_device_holds_every_envs_noise_for_zeta_drawn_steps(tmp_path):
+    """exploration_noise repeat on the device (FlashSAC's noise repetition): with the actor's head zeroed (mean 0,
+    one std) and no updates, each action is tanh(std * noise), so the replay shows the holds: every env's action
+    changes at the same steps (one count for all envs, as the authors'), held for 1 to 16 steps, about 2.1 on
+    average (the truncated Zeta of mu 2)."""
+    from softac import SAC
+
+    agent = SAC(device_config(exploration_noise="repeat", warmup_actions="policy", zero_actor_head=True,
+                              gradient_steps=0, obs_norm=False, reward_scale="off"))
+    agent.learn(1200, progress=False)
+    actions = agent.collector.replay_rows()["actions"].reshape(300, 4)
+    changed = np.any(actions[1:] != actions[:-1], axis=1)
+    assert np.array_equal(changed, np.all(actions[1:] != actions[:-1], axis=1))  # all envs at once, or none
+    holds = np.diff(np.flatnonzero(np.r_[True, changed, True]))
+    assert holds.max() <= 16 and holds.min() >= 1 and 1.6 < holds[:-1].mean() < 2.8, holds
+    assert len(set(actions[0])) == 4  # each env's own noise
 
 
 @pytest.mark.exact

@@ -55,6 +55,7 @@ class ChunkSpec(NamedTuple):
     v_max: float
     n_step: int  # > 1: n-step returns drawn from the replay (device_buffer.n_step_rows)
     offline_rows: int  # > 0: each batch's rows drawn from the offline dataset (offline_data, mix; issue 68)
+    noise_repeat: tuple | None  # (mu, largest): FlashSAC's held noise (exploration_noise repeat), else white noise
 
 
 class DeviceTransitions:
@@ -70,7 +71,9 @@ class DeviceTransitions:
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts,
                               cfg.warmup_actions == "uniform", float(cfg.random_action_prob), cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
-                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step), mixed)
+                              cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step), mixed,
+                              (float(cfg.noise_repeat_mu), int(cfg.noise_repeat_max))
+                              if cfg.exploration_noise == "repeat" else None)
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
@@ -92,14 +95,15 @@ class DeviceTransitions:
         count = max(1, min(self.spec.length, -(-(until - before) // n)))
         totals = learner.totals if learner.totals is not None else zero_totals()
         carry = (learner.state, totals, collector.replay, collector.batch, collector.key, obs_stats(learner),
-                 return_stats(learner))
+                 return_stats(learner), held_noise(rs.noise))
         schedule = (jnp.float32(max(cfg.total_steps, 1)), jnp.float32(cfg.lr_end_fraction))
         offline = collector.offline_device if self.spec.offline_rows else ()
         carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
                                                    jnp.int32(count), schedule, offline)
-        learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats, return_scale = carry
+        learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats, return_scale, held = carry
         keep_obs_stats(learner, stats)
         keep_return_stats(learner, return_scale)
+        keep_held_noise(rs.noise, held)
         rs.num_steps = after = before + count * n
         return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
                                                       before, n))
@@ -200,6 +204,42 @@ def keep_return_stats(learner: Learner, carried: tuple) -> None:
         keep_moments(scale.stats, tuple(stats))
 
 
+def held_noise(noise: Any) -> tuple:
+    """exploration_noise repeat's state (the held noise [N, act], the steps it was used, its hold) as the chunk
+    carries it, or () for other noise. It lives in the run state's RepeatedNoise between chunks (checkpointed with
+    it); the device draws from its own key, not the host's stream."""
+    import jax.numpy as jnp
+
+    from softac.replay.exploration import RepeatedNoise
+
+    if not isinstance(noise, RepeatedNoise):
+        return ()
+    return jnp.asarray(noise.noise, jnp.float32), jnp.int32(noise.count), jnp.int32(noise.hold)
+
+
+def keep_held_noise(noise: Any, carried: tuple) -> None:
+    if carried:
+        held, count, hold = carried
+        noise.noise, noise.count, noise.hold = np.array(held, np.float32), int(count), int(hold)
+
+
+def next_held(held: tuple, key: Any, repeat: tuple) -> tuple:
+    """RepeatedNoise.next on the device: the held noise, drawn afresh (standard normal, every env's) with a new hold
+    from the truncated Zeta distribution where the hold is over; one count for all envs, as the authors'."""
+    import jax
+    import jax.numpy as jnp
+
+    noise, count, hold = held
+    mu, largest = repeat
+    pmf = jnp.arange(1, largest + 1, dtype=jnp.float32) ** -mu
+    cdf = jnp.cumsum(pmf / pmf.sum())
+    noise_key, hold_key = jax.random.split(key)
+    fresh = (count == 0) | (count >= hold)
+    noise = jnp.where(fresh, jax.random.normal(noise_key, noise.shape, jnp.float32), noise)
+    hold = jnp.where(fresh, jnp.argmax(jax.random.uniform(hold_key) < cdf).astype(jnp.int32) + 1, hold)
+    return noise, jnp.where(fresh, 0, count) + 1, hold
+
+
 def observed_returns(carried: tuple, rewards: Any, dones: Any, gamma: float) -> tuple:
     """RunningReturnScale.update inside the chunk: each env's G <- gamma (1 - done) G + r, merged into the moments."""
     import jax.numpy as jnp
@@ -246,7 +286,7 @@ def finished_episodes(lengths: np.ndarray, returns: np.ndarray, before: int, n: 
 def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, count: Any, schedule: tuple,
                   offline: Any = ()) -> tuple[tuple, tuple]:
     """`count` (at most spec.length) vector steps from env step `start`: carry (SACState, metric totals, replay,
-    envs' batch, key) -> the carry after, and each step's ended episodes' returns and lengths [length, N].
+    envs' batch, key, obs_norm's and reward_scale's statistics, the held noise) -> the carry after, and each step's ended episodes' returns and lengths [length, N].
     `offline`: the dataset on the device (DeviceCollector.offline_device) where spec.offline_rows > 0."""
     import jax
     import jax.numpy as jnp
@@ -262,22 +302,27 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
     total, end_fraction = schedule
 
     def step(carry, before):
-        state, totals, replay, batch, key, stats, returns = carry
+        state, totals, replay, batch, key, stats, returns, held = carry
         key, act_key, sample_key = jax.random.split(key, 3)
         if stats:  # every observation the policy acts on counts, the warm-up's too (as the host's learner.observe)
             stats = merged_moments(*stats, batch.obs)
 
-        def policy_actions():
+        def policy_actions(held):
             actor, actor_stats, encoder = acting_actor(state)
-            obs = normalized(stats, batch.obs, spec.obs_clip)
-            return spec.policy.sample(actor, actor_stats, features_of(encoder, obs), act_key)[0]
+            features = features_of(encoder, normalized(stats, batch.obs, spec.obs_clip))
+            if not held:
+                return spec.policy.sample(actor, actor_stats, features, act_key)[0], held
+            # held noise: drawn (from a key of its own) only when the policy acts, as the host's RepeatedNoise
+            held = next_held(held, jax.random.fold_in(act_key, 3), spec.noise_repeat)
+            return spec.policy.with_noise(actor, actor_stats, features, held[0]), held
 
         if spec.uniform_warmup:
-            actions = jax.lax.cond(before < spec.learning_starts,
-                                   lambda: jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0),
-                                   policy_actions)
+            actions, held = jax.lax.cond(
+                before < spec.learning_starts,
+                lambda held: (jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0), held),
+                policy_actions, held)
         else:
-            actions = policy_actions()
+            actions, held = policy_actions(held)
         if spec.random_action_prob > 0:  # drawn only when asked: other runs keep their random numbers
             replace_key, uniform_key = jax.random.split(jax.random.fold_in(act_key, 1))
             replace = jax.random.uniform(replace_key, (n,)) < spec.random_action_prob
@@ -306,7 +351,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
 
         if spec.gradient_steps > 0:
             state, totals = jax.lax.cond(after >= spec.learning_starts, learn, lambda s, t: (s, t), state, totals)
-        return (state, totals, replay, batch, key, stats, returns), (s.episode_returns, s.episode_lengths)
+        return (state, totals, replay, batch, key, stats, returns, held), (s.episode_returns, s.episode_lengths)
 
     def maybe_step(carry, i):
         # the steps past `count` (the budget's end inside this chunk) leave everything as it is
