@@ -33,7 +33,7 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("exploration_noise", "pink"), ("offline_mode", "prefill")):
+    for key, value in (("exploration_noise", "gsde"), ("offline_mode", "prefill")):
         with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
             device_config(**{key: value}, offline_data="runs/x")
     assert device_config(offline_data="runs/x").offline_data == "runs/x"  # mixed into each batch (test below)
@@ -53,10 +53,12 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     """N + M == N+M: 320 + 280 env steps against 600 in one go, the split inside the envs' second episodes and
     inside a chunk of the straight run; the episodes that ended are logged alike. The warm-up acts with the initial
     policy (warmup_actions policy, Brax's prefill), whose zeroed head and std under e^-8 keep its actions near 0,
-    but for the half of the rows that random_action_prob makes uniform."""
+    but for the half of the rows that random_action_prob makes uniform. Pink exploration noise: its sequences and
+    positions carried across the split in the run state."""
     from softac import SAC
 
-    cfg = device_config(warmup_actions="policy", zero_actor_head=True, log_std_max=-8.0, random_action_prob=0.5)
+    cfg = device_config(warmup_actions="policy", zero_actor_head=True, log_std_max=-8.0, random_action_prob=0.5,
+                        exploration_noise="pink", noise_sequence_length=100)
     straight = SAC(cfg)
     straight.learn(600, run_dir=tmp_path / "straight", progress=False)
     SAC(cfg).learn(320, run_dir=tmp_path / "split", progress=False)
@@ -148,6 +150,25 @@ def test_held_noise_on_the_device_holds_every_envs_noise_for_zeta_drawn_steps(tm
     assert len(set(actions[0])) == 4  # each env's own noise
 
 
+def test_pink_noise_on_the_device_follows_each_envs_sequence_and_restarts_with_its_episode():
+    """exploration_noise pink on the device: with the actor's head zeroed and no updates, each action is
+    tanh(std * value) of its env's coloured sequence, so the replay's actions are correlated from step to step
+    (1/f noise; white noise is not), each env's own; every env's 100-step episode ends together, so after 280 agent
+    steps each sequence is 80 values in, and the sequences are of unit variance."""
+    from softac import SAC
+
+    agent = SAC(device_config(exploration_noise="pink", noise_sequence_length=100, warmup_actions="policy",
+                              zero_actor_head=True, gradient_steps=0, obs_norm=False, reward_scale="off"))
+    agent.learn(1120, progress=False)
+    actions = agent.collector.replay_rows()["actions"].reshape(280, 4)
+    within = [np.corrcoef(actions[i:i + 99, e], actions[i + 1:i + 100, e])[0, 1] for i in (0, 100) for e in range(4)]
+    assert np.mean(within) > 0.35 and min(within) > 0.1, within  # white noise's: 0 +- 0.1 each
+    assert abs(np.corrcoef(actions[:, 0], actions[:, 1])[0, 1]) < 0.4  # the envs' sequences are their own
+    noise = agent.run_state.noise
+    assert noise.sequences.shape == (4, 1, 100) and list(noise.position) == [80] * 4
+    assert 0.5 < noise.sequences.std() < 1.5
+
+
 @pytest.mark.exact
 def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tmp_path, monkeypatch):
     """offline_data on the device (issue 68): a host-collected run's replay as the dataset, put on the device whole,
@@ -220,6 +241,6 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     assert json.loads(again.stdout)["mean_return"] == pytest.approx(float(read_csv(run / "eval.csv")[-1]["mean_return"]),
                                                                    rel=1e-5)
     refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set",
-                      "exploration_noise=pink")
-    assert_clean_error(refused, "exploration_noise='pink': is not run by device collection yet")
+                      "exploration_noise=gsde")
+    assert_clean_error(refused, "exploration_noise='gsde': is not run by device collection yet")
     assert not (tmp_path / "r").exists()

@@ -24,29 +24,40 @@ import numpy as np
 from softac.errors import RunFailed
 
 
-def colored_noise(rng: np.random.Generator, beta: float, shape: tuple[int, ...], length: int) -> np.ndarray:
-    """Gaussian sequences along a last axis of `length` steps whose power spectral density is proportional to
-    1/f^beta (Timmer & Koenig 1995: random Fourier amplitudes with the spectrum's scale, inverse FFT),
-    scaled so that each value has unit variance. The lowest frequency is 1/length (the sequence's period)."""
+def colored_spectrum(beta: float, length: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """What a coloured sequence of `length` steps is made of (colored_noise, and the device's colored_sequences):
+    each rfft frequency's amplitude for the real and the imaginary parts' standard-normal draws, and the std of the
+    values irfft makes of them. A real sequence: the zero-frequency term (and, for an even length, the Nyquist term)
+    has no imaginary part; its real part carries that variance (sqrt 2)."""
     freqs = np.fft.rfftfreq(length)
     freqs[0] = freqs[1] if length > 1 else 1.0  # the mean's component scaled as the lowest frequency's
     amplitude = freqs ** (-beta / 2.0)
-    real = rng.normal(size=(*shape, len(freqs))) * amplitude
-    imag = rng.normal(size=(*shape, len(freqs))) * amplitude
-    # a real sequence: the zero-frequency term (and, for an even length, the Nyquist term) has no imaginary
-    # part; its real part carries that variance (sqrt 2)
-    imag[..., 0] = 0.0
-    real[..., 0] *= np.sqrt(2.0)
+    real, imag = amplitude.copy(), amplitude.copy()
+    imag[0] = 0.0
+    real[0] *= np.sqrt(2.0)
     if length % 2 == 0:
-        imag[..., -1] = 0.0
-        real[..., -1] *= np.sqrt(2.0)
-    sequence = np.fft.irfft(real + 1j * imag, n=length)
+        imag[-1] = 0.0
+        real[-1] *= np.sqrt(2.0)
     # each value's variance (the same at every step): irfft adds each interior term and its conjugate,
     # 2 Re(X_k e^(i w t)) of variance 4 a_k^2, and the end terms once, of variance 2 a^2; all over length^2
     interior = amplitude[1:-1] if length % 2 == 0 else amplitude[1:]
     ends = amplitude[0] ** 2 + (amplitude[-1] ** 2 if length % 2 == 0 else 0.0)
-    variance = (2.0 * ends + 4.0 * np.sum(interior**2)) / length**2
-    return sequence / np.sqrt(variance)
+    return real, imag, amplitude, float(np.sqrt((2.0 * ends + 4.0 * np.sum(interior**2)) / length**2))
+
+
+def colored_noise(rng: np.random.Generator, beta: float, shape: tuple[int, ...], length: int) -> np.ndarray:
+    """Gaussian sequences along a last axis of `length` steps whose power spectral density is proportional to
+    1/f^beta (Timmer & Koenig 1995: random Fourier amplitudes with the spectrum's scale, inverse FFT),
+    scaled so that each value has unit variance. The lowest frequency is 1/length (the sequence's period)."""
+    _, _, amplitude, std = colored_spectrum(beta, length)
+    real = rng.normal(size=(*shape, len(amplitude))) * amplitude
+    imag = rng.normal(size=(*shape, len(amplitude))) * amplitude
+    imag[..., 0] = 0.0  # the end terms as colored_spectrum's scales say (in this order: the sequences of old runs)
+    real[..., 0] *= np.sqrt(2.0)
+    if length % 2 == 0:
+        imag[..., -1] = 0.0
+        real[..., -1] *= np.sqrt(2.0)
+    return np.fft.irfft(real + 1j * imag, n=length) / std
 
 
 class ColoredNoise:

@@ -55,7 +55,8 @@ class ChunkSpec(NamedTuple):
     v_max: float
     n_step: int  # > 1: n-step returns drawn from the replay (device_buffer.n_step_rows)
     offline_rows: int  # > 0: each batch's rows drawn from the offline dataset (offline_data, mix; issue 68)
-    noise_repeat: tuple | None  # (mu, largest): FlashSAC's held noise (exploration_noise repeat), else white noise
+    noise_repeat: tuple | None  # (mu, largest): FlashSAC's held noise (exploration_noise repeat)
+    pink: tuple | None  # (beta, length): coloured noise sequences (exploration_noise pink); neither: white noise
 
 
 class DeviceTransitions:
@@ -73,7 +74,9 @@ class DeviceTransitions:
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
                               cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step), mixed,
                               (float(cfg.noise_repeat_mu), int(cfg.noise_repeat_max))
-                              if cfg.exploration_noise == "repeat" else None)
+                              if cfg.exploration_noise == "repeat" else None,
+                              (float(cfg.noise_beta), int(cfg.noise_sequence_length))
+                              if cfg.exploration_noise == "pink" else None)
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
@@ -95,7 +98,7 @@ class DeviceTransitions:
         count = max(1, min(self.spec.length, -(-(until - before) // n)))
         totals = learner.totals if learner.totals is not None else zero_totals()
         carry = (learner.state, totals, collector.replay, collector.batch, collector.key, obs_stats(learner),
-                 return_stats(learner), held_noise(rs.noise))
+                 return_stats(learner), noise_state(rs.noise))
         schedule = (jnp.float32(max(cfg.total_steps, 1)), jnp.float32(cfg.lr_end_fraction))
         offline = collector.offline_device if self.spec.offline_rows else ()
         carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
@@ -103,7 +106,7 @@ class DeviceTransitions:
         learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats, return_scale, held = carry
         keep_obs_stats(learner, stats)
         keep_return_stats(learner, return_scale)
-        keep_held_noise(rs.noise, held)
+        keep_noise_state(rs.noise, held)
         rs.num_steps = after = before + count * n
         return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
                                                       before, n))
@@ -204,23 +207,66 @@ def keep_return_stats(learner: Learner, carried: tuple) -> None:
         keep_moments(scale.stats, tuple(stats))
 
 
-def held_noise(noise: Any) -> tuple:
-    """exploration_noise repeat's state (the held noise [N, act], the steps it was used, its hold) as the chunk
-    carries it, or () for other noise. It lives in the run state's RepeatedNoise between chunks (checkpointed with
-    it); the device draws from its own key, not the host's stream."""
+def noise_state(noise: Any) -> tuple:
+    """The exploration noise's state as the chunk carries it: repeat's (the held noise [N, act], the steps it was
+    used, its hold), pink's (the sequences [N, act, length], each env's position), or () for white noise. It lives
+    in the run state's RepeatedNoise or ColoredNoise between chunks (checkpointed with it); the device draws from
+    its own key, not the host's stream."""
     import jax.numpy as jnp
 
-    from softac.replay.exploration import RepeatedNoise
+    from softac.replay.exploration import ColoredNoise, RepeatedNoise
 
-    if not isinstance(noise, RepeatedNoise):
-        return ()
-    return jnp.asarray(noise.noise, jnp.float32), jnp.int32(noise.count), jnp.int32(noise.hold)
+    if isinstance(noise, RepeatedNoise):
+        return jnp.asarray(noise.noise, jnp.float32), jnp.int32(noise.count), jnp.int32(noise.hold)
+    if isinstance(noise, ColoredNoise):
+        return jnp.asarray(noise.sequences, jnp.float32), jnp.asarray(noise.position, jnp.int32)
+    return ()
 
 
-def keep_held_noise(noise: Any, carried: tuple) -> None:
-    if carried:
+def keep_noise_state(noise: Any, carried: tuple) -> None:
+    if len(carried) == 3:
         held, count, hold = carried
         noise.noise, noise.count, noise.hold = np.array(held, np.float32), int(count), int(hold)
+    elif len(carried) == 2:
+        sequences, position = carried
+        noise.sequences, noise.position = np.array(sequences, np.float64), np.array(position, np.int64)
+
+
+def colored_sequences(key: Any, shape: tuple, pink: tuple) -> Any:
+    """Fresh coloured sequences [*shape, length] of unit variance (the host's colored_noise, from a JAX key)."""
+    import jax
+    import jax.numpy as jnp
+
+    from softac.replay.exploration import colored_spectrum
+
+    beta, length = pink
+    real_scale, imag_scale, amplitude, std = colored_spectrum(beta, length)
+    real_key, imag_key = jax.random.split(key)
+    real = jax.random.normal(real_key, (*shape, len(amplitude)), jnp.float32) * real_scale.astype(np.float32)
+    imag = jax.random.normal(imag_key, (*shape, len(amplitude)), jnp.float32) * imag_scale.astype(np.float32)
+    return (jnp.fft.irfft(real + 1j * imag, n=length) / std).astype(jnp.float32)
+
+
+def restarted(state: tuple, which: Any, key: Any, pink: tuple) -> tuple:
+    """Pink noise with the envs `which` on fresh sequences from their first value (ColoredNoise.restart); drawn
+    only in steps where some env needs one."""
+    import jax
+    import jax.numpy as jnp
+
+    sequences, position = state
+    sequences = jax.lax.cond(which.any(), lambda: jnp.where(which[:, None, None],
+                                                            colored_sequences(key, sequences.shape[:2], pink),
+                                                            sequences), lambda: sequences)
+    return sequences, jnp.where(which, 0, position)
+
+
+def next_pink(state: tuple, key: Any, pink: tuple) -> tuple[tuple, Any]:
+    """ColoredNoise.next on the device: each env's next value of its sequence, a used-up one followed by a fresh."""
+    import jax.numpy as jnp
+
+    sequences, position = restarted(state, state[1] >= pink[1], key, pink)
+    values = sequences[jnp.arange(sequences.shape[0]), :, position]
+    return (sequences, position + 1), values
 
 
 def next_held(held: tuple, key: Any, repeat: tuple) -> tuple:
@@ -312,9 +358,13 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
             features = features_of(encoder, normalized(stats, batch.obs, spec.obs_clip))
             if not held:
                 return spec.policy.sample(actor, actor_stats, features, act_key)[0], held
-            # held noise: drawn (from a key of its own) only when the policy acts, as the host's RepeatedNoise
-            held = next_held(held, jax.random.fold_in(act_key, 3), spec.noise_repeat)
-            return spec.policy.with_noise(actor, actor_stats, features, held[0]), held
+            # held or pink noise: drawn (from a key of its own) only when the policy acts, as the host's
+            if spec.noise_repeat is not None:
+                held = next_held(held, jax.random.fold_in(act_key, 3), spec.noise_repeat)
+                values = held[0]
+            else:
+                held, values = next_pink(held, jax.random.fold_in(act_key, 3), spec.pink)
+            return spec.policy.with_noise(actor, actor_stats, features, values), held
 
         if spec.uniform_warmup:
             actions, held = jax.lax.cond(
@@ -329,6 +379,8 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
             uniform = jax.random.uniform(uniform_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0)
             actions = jnp.where(replace[:, None], uniform, actions)
         batch, s = envs.step(batch, actions)
+        if spec.pink is not None:  # an env whose episode ended starts a fresh sequence (Explorer.episode_ended)
+            held = restarted(held, s.terminated | s.truncated, jax.random.fold_in(act_key, 4), spec.pink)
         replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
                                       s.terminated | s.truncated)
         if returns:  # reward_scale: every training step's rewards count, the warm-up's too (learner.observe_rewards)
