@@ -33,9 +33,9 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("exploration_noise", "gsde"), ("offline_mode", "prefill")):
+    for key, value in (("pixels", True), ("offline_mode", "prefill")):
         with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
-            device_config(**{key: value}, offline_data="runs/x")
+            device_config(**{key: value}, offline_data="runs/x", obs_norm=False)
     assert device_config(offline_data="runs/x").offline_data == "runs/x"  # mixed into each batch (test below)
     assert device_config(n_step=3).n_step == 3  # n-step returns on the device (test_device_envs)
 
@@ -150,6 +150,28 @@ def test_held_noise_on_the_device_holds_every_envs_noise_for_zeta_drawn_steps(tm
     assert len(set(actions[0])) == 4  # each env's own noise
 
 
+@pytest.mark.exact
+def test_gsde_on_the_device_redraws_its_matrices_every_sample_freq_steps_and_resumes_exactly(tmp_path):
+    """exploration_noise gsde on the device: each env's exploration matrix (features x actions) drawn afresh every
+    sde_sample_freq policy steps from the device's key, the actor's learned log std in the actions; 240 + 160 ==
+    400 with the matrices and their count carried across the split in the run state."""
+    from softac import SAC
+
+    cfg = device_config(exploration_noise="gsde", sde_sample_freq=8, learning_starts=120)
+    straight = SAC(cfg)
+    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    resumed.learn(160, run_dir=tmp_path / "split", progress=False)
+    assert_same_learner(straight, resumed)
+    assert_same_run_state(straight, resumed)
+    noise = straight.run_state.noise
+    # 70 policy steps after the 30 uniform ones: draws at the 1st, 9th, ..., 65th, the last 6 steps ago
+    assert noise.weights.shape == (4, 32, 1) and noise.since_draw == 6 and np.any(noise.weights != 0)
+    actions = straight.collector.replay_rows()["actions"][120:]
+    assert np.all(np.isfinite(actions)) and np.all(np.abs(actions) <= 1.0) and actions.std() > 0.01
+
+
 def test_pink_noise_on_the_device_follows_each_envs_sequence_and_restarts_with_its_episode():
     """exploration_noise pink on the device: with the actor's head zeroed and no updates, each action is
     tanh(std * value) of its env's coloured sequence, so the replay's actions are correlated from step to step
@@ -241,6 +263,6 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     assert json.loads(again.stdout)["mean_return"] == pytest.approx(float(read_csv(run / "eval.csv")[-1]["mean_return"]),
                                                                    rel=1e-5)
     refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set",
-                      "exploration_noise=gsde")
-    assert_clean_error(refused, "exploration_noise='gsde': is not run by device collection yet")
+                      "offline_data=runs/x", "offline_mode=prefill")
+    assert_clean_error(refused, "offline_mode='prefill': is not run by device collection yet")
     assert not (tmp_path / "r").exists()

@@ -55,8 +55,8 @@ class ChunkSpec(NamedTuple):
     v_max: float
     n_step: int  # > 1: n-step returns drawn from the replay (device_buffer.n_step_rows)
     offline_rows: int  # > 0: each batch's rows drawn from the offline dataset (offline_data, mix; issue 68)
-    noise_repeat: tuple | None  # (mu, largest): FlashSAC's held noise (exploration_noise repeat)
-    pink: tuple | None  # (beta, length): coloured noise sequences (exploration_noise pink); neither: white noise
+    noise: tuple  # the exploration noise's settings: ("repeat", mu, largest), FlashSAC's held noise; ("pink", beta,
+    # length), coloured sequences; ("gsde", sample_freq), gSDE's exploration matrices; (): white noise
 
 
 class DeviceTransitions:
@@ -73,10 +73,7 @@ class DeviceTransitions:
                               cfg.warmup_actions == "uniform", float(cfg.random_action_prob), cfg.lr_schedule == "linear",
                               chunk_length(cfg), float(cfg.obs_norm_clip) if cfg.obs_norm else 0.0,
                               cfg.reward_scale, float(cfg.gamma), float(cfg.v_max), int(cfg.n_step), mixed,
-                              (float(cfg.noise_repeat_mu), int(cfg.noise_repeat_max))
-                              if cfg.exploration_noise == "repeat" else None,
-                              (float(cfg.noise_beta), int(cfg.noise_sequence_length))
-                              if cfg.exploration_noise == "pink" else None)
+                              noise_settings(cfg))
         self.numbers = numbers_of(settings)
 
     def start(self) -> None:
@@ -207,6 +204,18 @@ def keep_return_stats(learner: Learner, carried: tuple) -> None:
         keep_moments(scale.stats, tuple(stats))
 
 
+def noise_settings(config: Any) -> tuple:
+    """ChunkSpec.noise: the config's exploration noise as the chunk's program runs it."""
+    kind = config.exploration_noise
+    if kind == "repeat":
+        return kind, float(config.noise_repeat_mu), int(config.noise_repeat_max)
+    if kind == "pink":
+        return kind, float(config.noise_beta), int(config.noise_sequence_length)
+    if kind == "gsde":
+        return kind, int(config.sde_sample_freq)
+    return ()
+
+
 def noise_state(noise: Any) -> tuple:
     """The exploration noise's state as the chunk carries it: repeat's (the held noise [N, act], the steps it was
     used, its hold), pink's (the sequences [N, act, length], each env's position), or () for white noise. It lives
@@ -214,22 +223,53 @@ def noise_state(noise: Any) -> tuple:
     its own key, not the host's stream."""
     import jax.numpy as jnp
 
-    from softac.replay.exploration import ColoredNoise, RepeatedNoise
+    from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
 
     if isinstance(noise, RepeatedNoise):
         return jnp.asarray(noise.noise, jnp.float32), jnp.int32(noise.count), jnp.int32(noise.hold)
     if isinstance(noise, ColoredNoise):
         return jnp.asarray(noise.sequences, jnp.float32), jnp.asarray(noise.position, jnp.int32)
+    if isinstance(noise, SdeNoise):
+        return jnp.asarray(noise.weights, jnp.float32), jnp.int32(noise.since_draw)
     return ()
 
 
 def keep_noise_state(noise: Any, carried: tuple) -> None:
-    if len(carried) == 3:
+    from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
+
+    if isinstance(noise, RepeatedNoise):
         held, count, hold = carried
         noise.noise, noise.count, noise.hold = np.array(held, np.float32), int(count), int(hold)
-    elif len(carried) == 2:
+    elif isinstance(noise, ColoredNoise):
         sequences, position = carried
         noise.sequences, noise.position = np.array(sequences, np.float64), np.array(position, np.int64)
+    elif isinstance(noise, SdeNoise):
+        weights, since_draw = carried
+        noise.weights, noise.since_draw = np.array(weights, np.float32), int(since_draw)
+
+
+def next_noise(state: tuple, key: Any, noise: tuple) -> tuple[tuple, Any]:
+    """The exploration noise's next values (the policy's with_noise takes them) and its state after, for
+    ChunkSpec.noise's kind, as the host's RepeatedNoise, ColoredNoise and SdeNoise `next()` give them."""
+    kind = noise[0]
+    if kind == "repeat":
+        state = next_held(state, key, noise[1:])
+        return state, state[0]
+    if kind == "pink":
+        return next_pink(state, key, noise[1:])
+    return next_matrices(state, key, noise[1])
+
+
+def next_matrices(state: tuple, key: Any, sample_freq: int) -> tuple[tuple, Any]:
+    """SdeNoise.next on the device: each env's exploration matrix weights (standard normal), drawn afresh every
+    `sample_freq` steps and kept across episode ends, as SB3 keeps them."""
+    import jax
+    import jax.numpy as jnp
+
+    weights, since_draw = state
+    fresh = since_draw >= sample_freq
+    weights = jax.lax.cond(fresh, lambda: jax.random.normal(key, weights.shape, jnp.float32), lambda: weights)
+    return (weights, jnp.where(fresh, 0, since_draw) + 1), weights
 
 
 def colored_sequences(key: Any, shape: tuple, pink: tuple) -> Any:
@@ -358,12 +398,8 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
             features = features_of(encoder, normalized(stats, batch.obs, spec.obs_clip))
             if not held:
                 return spec.policy.sample(actor, actor_stats, features, act_key)[0], held
-            # held or pink noise: drawn (from a key of its own) only when the policy acts, as the host's
-            if spec.noise_repeat is not None:
-                held = next_held(held, jax.random.fold_in(act_key, 3), spec.noise_repeat)
-                values = held[0]
-            else:
-                held, values = next_pink(held, jax.random.fold_in(act_key, 3), spec.pink)
+            # held, pink or gSDE noise: drawn (from a key of its own) only when the policy acts, as the host's
+            held, values = next_noise(held, jax.random.fold_in(act_key, 3), spec.noise)
             return spec.policy.with_noise(actor, actor_stats, features, values), held
 
         if spec.uniform_warmup:
@@ -379,8 +415,8 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
             uniform = jax.random.uniform(uniform_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0)
             actions = jnp.where(replace[:, None], uniform, actions)
         batch, s = envs.step(batch, actions)
-        if spec.pink is not None:  # an env whose episode ended starts a fresh sequence (Explorer.episode_ended)
-            held = restarted(held, s.terminated | s.truncated, jax.random.fold_in(act_key, 4), spec.pink)
+        if spec.noise[:1] == ("pink",):  # an env whose episode ended starts a fresh sequence (episode_ended)
+            held = restarted(held, s.terminated | s.truncated, jax.random.fold_in(act_key, 4), spec.noise[1:])
         replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
                                       s.terminated | s.truncated)
         if returns:  # reward_scale: every training step's rewards count, the warm-up's too (learner.observe_rewards)
