@@ -150,28 +150,6 @@ def test_held_noise_on_the_device_holds_every_envs_noise_for_zeta_drawn_steps(tm
     assert len(set(actions[0])) == 4  # each env's own noise
 
 
-@pytest.mark.exact
-def test_gsde_on_the_device_redraws_its_matrices_every_sample_freq_steps_and_resumes_exactly(tmp_path):
-    """exploration_noise gsde on the device: each env's exploration matrix (features x actions) drawn afresh every
-    sde_sample_freq policy steps from the device's key, the actor's learned log std in the actions; 240 + 160 ==
-    400 with the matrices and their count carried across the split in the run state."""
-    from softac import SAC
-
-    cfg = device_config(exploration_noise="gsde", sde_sample_freq=8, learning_starts=120)
-    straight = SAC(cfg)
-    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(160, run_dir=tmp_path / "split", progress=False)
-    assert_same_learner(straight, resumed)
-    assert_same_run_state(straight, resumed)
-    noise = straight.run_state.noise
-    # 70 policy steps after the 30 uniform ones: draws at the 1st, 9th, ..., 65th, the last 6 steps ago
-    assert noise.weights.shape == (4, 32, 1) and noise.since_draw == 6 and np.any(noise.weights != 0)
-    actions = straight.collector.replay_rows()["actions"][120:]
-    assert np.all(np.isfinite(actions)) and np.all(np.abs(actions) <= 1.0) and actions.std() > 0.01
-
-
 def test_pink_noise_on_the_device_follows_each_envs_sequence_and_restarts_with_its_episode():
     """exploration_noise pink on the device: with the actor's head zeroed and no updates, each action is
     tanh(std * value) of its env's coloured sequence, so the replay's actions are correlated from step to step
@@ -196,7 +174,8 @@ def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tm
     """offline_data on the device (issue 68): a host-collected run's replay as the dataset, put on the device whole,
     half of each batch drawn from it inside the chunk (RLPD's symmetric sampling, from the chunks' key); obs_norm
     counts the dataset first; 240 + 160 == 400; the checkpoint records the dataset, and a device run's replay reads
-    back as offline data row for row."""
+    back as offline data row for row. Exploring with gSDE: each env's exploration matrix (features x actions)
+    redrawn every sde_sample_freq policy steps from the device's key, carried across the split in the run state."""
     import jax
 
     from softac import SAC
@@ -211,7 +190,7 @@ def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tm
     monkeypatch.setattr(device_transitions, "mixed_rows",
                         lambda drawn, offline, key, rows: traced.append((drawn.obs.shape, offline.obs.shape, rows))
                         or mixed_rows(drawn, offline, key, rows))
-    cfg = device_config(offline_data=str(source))
+    cfg = device_config(offline_data=str(source), exploration_noise="gsde", sde_sample_freq=8)
     straight = SAC(cfg)
     straight.learn(400, run_dir=tmp_path / "straight", progress=False)
     SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
@@ -224,6 +203,8 @@ def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tm
         np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
     assert traced and traced[0] == ((1, 16, 5), (400, 5), 16)  # half of each 32-row batch from the dataset
     assert straight.learner.obs_norm.count == 400 + 400
+    noise = straight.run_state.noise  # 50 policy steps after 50 uniform: drawn at the 1st, 9th, ..., 49th
+    assert noise.weights.shape == (4, 32, 1) and noise.since_draw == 2 and np.any(noise.weights != 0)
     meta = json.loads((tmp_path / "split" / "checkpoints" / "last" / "meta.json").read_text())
     assert meta["offline"]["source"] == str(source) and meta["offline"]["transitions"] == 400
 
