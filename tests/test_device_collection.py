@@ -40,6 +40,27 @@ def test_the_device_choice_and_what_it_refuses():
     assert device_config(n_step=3).n_step == 3  # n-step returns on the device (test_device_envs)
 
 
+def resumed_as_straight(cfg: SACConfig, tmp_path, first: int, then: int) -> tuple:
+    """N + M == N+M on the device: an agent trained first + then env steps in one go, and one trained `first`,
+    loaded from its last checkpoint (a device collector again) and trained `then` more, alike in their learner,
+    run state, checkpoint meta and every array of their replay and envs. Returns (straight, resumed, arrays)."""
+    from softac import SAC
+
+    straight = SAC(cfg)
+    straight.learn(first + then, run_dir=tmp_path / "straight", progress=False)
+    SAC(cfg).learn(first, run_dir=tmp_path / "split", progress=False)
+    resumed = SAC.load(tmp_path / "split", which="last")
+    assert resumed.num_steps == first and type(resumed.collector).__name__ == "DeviceCollector"
+    resumed.learn(then, run_dir=tmp_path / "split", progress=False)
+    assert_same_learner(straight, resumed)
+    assert_same_run_state(straight, resumed)
+    (meta_a, arrays_a), (meta_b, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
+    assert meta_a == meta_b and arrays_a.keys() == arrays_b.keys()
+    for name in arrays_a:
+        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    return straight, resumed, arrays_a
+
+
 pytestmark = pytest.mark.playground
 
 
@@ -55,23 +76,9 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
     policy (warmup_actions policy, Brax's prefill), whose zeroed head and std under e^-8 keep its actions near 0,
     but for the half of the rows that random_action_prob makes uniform. Pink exploration noise: its sequences and
     positions carried across the split in the run state."""
-    from softac import SAC
-
     cfg = device_config(warmup_actions="policy", zero_actor_head=True, log_std_max=-8.0, random_action_prob=0.5,
                         exploration_noise="pink", noise_sequence_length=100)
-    straight = SAC(cfg)
-    straight.learn(600, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(320, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    assert resumed.num_steps == 320 and type(resumed.collector).__name__ == "DeviceCollector"
-    resumed.learn(280, run_dir=tmp_path / "split", progress=False)
-
-    assert_same_learner(straight, resumed)
-    assert_same_run_state(straight, resumed)
-    (meta_a, arrays_a), (meta_b, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
-    assert meta_a == meta_b and arrays_a.keys() == arrays_b.keys()
-    for name in arrays_a:
-        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    straight, resumed, arrays_a = resumed_as_straight(cfg, tmp_path, 320, 280)
     assert len(arrays_a["buffer/rewards"]) == 600
     warm = np.abs(arrays_a["buffer/actions"][:200, 0])
     policy_rows = warm < 0.01  # a uniform action lands there with probability 0.01
@@ -110,21 +117,10 @@ def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     rows invalid, the episodes' final observations in the side ring), the learner, the replay's arrays and the
     envs alike; the checkpoint keeps one observation array. With 3-step returns, walked over the obs-once rows,
     and FlashSAC's held exploration noise (its hold carried across the split in the run state)."""
-    from softac import SAC
-
     cfg = device_config(buffer_obs_once=True, buffer_size=200, learning_starts=120, n_step=3,
                         exploration_noise="repeat")
-    straight = SAC(cfg)
-    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(160, run_dir=tmp_path / "split", progress=False)
-    assert_same_learner(straight, resumed)
-    assert_same_run_state(straight, resumed)
-    (_, arrays_a), (_, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
-    assert arrays_a.keys() == arrays_b.keys() and "buffer/next_obs" not in arrays_a
-    for name in arrays_a:
-        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    straight, _, arrays_a = resumed_as_straight(cfg, tmp_path, 240, 160)
+    assert "buffer/next_obs" not in arrays_a
     # the 400th env step ends every env's 100-step episode: their final observations are the ring's 4, and no
     # successor was written over the oldest rows, so all 200 rows can be drawn
     assert len(arrays_a["buffer/valid"]) == 200 and arrays_a["buffer/valid"].all()
@@ -191,16 +187,7 @@ def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tm
                         lambda drawn, offline, key, rows: traced.append((drawn.obs.shape, offline.obs.shape, rows))
                         or mixed_rows(drawn, offline, key, rows))
     cfg = device_config(offline_data=str(source), exploration_noise="gsde", sde_sample_freq=8)
-    straight = SAC(cfg)
-    straight.learn(400, run_dir=tmp_path / "straight", progress=False)
-    SAC(cfg).learn(240, run_dir=tmp_path / "split", progress=False)
-    resumed = SAC.load(tmp_path / "split", which="last")
-    resumed.learn(160, run_dir=tmp_path / "split", progress=False)
-    assert_same_learner(straight, resumed)
-    assert_same_run_state(straight, resumed)
-    (_, arrays_a), (_, arrays_b) = (agent.collector.checkpoint_parts(True) for agent in (straight, resumed))
-    for name in arrays_a:
-        np.testing.assert_array_equal(arrays_a[name], arrays_b[name], err_msg=name)
+    straight, _, _ = resumed_as_straight(cfg, tmp_path, 240, 160)
     assert traced and traced[0] == ((1, 16, 5), (400, 5), 16)  # half of each 32-row batch from the dataset
     assert straight.learner.obs_norm.count == 400 + 400
     noise = straight.run_state.noise  # 50 policy steps after 50 uniform: drawn at the 1st, 9th, ..., 49th

@@ -20,15 +20,18 @@ from softac.errors import ConfigError
 ENV = "softac_test_envs:Drift-v0"  # 2 observations, actions in [-1, 3]; episodes terminate or hit 25 steps
 
 
+def trained_run(directory: Path, env_id: str, steps: int, **settings) -> Path:
+    """A run of 2 envs (seed 3) trained `steps` steps into directory/source, its last checkpoint with its buffer."""
+    from softac import SAC
+
+    SAC(tiny_config(env_id, n_envs=2, seed=3, **settings)).learn(steps, run_dir=directory / "source", progress=False)
+    return directory / "source"
+
+
 @pytest.fixture(scope="module")
 def source_run(tmp_path_factory) -> Path:
     """A run of 2 envs whose last checkpoint holds its 400-row replay buffer, full and wrapped (600 steps)."""
-    from softac import SAC
-
-    run = tmp_path_factory.mktemp("offline") / "source"
-    SAC(tiny_config(ENV, n_envs=2, buffer_size=400, learning_starts=100, seed=3)).learn(600, run_dir=run,
-                                                                                         progress=False)
-    return run
+    return trained_run(tmp_path_factory.mktemp("offline"), ENV, 600, buffer_size=400, learning_starts=100)
 
 
 def test_redq_subset_targets_take_the_lowest_of_the_drawn_critics():
@@ -231,12 +234,7 @@ GOAL_ENV = "softac_test_envs:PointGoal-v0"  # observation [x, y, t/20], achieved
 @pytest.fixture(scope="module")
 def goal_run(tmp_path_factory) -> Path:
     """A goal env's run of 2 envs whose 150-row HER buffer wrapped (200 steps: 10 episodes of 20)."""
-    from softac import SAC
-
-    run = tmp_path_factory.mktemp("offline-goal") / "source"
-    SAC(tiny_config(GOAL_ENV, n_envs=2, buffer_size=150, learning_starts=60, seed=3)).learn(200, run_dir=run,
-                                                                                             progress=False)
-    return run
+    return trained_run(tmp_path_factory.mktemp("offline-goal"), GOAL_ENV, 200, buffer_size=150, learning_starts=60)
 
 
 def test_a_goal_runs_episodes_are_relabelled_by_her_in_each_batch(goal_run):
