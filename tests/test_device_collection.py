@@ -80,6 +80,8 @@ def test_a_device_run_resumes_exactly_mid_episode(tmp_path):
                         exploration_noise="pink", noise_sequence_length=100)
     straight, resumed, arrays_a = resumed_as_straight(cfg, tmp_path, 320, 280)
     assert len(arrays_a["buffer/rewards"]) == 600
+    # the pink noise the chunks stepped: every env 50 agent steps into its second episode and sequence
+    assert list(straight.run_state.noise.position) == [50] * 4
     warm = np.abs(arrays_a["buffer/actions"][:200, 0])
     policy_rows = warm < 0.01  # a uniform action lands there with probability 0.01
     assert 0.35 < policy_rows.mean() < 0.65 and warm[~policy_rows].max() > 0.9, policy_rows.mean()
@@ -128,43 +130,6 @@ def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     assert straight.run_state.noise.count >= 1 and np.any(straight.run_state.noise.noise != 0)
 
 
-def test_held_noise_on_the_device_holds_every_envs_noise_for_zeta_drawn_steps(tmp_path):
-    """exploration_noise repeat on the device (FlashSAC's noise repetition): with the actor's head zeroed (mean 0,
-    one std) and no updates, each action is tanh(std * noise), so the replay shows the holds: every env's action
-    changes at the same steps (one count for all envs, as the authors'), held for 1 to 16 steps, about 2.1 on
-    average (the truncated Zeta of mu 2)."""
-    from softac import SAC
-
-    agent = SAC(device_config(exploration_noise="repeat", warmup_actions="policy", zero_actor_head=True,
-                              gradient_steps=0, obs_norm=False, reward_scale="off"))
-    agent.learn(1200, progress=False)
-    actions = agent.collector.replay_rows()["actions"].reshape(300, 4)
-    changed = np.any(actions[1:] != actions[:-1], axis=1)
-    assert np.array_equal(changed, np.all(actions[1:] != actions[:-1], axis=1))  # all envs at once, or none
-    holds = np.diff(np.flatnonzero(np.r_[True, changed, True]))
-    assert holds.max() <= 16 and holds.min() >= 1 and 1.6 < holds[:-1].mean() < 2.8, holds
-    assert len(set(actions[0])) == 4  # each env's own noise
-
-
-def test_pink_noise_on_the_device_follows_each_envs_sequence_and_restarts_with_its_episode():
-    """exploration_noise pink on the device: with the actor's head zeroed and no updates, each action is
-    tanh(std * value) of its env's coloured sequence, so the replay's actions are correlated from step to step
-    (1/f noise; white noise is not), each env's own; every env's 100-step episode ends together, so after 280 agent
-    steps each sequence is 80 values in, and the sequences are of unit variance."""
-    from softac import SAC
-
-    agent = SAC(device_config(exploration_noise="pink", noise_sequence_length=100, warmup_actions="policy",
-                              zero_actor_head=True, gradient_steps=0, obs_norm=False, reward_scale="off"))
-    agent.learn(1120, progress=False)
-    actions = agent.collector.replay_rows()["actions"].reshape(280, 4)
-    within = [np.corrcoef(actions[i:i + 99, e], actions[i + 1:i + 100, e])[0, 1] for i in (0, 100) for e in range(4)]
-    assert np.mean(within) > 0.35 and min(within) > 0.1, within  # white noise's: 0 +- 0.1 each
-    assert abs(np.corrcoef(actions[:, 0], actions[:, 1])[0, 1]) < 0.4  # the envs' sequences are their own
-    noise = agent.run_state.noise
-    assert noise.sequences.shape == (4, 1, 100) and list(noise.position) == [80] * 4
-    assert 0.5 < noise.sequences.std() < 1.5
-
-
 @pytest.mark.exact
 def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tmp_path, monkeypatch):
     """offline_data on the device (issue 68): a host-collected run's replay as the dataset, put on the device whole,
@@ -211,6 +176,12 @@ def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tm
     assert len(written.rewards) == 400 and sorted(np.bincount(written.env)) == [100] * 4
     np.testing.assert_array_equal(written.obs, own["obs"])
     np.testing.assert_array_equal(written.next_obs, own["next_obs"])
+    pytest.importorskip("minari")  # and as a dataset: each env's episodes of its replay
+    from minari.dataset.minari_dataset import MinariDataset
+
+    straight.write_dataset(tmp_path / "dataset")
+    dataset = MinariDataset(tmp_path / "dataset" / "data")
+    assert dataset.total_steps == 400 and dataset.total_episodes == 4  # each env's one episode, cut at 100 steps
 
 
 def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_path):

@@ -1,5 +1,6 @@
 """Coloured (pink) exploration noise (issue 43; Eberhard et al. 2023): its statistics, that training acts with
-it (a fresh sequence per episode), and exact resume with it."""
+it (a fresh sequence per episode), and exact resume with it; the device's pink and held noise (issue 67), the
+functions its chunks step, against the host's."""
 
 from __future__ import annotations
 
@@ -68,3 +69,61 @@ def test_bad_noise_settings_are_one_line_errors(tmp_path):
         result = run_cli("train", "--env", "Pendulum-v1", "--steps", "10", "--out", str(tmp_path / "r"),
                          "--set", setting)
         assert_clean_error(result, words)
+
+
+def test_the_devices_pink_noise_continues_the_hosts_sequences_and_restarts_each_ended_episode():
+    """next_pink and restarted, as a device chunk steps them: from a host ColoredNoise's state, each env's values are
+    its sequence's, in order; an env whose episode ended (every 100th step here) goes on with a fresh sequence from
+    its first value, one of unit variance whose spectrum falls as 1/f (the host's colored_noise, from a JAX key)."""
+    import jax
+    import jax.numpy as jnp
+
+    from softac.run.device_transitions import colored_sequences, next_pink, restarted
+
+    pink, host = (1.0, 100), ColoredNoise(1.0, 4, 1, 100, seed=0)
+
+    def step(state, t):
+        key = jax.random.fold_in(jax.random.PRNGKey(1), t)
+        state, values = next_pink(state, jax.random.fold_in(key, 3), pink)
+        return restarted(state, jnp.full(4, (t + 1) % 100 == 0), jax.random.fold_in(key, 4), pink), values
+
+    start = (jnp.asarray(host.sequences, jnp.float32), jnp.asarray(host.position, jnp.int32))
+    (sequences, position), values = jax.lax.scan(step, start, jnp.arange(280))
+    values = np.asarray(values)[:, :, 0]  # [step, env]
+    np.testing.assert_allclose(values[:100].T, host.sequences[:, 0], rtol=1e-6)
+    assert list(np.asarray(position)) == [80] * 4
+    np.testing.assert_array_equal(values[200:280].T, np.asarray(sequences)[:, 0, :80])
+    assert not np.allclose(values[100:200], values[:100])  # fresh sequences, not the first ones again
+
+    x = np.asarray(colored_sequences(jax.random.PRNGKey(2), (2000,), (1.0, 1000)), np.float64)
+    assert all(abs(x[:, t].var() - 1.0) < 0.12 for t in (0, 500, 999))
+    power = np.mean(np.abs(np.fft.rfft(x, axis=1)) ** 2, axis=0)[1:]
+    assert abs(np.polyfit(np.log(np.fft.rfftfreq(1000)[1:]), np.log(power), 1)[0] + 1.0) < 0.05
+
+
+def test_the_devices_held_noise_holds_every_envs_noise_for_zeta_drawn_steps():
+    """next_held, as a device chunk steps it (FlashSAC's noise repetition): each env's standard-normal noise held
+    for k steps, every env's redrawn at the same steps (one count for all envs, as the authors'), k from 1 to 16
+    and about 2.1 on average (the truncated Zeta of mu 2: sum k^-1 / sum k^-2 over 1..16)."""
+    import jax
+    import jax.numpy as jnp
+
+    from softac.replay.exploration import RepeatedNoise
+    from softac.run.device_transitions import next_held
+
+    host = RepeatedNoise(2.0, 16, 4, 1, seed=0)
+
+    def step(held, key):
+        held = next_held(held, key, (2.0, 16))
+        return held, held[0]
+
+    start = (jnp.asarray(host.noise), jnp.int32(host.count), jnp.int32(host.hold))
+    _, noise = jax.lax.scan(step, start, jax.random.split(jax.random.PRNGKey(0), 2000))
+    noise = np.asarray(noise)[:, :, 0]
+    changed = np.any(noise[1:] != noise[:-1], axis=1)
+    assert np.array_equal(changed, np.all(noise[1:] != noise[:-1], axis=1))  # all envs at once, or none
+    holds = np.diff(np.flatnonzero(np.r_[True, changed, True]))
+    expected = np.sum(np.arange(1, 17) ** -1.0) / np.sum(np.arange(1, 17) ** -2.0)
+    assert holds.min() >= 1 and holds.max() <= 16 and abs(holds[:-1].mean() - expected) < 0.25, holds.mean()
+    drawn = noise[np.r_[True, changed]]
+    assert abs(drawn.std() - 1.0) < 0.1 and len(set(noise[0])) == 4

@@ -38,11 +38,11 @@ def write_agent_dataset(agent: Any, what: str, out: str | Path, dataset_id: str 
         raise OfflineDataError(f"noise must be >= 0, got {noise:g}")
     if episodes is not None or steps is not None:
         return policy_dataset(agent, what, episodes, policy, noise, seed, out, dataset_id, steps)
-    buffer = getattr(agent.collector, "buffer", None)
-    if buffer is None:
+    state = agent.collector.replay_state()  # the host's buffer, or a device run's replay (issue 67)
+    if state is None:
         raise OfflineDataError(f"{what} holds no replay buffer (a run's checkpoints/last has one, as agent.save(path, "
                                "include_buffer=True) has): train it, or write fresh episodes (--episodes N)")
-    return buffer_dataset(agent, buffer, what, out, dataset_id)
+    return buffer_dataset(agent, state, what, out, dataset_id)
 
 
 def default_dataset_id(out: Path, env_id: str, mode: str) -> str:
@@ -92,13 +92,13 @@ def _in_format(episodes: list[dict[str, np.ndarray]], convert: Callable[[np.ndar
     return [{**ep, "observations": convert(ep["observations"])} for ep in episodes]
 
 
-def buffer_dataset(agent: Any, replay: Any, what: str, out: Path, dataset_id: str | None) -> WrittenDataset:
-    """An agent's replay buffer, as each env's episodes, as a Minari dataset."""
+def buffer_dataset(agent: Any, state: dict[str, np.ndarray], what: str, out: Path,
+                   dataset_id: str | None) -> WrittenDataset:
+    """An agent's replay buffer (its state_dict), as each env's episodes, as a Minari dataset."""
     env = agent.make_env()
     try:
         space, convert = observation_format(env, f"a dataset of {what}")
-        rows = replay_rows(replay.state_dict(), agent.config, {"num_steps": agent.num_steps}, what,
-                           agent.spaces.layout)
+        rows = replay_rows(state, agent.config, {"num_steps": agent.num_steps}, what, agent.spaces.layout)
         episodes = buffer_episodes(rows, agent.learner.scaler.to_env)
         env_id = agent.config.env_id
         written = write_minari(out, dataset_id or default_dataset_id(out, env_id, "replay"),

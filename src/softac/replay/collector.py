@@ -209,6 +209,10 @@ class Collector:
             return None
         return self.pool.get_state() if self.pool is not None else self.parked_envs
 
+    def replay_state(self) -> dict[str, np.ndarray] | None:
+        """The replay buffer's state_dict (what a checkpoint keeps of it), or None before it exists."""
+        return None if self.buffer is None else self.buffer.state_dict()
+
     def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The buffer and the envs' state, when asked for and there (a `last` checkpoint, to resume)."""
         meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.buffer is not None),

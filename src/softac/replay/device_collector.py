@@ -134,6 +134,10 @@ class DeviceCollector:
 
     # ---- checkpoints -------------------------------------------------------------------------------
 
+    def replay_state(self) -> dict[str, np.ndarray] | None:
+        """The replay's rows and position as a checkpoint keeps them (replay_rows), or None before it exists."""
+        return None if self.replay is None else self.replay_rows()
+
     def checkpoint_parts(self, include_buffer: bool) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         """The replay's rows held and its position, the envs' batch and the key (a `last` checkpoint, to resume)."""
         meta: dict[str, Any] = {"has_buffer": bool(include_buffer and self.replay is not None),
