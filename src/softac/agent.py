@@ -36,7 +36,8 @@ if TYPE_CHECKING:
     import gymnasium as gym
 
 
-def device_collector(config: SACConfig, env_source: EnvSource, spaces: Any, offline_loader: Any = None) -> DeviceCollector:
+def device_collector(config: SACConfig, env_source: EnvSource, spaces: Any,
+                     offline_loader: Any = None) -> DeviceCollector:
     from softac.envs.playground import device_env
 
     env = device_env(config.env_id)

@@ -100,10 +100,11 @@ class DeviceTransitions:
         offline = collector.offline_device if self.spec.offline_rows else ()
         carry, (returns, lengths) = compiled_chunk(self.spec, self.numbers, carry, jnp.int32(before),
                                                    jnp.int32(count), schedule, offline)
-        learner.state, learner.totals, collector.replay, collector.batch, collector.key, stats, return_scale, held = carry
+        learner.state, learner.totals, collector.replay, collector.batch, collector.key, *statistics = carry
+        stats, return_scale, noise = statistics
         keep_obs_stats(learner, stats)
         keep_return_stats(learner, return_scale)
-        keep_noise_state(rs.noise, held)
+        keep_noise_state(rs.noise, noise)
         rs.num_steps = after = before + count * n
         return Chunk(before, after, finished_episodes(np.asarray(lengths)[:count], np.asarray(returns)[:count],
                                                       before, n))
@@ -218,9 +219,10 @@ def noise_settings(config: Any) -> tuple:
 
 def noise_state(noise: Any) -> tuple:
     """The exploration noise's state as the chunk carries it: repeat's (the held noise [N, act], the steps it was
-    used, its hold), pink's (the sequences [N, act, length], each env's position), or () for white noise. It lives
-    in the run state's RepeatedNoise or ColoredNoise between chunks (checkpointed with it); the device draws from
-    its own key, not the host's stream."""
+    used, its hold), pink's (the sequences [N, act, length], each env's position), gSDE's (the exploration matrices
+    [N, features, act], the steps since their draw), or () for white noise. It lives in the run state's
+    RepeatedNoise, ColoredNoise or SdeNoise between chunks (checkpointed with it); the device draws from its own
+    key, not the host's stream."""
     import jax.numpy as jnp
 
     from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
@@ -235,6 +237,7 @@ def noise_state(noise: Any) -> tuple:
 
 
 def keep_noise_state(noise: Any, carried: tuple) -> None:
+    """The chunk's noise state back into the run state's noise object (what checkpoints save)."""
     from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
 
     if isinstance(noise, RepeatedNoise):
@@ -372,7 +375,8 @@ def finished_episodes(lengths: np.ndarray, returns: np.ndarray, before: int, n: 
 def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, count: Any, schedule: tuple,
                   offline: Any = ()) -> tuple[tuple, tuple]:
     """`count` (at most spec.length) vector steps from env step `start`: carry (SACState, metric totals, replay,
-    envs' batch, key, obs_norm's and reward_scale's statistics, the held noise) -> the carry after, and each step's ended episodes' returns and lengths [length, N].
+    envs' batch, key, obs_norm's and reward_scale's statistics, the exploration noise's state) -> the carry after,
+    and each step's ended episodes' returns and lengths [length, N].
     `offline`: the dataset on the device (DeviceCollector.offline_device) where spec.offline_rows > 0."""
     import jax
     import jax.numpy as jnp
@@ -388,27 +392,27 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
     total, end_fraction = schedule
 
     def step(carry, before):
-        state, totals, replay, batch, key, stats, returns, held = carry
+        state, totals, replay, batch, key, stats, returns, noise = carry
         key, act_key, sample_key = jax.random.split(key, 3)
         if stats:  # every observation the policy acts on counts, the warm-up's too (as the host's learner.observe)
             stats = merged_moments(*stats, batch.obs)
 
-        def policy_actions(held):
+        def policy_actions(noise):
             actor, actor_stats, encoder = acting_actor(state)
             features = features_of(encoder, normalized(stats, batch.obs, spec.obs_clip))
-            if not held:
-                return spec.policy.sample(actor, actor_stats, features, act_key)[0], held
+            if not noise:
+                return spec.policy.sample(actor, actor_stats, features, act_key)[0], noise
             # held, pink or gSDE noise: drawn (from a key of its own) only when the policy acts, as the host's
-            held, values = next_noise(held, jax.random.fold_in(act_key, 3), spec.noise)
-            return spec.policy.with_noise(actor, actor_stats, features, values), held
+            noise, values = next_noise(noise, jax.random.fold_in(act_key, 3), spec.noise)
+            return spec.policy.with_noise(actor, actor_stats, features, values), noise
 
         if spec.uniform_warmup:
-            actions, held = jax.lax.cond(
+            actions, noise = jax.lax.cond(
                 before < spec.learning_starts,
-                lambda held: (jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0), held),
-                policy_actions, held)
+                lambda noise: (jax.random.uniform(act_key, (n, spec.act_dim), jnp.float32, -1.0, 1.0), noise),
+                policy_actions, noise)
         else:
-            actions, held = policy_actions(held)
+            actions, noise = policy_actions(noise)
         if spec.random_action_prob > 0:  # drawn only when asked: other runs keep their random numbers
             replace_key, uniform_key = jax.random.split(jax.random.fold_in(act_key, 1))
             replace = jax.random.uniform(replace_key, (n,)) < spec.random_action_prob
@@ -416,7 +420,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
             actions = jnp.where(replace[:, None], uniform, actions)
         batch, s = envs.step(batch, actions)
         if spec.noise[:1] == ("pink",):  # an env whose episode ended starts a fresh sequence (episode_ended)
-            held = restarted(held, s.terminated | s.truncated, jax.random.fold_in(act_key, 4), spec.noise[1:])
+            noise = restarted(noise, s.terminated | s.truncated, jax.random.fold_in(act_key, 4), spec.noise[1:])
         replay = device_buffer.insert(replay, s.obs, s.actions, s.rewards, s.next_obs, s.terminated,
                                       s.terminated | s.truncated)
         if returns:  # reward_scale: every training step's rewards count, the warm-up's too (learner.observe_rewards)
@@ -439,7 +443,7 @@ def chunk_program(spec: ChunkSpec, numbers: tuple, carry: tuple, start: Any, cou
 
         if spec.gradient_steps > 0:
             state, totals = jax.lax.cond(after >= spec.learning_starts, learn, lambda s, t: (s, t), state, totals)
-        return (state, totals, replay, batch, key, stats, returns, held), (s.episode_returns, s.episode_lengths)
+        return (state, totals, replay, batch, key, stats, returns, noise), (s.episode_returns, s.episode_lengths)
 
     def maybe_step(carry, i):
         # the steps past `count` (the budget's end inside this chunk) leave everything as it is
