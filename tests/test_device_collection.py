@@ -33,10 +33,10 @@ def test_the_device_choice_and_what_it_refuses():
         device_config(n_envs=4096, collect_on="host")
     with pytest.raises(ConfigError, match="collect_on='device': device collection steps MuJoCo Playground's envs"):
         tiny_config("Pendulum-v1", collect_on="device")
-    for key, value in (("pixels", True), ("offline_mode", "prefill")):
-        with pytest.raises(ConfigError, match=f"{key}=.*is not run by device collection yet"):
-            device_config(**{key: value}, offline_data="runs/x", obs_norm=False)
-    assert device_config(offline_data="runs/x").offline_data == "runs/x"  # mixed into each batch (test below)
+    with pytest.raises(ConfigError, match="pixels=True: is not run by device collection yet"):
+        device_config(pixels=True, obs_norm=False)
+    for mode in ("mix", "prefill"):  # offline data mixed into each batch, or the replay's first rows (tests below)
+        assert device_config(offline_data="runs/x", offline_mode=mode).offline_mode == mode
     assert device_config(n_step=3).n_step == 3  # n-step returns on the device (test_device_envs)
 
 
@@ -130,8 +130,39 @@ def test_a_device_run_storing_each_observation_once_resumes_exactly(tmp_path):
     assert straight.run_state.noise.count >= 1 and np.any(straight.run_state.noise.noise != 0)
 
 
+@pytest.fixture(scope="module")
+def host_run(tmp_path_factory):
+    """A host-collected Playground run of 400 env steps (4 envs, no update): its replay is the offline data below."""
+    from softac import SAC
+
+    run = tmp_path_factory.mktemp("device-offline") / "source"
+    SAC(device_config(collect_on="host", learning_starts=400)).learn(400, run_dir=run, progress=False)
+    return run
+
+
+def test_a_device_run_prefilled_with_offline_data_starts_from_its_rows(host_run):
+    """offline_mode prefill on the device: the dataset's transitions are the replay's first rows, then the envs'
+    follow; written a vector step (4 rows) at a time, a dataset of 398 rows gives 396 and says so in one line."""
+    import dataclasses
+
+    from softac import SAC
+
+    agent = SAC(device_config(offline_data=str(host_run), offline_mode="prefill", learning_starts=0))
+    agent.learn(40, progress=False)
+    rows, data = agent.collector.replay_rows(), agent.collector.offline
+    assert len(rows["rewards"]) == 440 and int(rows["position"]) == 440 and agent.collector.offline_device is None
+    np.testing.assert_array_equal(rows["obs"][:400], data.obs)
+    np.testing.assert_array_equal(rows["next_obs"][:400], data.next_obs)
+    np.testing.assert_array_equal(rows["done"][:400], (data.terminated > 0) | data.truncated)
+    shorter = dataclasses.replace(data, **{k: getattr(data, k)[:398] for k in ("obs", "actions", "rewards", "next_obs",
+                                                                                "terminated", "truncated")})
+    with pytest.warns(UserWarning, match="last 2 transitions are left out"):
+        replay = agent.collector.prefilled(agent.collector.empty_replay(), shorter)
+    assert int(replay.size) == 396 and int(replay.position) == 396
+
+
 @pytest.mark.exact
-def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tmp_path, monkeypatch):
+def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(host_run, tmp_path, monkeypatch):
     """offline_data on the device (issue 68): a host-collected run's replay as the dataset, put on the device whole,
     half of each batch drawn from it inside the chunk (RLPD's symmetric sampling, from the chunks' key); obs_norm
     counts the dataset first; 240 + 160 == 400; the checkpoint records the dataset, and a device run's replay reads
@@ -144,8 +175,7 @@ def test_a_device_run_mixes_offline_data_into_its_batches_and_resumes_exactly(tm
     from softac.run import device_transitions
     from softac.run.offline_sources import run_buffer
 
-    source = tmp_path / "source"
-    SAC(device_config(collect_on="host", learning_starts=400)).learn(400, run_dir=source, progress=False)
+    source = host_run
     traced = []
     mixed_rows = device_transitions.mixed_rows
     monkeypatch.setattr(device_transitions, "mixed_rows",
@@ -202,6 +232,6 @@ def test_the_cli_trains_on_the_device_by_default_and_refuses_in_one_line(tmp_pat
     assert json.loads(again.stdout)["mean_return"] == pytest.approx(float(read_csv(run / "eval.csv")[-1]["mean_return"]),
                                                                    rel=1e-5)
     refused = run_cli("train", "--env", ENV, "--steps", "10", "--out", str(tmp_path / "r"), "--set",
-                      "offline_data=runs/x", "offline_mode=prefill")
-    assert_clean_error(refused, "offline_mode='prefill': is not run by device collection yet")
+                      "pixels=true", "obs_norm=false")
+    assert_clean_error(refused, "pixels=True: is not run by device collection yet")
     assert not (tmp_path / "r").exists()

@@ -74,8 +74,8 @@ def _check_collection(config: Any) -> None:
 def _check_device_collection(config: Any) -> None:
     """What the device's collection (issue 67) runs: Playground's envs, exploration from the policy (white, pink,
     held as FlashSAC's, or gSDE's; with random_action_prob's uniform rows), n-step targets (observations raw or normalised, obs_norm; rewards raw or
-    scaled, reward_scale), offline data mixed into each batch; the host's parts it has no counterpart of yet are
-    refused by name."""
+    scaled, reward_scale), offline data mixed into each batch or prefilled; the host's parts it has no counterpart of
+    yet are refused by name."""
     if not config.collects_on_device:
         return
     need = _requirer(config)
@@ -86,8 +86,6 @@ def _check_device_collection(config: Any) -> None:
     host_only = "is not run by device collection yet (collect_on=device): set it off, or collect_on=host"
     need(config.env_workers == 0, "env_workers", "device collection steps its envs inside the update's jit: set 0")
     need(not config.pixels, "pixels", host_only)
-    need(not (config.offline_data and config.offline_mode == "prefill"), "offline_mode",
-         host_only.replace("set it off", "use mix"))
 
 
 def _check_targets_and_critics(config: Any) -> None:

@@ -97,7 +97,7 @@ class DeviceCollector:
     def load_offline(self) -> OfflineData | None:
         """The run's offline dataset, read once and put on the device (its memory checked beside the replay's)."""
         data = self.offline_source.load()
-        if data is not None and self.offline_device is None:
+        if data is not None and self.offline_device is None and self.config.offline_mode == "mix":
             import jax.numpy as jnp
 
             need, have = self.capacity * self.bytes_per_transition + data.nbytes, device_memory_bytes()
@@ -109,12 +109,37 @@ class DeviceCollector:
                 data.obs, data.actions, data.rewards, data.next_obs, data.terminated)))
         return data
 
+    def prefilled(self, replay: DeviceReplay, data: OfflineData) -> DeviceReplay:
+        """offline_mode prefill: the dataset's transitions as the replay's first rows, in whole vector steps (the
+        replay is written n_envs rows at a time, so the last len(data) % n_envs rows are left out, and said so)."""
+        import warnings
+
+        import jax.numpy as jnp
+
+        n = self.config.n_envs
+        if len(data) > self.capacity:
+            raise OfflineDataError(f"offline_mode prefill: {data.source} holds {len(data):,} transitions, more than "
+                                   f"the replay's {self.capacity:,} (buffer_size)")
+        rows = len(data) - len(data) % n
+        if rows < len(data):
+            warnings.warn(f"offline_mode prefill: {data.source}'s last {len(data) - rows} transitions are left out "
+                          f"(the device's replay is written {n} rows, one vector step, at a time)", stacklevel=3)
+        ends = (data.terminated > 0) | data.truncated
+        columns = dict(obs=data.obs, actions=data.actions, rewards=data.rewards, next_obs=data.next_obs,
+                       terminated=data.terminated, done=ends)
+        filled = {name: getattr(replay, name).at[:rows].set(jnp.asarray(value[:rows], getattr(replay, name).dtype))
+                  for name, value in columns.items()}
+        return replay._replace(**filled, position=jnp.asarray(rows % self.capacity, jnp.int32),
+                               size=jnp.asarray(rows, jnp.int32))
+
     def start(self, num_steps: int) -> None:
         """The buffer and the envs, when not there: fresh envs reset from a key of the seed and `num_steps`."""
         import jax
 
         if self.replay is None:
             self.replay = self.empty_replay()
+            if self.config.offline_mode == "prefill" and self.load_offline() is not None:
+                self.replay = self.prefilled(self.replay, self.offline)
         self.load_offline()
         if not self.started:
             key = jax.random.PRNGKey(self.config.seed)
