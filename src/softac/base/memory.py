@@ -21,11 +21,11 @@ def available_memory_bytes() -> int:
         return 1 << 62
 
 
-def memory_shortfall(need: float, fraction: float = 0.8) -> str | None:
-    """None where `need` bytes fit in `fraction` of the memory available now, else what a refusal says of it:
-    "<need> but only <available> is available"."""
-    have = available_memory_bytes()
-    return None if need <= fraction * have else f"{human_bytes(need)} but only {human_bytes(have)} is available"
+def memory_shortfall(need: float, fraction: float = 0.8, available: int | None = None, where: str = "") -> str | None:
+    """None where `need` bytes fit in `fraction` of the memory available now (the host's, else `available`, a
+    device's), else what a refusal says of it: "<need><where> but only <available> is available"."""
+    have = available_memory_bytes() if available is None else available
+    return None if need <= fraction * have else f"{human_bytes(need)}{where} but only {human_bytes(have)} is available"
 
 
 def human_bytes(n: float) -> str:

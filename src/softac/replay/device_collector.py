@@ -16,7 +16,7 @@ from typing import Any, Callable, NamedTuple
 import gymnasium as gym
 import numpy as np
 
-from softac.base.memory import available_memory_bytes, human_bytes
+from softac.base.memory import available_memory_bytes, memory_shortfall
 from softac.config.sac_config import SACConfig
 from softac.envs.device_envs import DeviceEnvs, EnvBatch
 from softac.envs.make import EnvSource, SpaceInfo, copy_env
@@ -77,10 +77,10 @@ class DeviceCollector:
                                    self.config.buffer_obs_once, self.config.n_envs)
 
     def check_memory(self, fraction: float = 0.8) -> None:
-        need, have = self.capacity * self.bytes_per_transition, device_memory_bytes()
-        if need > fraction * have:
-            raise BufferMemoryError(f"replay buffer of {self.capacity:,} transitions needs {human_bytes(need)} on the "
-                                    f"device but only {human_bytes(have)} is available; lower buffer_size "
+        short = memory_shortfall(self.capacity * self.bytes_per_transition, fraction, device_memory_bytes(),
+                                 " on the device")
+        if short is not None:
+            raise BufferMemoryError(f"replay buffer of {self.capacity:,} transitions needs {short}; lower buffer_size "
                                     "(--set buffer_size=N)" + ("" if self.config.buffer_obs_once else
                                                                ", or store each observation once "
                                                                "(--set buffer_obs_once=true)"))
@@ -100,11 +100,11 @@ class DeviceCollector:
         if data is not None and self.offline_device is None and self.config.offline_mode == "mix":
             import jax.numpy as jnp
 
-            need, have = self.capacity * self.bytes_per_transition + data.nbytes, device_memory_bytes()
-            if need > 0.8 * have:
+            short = memory_shortfall(self.capacity * self.bytes_per_transition + data.nbytes,
+                                     available=device_memory_bytes(), where=" on the device")
+            if short is not None:
                 raise OfflineDataError(f"offline data {data.source}: its {len(data):,} transitions and the replay "
-                                       f"need {human_bytes(need)} on the device but only {human_bytes(have)} is "
-                                       "available")
+                                       f"need {short}")
             self.offline_device = OfflineOnDevice(*(jnp.asarray(a, jnp.float32) for a in (
                 data.obs, data.actions, data.rewards, data.next_obs, data.terminated)))
         return data
