@@ -78,7 +78,7 @@ def test_the_devices_pink_noise_continues_the_hosts_sequences_and_restarts_each_
     import jax
     import jax.numpy as jnp
 
-    from softac.run.device_transitions import colored_sequences, next_pink, restarted
+    from softac.run.device_transitions import colored_sequences, keep_noise_state, next_pink, noise_state, restarted
 
     pink, host = (1.0, 100), ColoredNoise(1.0, 4, 1, 100, seed=0)
 
@@ -87,13 +87,14 @@ def test_the_devices_pink_noise_continues_the_hosts_sequences_and_restarts_each_
         state, values = next_pink(state, jax.random.fold_in(key, 3), pink)
         return restarted(state, jnp.full(4, (t + 1) % 100 == 0), jax.random.fold_in(key, 4), pink), values
 
-    start = (jnp.asarray(host.sequences, jnp.float32), jnp.asarray(host.position, jnp.int32))
-    (sequences, position), values = jax.lax.scan(step, start, jnp.arange(280))
+    (sequences, position), values = jax.lax.scan(step, noise_state(host), jnp.arange(280))
     values = np.asarray(values)[:, :, 0]  # [step, env]
     np.testing.assert_allclose(values[:100].T, host.sequences[:, 0], rtol=1e-6)
     assert list(np.asarray(position)) == [80] * 4
     np.testing.assert_array_equal(values[200:280].T, np.asarray(sequences)[:, 0, :80])
     assert not np.allclose(values[100:200], values[:100])  # fresh sequences, not the first ones again
+    keep_noise_state(host, (sequences, position))  # back on the host, the run state checkpoints it
+    assert list(host.position) == [80] * 4 and host.next()[0, 0] == np.float32(sequences[0, 0, 80])
 
     x = np.asarray(colored_sequences(jax.random.PRNGKey(2), (2000,), (1.0, 1000)), np.float64)
     assert all(abs(x[:, t].var() - 1.0) < 0.12 for t in (0, 500, 999))
@@ -106,10 +107,9 @@ def test_the_devices_held_noise_holds_every_envs_noise_for_zeta_drawn_steps():
     for k steps, every env's redrawn at the same steps (one count for all envs, as the authors'), k from 1 to 16
     and about 2.1 on average (the truncated Zeta of mu 2: sum k^-1 / sum k^-2 over 1..16)."""
     import jax
-    import jax.numpy as jnp
 
     from softac.replay.exploration import RepeatedNoise
-    from softac.run.device_transitions import next_held
+    from softac.run.device_transitions import keep_noise_state, next_held, noise_state
 
     host = RepeatedNoise(2.0, 16, 4, 1, seed=0)
 
@@ -117,8 +117,7 @@ def test_the_devices_held_noise_holds_every_envs_noise_for_zeta_drawn_steps():
         held = next_held(held, key, (2.0, 16))
         return held, held[0]
 
-    start = (jnp.asarray(host.noise), jnp.int32(host.count), jnp.int32(host.hold))
-    _, noise = jax.lax.scan(step, start, jax.random.split(jax.random.PRNGKey(0), 2000))
+    last, noise = jax.lax.scan(step, noise_state(host), jax.random.split(jax.random.PRNGKey(0), 2000))
     noise = np.asarray(noise)[:, :, 0]
     changed = np.any(noise[1:] != noise[:-1], axis=1)
     assert np.array_equal(changed, np.all(noise[1:] != noise[:-1], axis=1))  # all envs at once, or none
@@ -127,3 +126,5 @@ def test_the_devices_held_noise_holds_every_envs_noise_for_zeta_drawn_steps():
     assert holds.min() >= 1 and holds.max() <= 16 and abs(holds[:-1].mean() - expected) < 0.25, holds.mean()
     drawn = noise[np.r_[True, changed]]
     assert abs(drawn.std() - 1.0) < 0.1 and len(set(noise[0])) == 4
+    keep_noise_state(host, last)  # back on the host, the run state checkpoints it: the same noise until its hold ends
+    assert host.count == holds[-1] and 1 <= host.hold <= 16 and np.array_equal(host.noise[:, 0], noise[-1])

@@ -142,7 +142,7 @@ def test_prefill_copies_the_dataset_into_the_replay_first(source_run):
     agent.learn(10, progress=False)
     assert len(agent.collector.buffer) == 410
     np.testing.assert_array_equal(agent.collector.buffer.obs[:400], agent.collector.offline.obs)
-    with pytest.raises(OfflineDataError, match="holds 400 transitions, more than buffer_size=300"):
+    with pytest.raises(OfflineDataError, match="holds 400 transitions, more than the replay's 300 \\(buffer_size\\)"):
         SAC(tiny_config(ENV, offline_data=str(source_run), offline_mode="prefill", buffer_size=300)).learn(
             10, progress=False)
 

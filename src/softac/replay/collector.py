@@ -191,9 +191,7 @@ class Collector:
         if isinstance(self.buffer, FrameReplayBuffer):
             raise OfflineDataError(f"offline_mode prefill: {data.source} cannot be copied into an image run's frame "
                                    "buffer (it stores each env's frames as they come); use offline_mode mix")
-        if len(data) > self.buffer.capacity:
-            raise OfflineDataError(f"offline_mode prefill: {data.source} holds {len(data):,} transitions, more than "
-                                   f"buffer_size={self.buffer.capacity:,}")
+        data.check_prefill_fits(self.buffer.capacity)
         self.buffer.add(data.obs, data.actions, data.rewards, data.next_obs, data.terminated,
                         (data.terminated > 0) | data.truncated)
 

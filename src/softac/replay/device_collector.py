@@ -117,9 +117,7 @@ class DeviceCollector:
         import jax.numpy as jnp
 
         n = self.config.n_envs
-        if len(data) > self.capacity:
-            raise OfflineDataError(f"offline_mode prefill: {data.source} holds {len(data):,} transitions, more than "
-                                   f"the replay's {self.capacity:,} (buffer_size)")
+        data.check_prefill_fits(self.capacity)
         rows = len(data) - len(data) % n
         if rows < len(data):
             warnings.warn(f"offline_mode prefill: {data.source}'s last {len(data) - rows} transitions are left out "

@@ -101,6 +101,14 @@ class ColoredNoise:
         self.sequences = np.array(arrays["sequences"], np.float64)
         self.position = np.array(arrays["position"], np.int64)
 
+    def chunk_state(self) -> tuple[np.ndarray, ...]:
+        """What a device chunk carries of it (issue 67): the sequences [N, act, length], each env's position."""
+        return self.sequences.astype(np.float32), self.position.astype(np.int32)
+
+    def keep_chunk_state(self, carried: tuple[np.ndarray, ...]) -> None:
+        sequences, position = carried
+        self.sequences, self.position = np.array(sequences, np.float64), np.array(position, np.int64)
+
 
 class SdeNoise:
     """gSDE's exploration: for each env the standard-normal weights (features x act) of its exploration
@@ -137,6 +145,15 @@ class SdeNoise:
         self.rng.bit_generator.state = meta["rng"]
         self.weights = np.array(arrays["weights"], np.float32)
         self.since_draw = int(arrays["since_draw"])
+
+    def chunk_state(self) -> tuple[np.ndarray, ...]:
+        """What a device chunk carries of it (issue 67): the matrices' weights [N, features, act], the steps since
+        their draw."""
+        return self.weights.astype(np.float32), np.int32(self.since_draw)
+
+    def keep_chunk_state(self, carried: tuple[np.ndarray, ...]) -> None:
+        weights, since_draw = carried
+        self.weights, self.since_draw = np.array(weights, np.float32), int(since_draw)
 
 
 def truncated_zeta_cdf(mu: float, largest: int) -> np.ndarray:
@@ -185,6 +202,14 @@ class RepeatedNoise:
         self.rng.bit_generator.state = meta["rng"]
         self.noise = np.array(arrays["held"], np.float32)
         self.count, self.hold = (int(v) for v in arrays["count"])
+
+    def chunk_state(self) -> tuple[np.ndarray, ...]:
+        """What a device chunk carries of it (issue 67): the held noise [N, act], the steps it was used, its hold."""
+        return self.noise.astype(np.float32), np.int32(self.count), np.int32(self.hold)
+
+    def keep_chunk_state(self, carried: tuple[np.ndarray, ...]) -> None:
+        held, count, hold = carried
+        self.noise, self.count, self.hold = np.array(held, np.float32), int(count), int(hold)
 
 
 def exploration_noise(config: Any, act_dim: int) -> ColoredNoise | SdeNoise | RepeatedNoise | None:

@@ -96,6 +96,13 @@ class OfflineData:
         rewards = batch["rewards"].reshape(-1)
         relabel_goals(obs, next_obs, rewards, which, goals, her.layout, her.reward_fn)
 
+    def check_prefill_fits(self, capacity: int) -> None:
+        """offline_mode prefill copies every transition into the replay (the host's or the device's): refused in one
+        line when they are more than it holds."""
+        if len(self) > capacity:
+            raise OfflineDataError(f"offline_mode prefill: {self.source} holds {len(self):,} transitions, more than "
+                                   f"the replay's {capacity:,} (buffer_size)")
+
     def describe(self) -> str:
         return (f"offline data {self.source}: {len(self):,} transitions in {self.episodes:,} episodes, "
                 f"{human_bytes(self.nbytes)}")

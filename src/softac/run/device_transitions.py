@@ -219,37 +219,19 @@ def noise_settings(config: Any) -> tuple:
 
 
 def noise_state(noise: Any) -> tuple:
-    """The exploration noise's state as the chunk carries it: repeat's (the held noise [N, act], the steps it was
-    used, its hold), pink's (the sequences [N, act, length], each env's position), gSDE's (the exploration matrices
-    [N, features, act], the steps since their draw), or () for white noise. It lives in the run state's
-    RepeatedNoise, ColoredNoise or SdeNoise between chunks (checkpointed with it); the device draws from its own
-    key, not the host's stream."""
+    """The exploration noise's state as the chunk carries it (the noise object's `chunk_state`: repeat's held
+    noise, its use count and hold; pink's sequences and positions; gSDE's matrices and the steps since their draw),
+    or () for white noise. It lives in the run state's noise object between chunks (checkpointed with it); the
+    device draws from its own key, not the host's stream."""
     import jax.numpy as jnp
 
-    from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
-
-    if isinstance(noise, RepeatedNoise):
-        return jnp.asarray(noise.noise, jnp.float32), jnp.int32(noise.count), jnp.int32(noise.hold)
-    if isinstance(noise, ColoredNoise):
-        return jnp.asarray(noise.sequences, jnp.float32), jnp.asarray(noise.position, jnp.int32)
-    if isinstance(noise, SdeNoise):
-        return jnp.asarray(noise.weights, jnp.float32), jnp.int32(noise.since_draw)
-    return ()
+    return () if noise is None else tuple(jnp.asarray(v) for v in noise.chunk_state())
 
 
 def keep_noise_state(noise: Any, carried: tuple) -> None:
     """The chunk's noise state back into the run state's noise object (what checkpoints save)."""
-    from softac.replay.exploration import ColoredNoise, RepeatedNoise, SdeNoise
-
-    if isinstance(noise, RepeatedNoise):
-        held, count, hold = carried
-        noise.noise, noise.count, noise.hold = np.array(held, np.float32), int(count), int(hold)
-    elif isinstance(noise, ColoredNoise):
-        sequences, position = carried
-        noise.sequences, noise.position = np.array(sequences, np.float64), np.array(position, np.int64)
-    elif isinstance(noise, SdeNoise):
-        weights, since_draw = carried
-        noise.weights, noise.since_draw = np.array(weights, np.float32), int(since_draw)
+    if noise is not None:
+        noise.keep_chunk_state(tuple(np.asarray(v) for v in carried))
 
 
 def next_noise(state: tuple, key: Any, noise: tuple) -> tuple[tuple, Any]:

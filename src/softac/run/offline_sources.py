@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,20 +83,14 @@ def replay_rows(state: dict[str, np.ndarray], config: SACConfig, meta: dict[str,
         raise OfflineDataError(f"{where}: its replay buffer is not one softac reads as offline data (vector, dict "
                                "or frame-stack observations)")
     if config.buffer_obs_once:
-        pos, size = (int(v) for v in state["pos_size"][:2])
         buffer = ObsOnceReplayBuffer(capacity, state["obs"].shape[1], state["actions"].shape[1], n)
         buffer.load_state_dict(state)
-        rows = _chronological(pos, size, buffer.capacity)
-        env = _envs(rows, size, buffer.capacity, n)
-        keep = buffer.valid[rows]
-        rows, env = rows[keep], env[keep]
+        rows, env = _written_rows(state, buffer.capacity, n, lambda rows: buffer.valid[rows])
         done = buffer.final_slot[rows] >= 0
         arrays_out = dict(obs=buffer.obs[rows], actions=buffer.actions[rows], rewards=buffer.rewards[rows],
                           next_obs=buffer.next_obs_of(rows), terminated=buffer.terminated[rows], done=done)
     else:
-        pos, size = (int(v) for v in state["pos_size"][:2])
-        rows = _chronological(pos, size, capacity)
-        env = _envs(rows, size, capacity, n)
+        rows, env = _written_rows(state, capacity, n)
         arrays_out = {k: state[k][rows] for k in ("obs", "actions", "rewards", "next_obs", "terminated")}
         arrays_out["done"] = state["done"][rows] if "done" in state else state["terminated"][rows] > 0
     return RunBuffer(**arrays_out, env=env, config=config, saved=meta, checksum=str(meta.get("sha256", "")))
@@ -108,15 +103,24 @@ def _frame_rows(state: dict[str, np.ndarray], config: SACConfig, meta: dict[str,
     n = int(config.n_envs)
     buffer = FrameReplayBuffer(config.buffer_size, obs_shape, state["actions"].shape[1], n)
     buffer.load_state_dict(state)
-    pos, size = (int(v) for v in state["pos_size"][:2])
-    rows = _chronological(pos, size, buffer.capacity)
-    env = _envs(rows, size, buffer.capacity, n)
-    keep = buffer._valid(rows)
-    rows, env = rows[keep], env[keep]
+    rows, env = _written_rows(state, buffer.capacity, n, buffer._valid)
     return RunBuffer(obs=buffer._stacks(buffer.obs_frames[rows]), actions=buffer.actions[rows],
                      rewards=buffer.rewards[rows], next_obs=buffer._stacks(buffer.next_obs_frames[rows]),
                      terminated=buffer.terminated[rows], done=buffer.done[rows], env=env, config=config, saved=meta,
                      checksum=str(meta.get("sha256", "")))
+
+
+def _written_rows(state: dict[str, np.ndarray], capacity: int, n_envs: int,
+                  valid: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The ring's written rows oldest first and each one's env, less those `valid` says the ring no longer holds
+    whole (an obs-once or frame buffer's rows whose observations were overwritten)."""
+    pos, size = (int(v) for v in state["pos_size"][:2])
+    rows = _chronological(pos, size, capacity)
+    env = _envs(rows, size, capacity, n_envs)
+    if valid is None:
+        return rows, env
+    keep = valid(rows)
+    return rows[keep], env[keep]
 
 
 def _chronological(pos: int, size: int, capacity: int) -> np.ndarray:
