@@ -7,6 +7,9 @@
 #   datasets: 100k transitions of each source's deterministic policy (`softac dataset --steps 100000`), in DATA.
 #   trials:   seeds 0..SEEDS-1, 100k env steps, evaluations every 5k (the 10k, 25k, 50k and 100k rows): rlpd with the
 #             medium data, with the expert data, without data; crossq-avg from scratch.
+#   cpu:      the CPU form, what fits one core: crossq-avg with the medium data (half of each batch, as rlpd mixes it)
+#             and crossq-avg from scratch, the same seeds and evaluations (~6 minutes a trial on one core).
+# benchmarks/results_offline.py tables the offline-ENV-* sweeps in docs/results.md.
 # Each part skips what exists, so a stopped script picks up where it was. Cost, one Xeon core (AMX): rlpd's 20 updates
 # of 10 critics per env step are its bulk (docs/performance.md has the probe); a GPU (`--device gpu`) or several
 # sessions' cores. Run from a benchmark worktree (benchmarks/worktree.sh), then copy the trials back with
@@ -37,13 +40,18 @@ for env in $ENVS; do
         --out "$DATA/softac/$env-$level-v0"
     done
   fi
+  sweep() { softac sweep --env "$env" --seeds "$SEEDS" --steps 100000 --max-concurrent 1 "$@"; }
   if [[ " $PARTS " == *" trials "* ]]; then
-    sweep() { softac sweep --env "$env" --seeds "$SEEDS" --steps 100000 --max-concurrent 1 "$@"; }
     for level in medium expert; do
       sweep --preset rlpd --out "$OUT/offline-$env-rlpd-$level" \
         --set offline_data="$(realpath "$DATA/softac/$env-$level-v0")" eval_interval=5000
     done
     sweep --preset rlpd --out "$OUT/offline-$env-rlpd-no-data" --set eval_interval=5000
-    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg" --set eval_interval=5000
+    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
+  fi
+  if [[ " $PARTS " == *" cpu "* ]]; then
+    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-medium" \
+      --set offline_data="$(realpath "$DATA/softac/$env-medium-v0")" eval_interval=5000
+    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
   fi
 done

@@ -28,6 +28,7 @@ from results_common import (AGAINST_BEST, AGGREGATE, DMC, ENVS, FRONT, SUITE, SU
                             machines_of, short_machines, wall_ratio)
 from results_dmc import dmc_section  # noqa: E402
 from results_mujoco import averaging_pairs, front, published_means, section, suite_aggregate  # noqa: E402
+from results_offline import offline_section  # noqa: E402
 from results_pixels import pixels_section  # noqa: E402
 from results_playground import playground_section  # noqa: E402
 
@@ -130,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     text.extend(averaging_pairs(a.sweeps))
     text.extend(pixels_section(a.sweeps))
     text.extend(playground_section(a.sweeps))
+    text.extend(offline_section(a.sweeps))
     notes = a.docs / "results-notes.md"
     if notes.exists():
         text.append(notes.read_text())

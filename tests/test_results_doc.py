@@ -508,3 +508,45 @@ def test_the_playground_section_sets_softacs_device_loop_beside_braxs_sac(tmp_pa
         # the two sweeps of one setting, pooled: seeds 0 and 1
         f"| playground-Cartpole-softac-new + playground-Cartpole-softac-new-s1 | softac | Brax's networks and warm-up "
         f"{head} 2 | 95 | 500.0 ± 282.8 | 60 | Intel Xeon (AMX) |"]
+
+
+def test_the_offline_section_sets_each_dataset_beside_the_preset_from_scratch(tmp_path):
+    """benchmarks/results_offline.py: per env, each offline-* sweep's returns at 10k, 25k, 50k and 100k online steps
+    (mean ± sd over seeds), the median first step at or above crossq-avg-from-scratch's mean at 100k (with the seeds
+    that got there) and the median wall time of its comparable trials; a trial another pinned process shared its
+    CPU with counts for the returns, not the time."""
+    import yaml
+
+    def trial(sweep: str, seed: int, data: str | None, curve: list[float], wall: float, shared: bool = False) -> None:
+        d = tmp_path / "sweeps" / sweep
+        overrides = [f"offline_data=/data/{data}"] if data else []
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "sweep.json").write_text(json.dumps({"env_id": "Hopper-v5", "steps": 100000, "seeds": [0, 1],
+                                                  "preset": "crossq-avg", "overrides": overrides,
+                                                  "framework": "softac"}))
+        run = d / f"seed={seed}"
+        run.mkdir()
+        segment = {"machine": "Intel(R) Xeon(R) Processor (AMX), 2 cores", "cpus_shared": shared}
+        (run / "config.yaml").write_text(yaml.safe_dump({
+            "env_id": "Hopper-v5", "seed": seed, "total_steps": 100000, "segments": [segment],
+            "offline_data": f"/data/{data}" if data else None, "offline_mode": "mix", "offline_fraction": 0.5}))
+        steps = range(5000, 100001, 5000)
+        (run / "eval.csv").write_text("step,mean_return\n" + "".join(f"{s},{v}\n" for s, v in zip(steps, curve)))
+        (run / "summary.json").write_text(json.dumps({"steps": 100000, "train_time_s": wall, "wall_s": wall,
+                                                      "last_eval": curve[-1]}))
+
+    ramp = [100.0 * (i + 1) for i in range(20)]  # 100 at 5k ... 2,000 at 100k
+    trial("offline-Hopper-v5-crossq-avg-scratch", 0, None, ramp, 300.0)
+    trial("offline-Hopper-v5-crossq-avg-scratch", 1, None, [v + 200 for v in ramp], 340.0)  # 100k mean: 2,100
+    trial("offline-Hopper-v5-crossq-avg-medium", 0, "Hopper-v5-medium-v0", [v * 3 for v in ramp], 320.0)  # 2,100 at 35k
+    trial("offline-Hopper-v5-crossq-avg-medium", 1, "Hopper-v5-medium-v0", [900.0] * 20, 900.0, shared=True)
+    section = load_benchmark_script("results_doc").offline_section(tmp_path / "sweeps")
+    assert section[0] == "## Starting from data" and "### Hopper-v5" in section
+    header = next(line for line in section if line.startswith("| sweep "))
+    assert "| reaches scratch (2,100) |" in header
+    rows = [line for line in section if line.startswith("| offline-")]
+    assert rows == [
+        "| offline-Hopper-v5-crossq-avg-medium | crossq-avg | Hopper-v5-medium-v0 (mix, 0.5) | 0, 1 | 750 ± 212 "
+        "| 1,200 ± 424 | 1,950 ± 1,485 | 3,450 ± 3,606 | 35k (1/2) | 320 | Intel Xeon (AMX) |",
+        "| offline-Hopper-v5-crossq-avg-scratch | crossq-avg | none | 0, 1 | 300 ± 141 | 600 ± 141 | 1,100 ± 141 "
+        "| 2,100 ± 141 | 95k (1/2) | 320 | Intel Xeon (AMX) |"]
