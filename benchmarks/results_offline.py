@@ -58,12 +58,16 @@ def offline_section(sweeps: Path) -> list[str]:
              "one pinned CPU a trial. The datasets (benchmarks/offline_rlpd.sh's `sources` and `datasets` parts; "
              "not kept in the repository, the script rebuilds them): \"medium\", 100k transitions of the "
              "deterministic policy of a `crossq-avg` run of seed 1000 stopped once its evaluation reached a third "
-             "of `crossq-avg`'s 100k-step v4 return (Hopper 927, HalfCheetah 2,135). The returns at 10k, 25k, 50k "
+             "of `crossq-avg`'s 100k-step v4 return (Hopper 927, HalfCheetah 2,135), or at 100k steps where it did "
+             "not (HalfCheetah's ended at 2,132). The returns at 10k, 25k, 50k "
              "and 100k online steps are the means ± sd over seeds; \"reaches scratch\" is the median over seeds of "
              "the first evaluation at or above the from-scratch configuration's mean at 100k (with how many seeds "
              "got there). RLPD's own preset (`rlpd`: 20 updates of 10 critics per env step) costs ~10 hours a "
-             "100k-step run on one of these cores (docs/performance.md), a GPU's work still to do; the published "
-             "RLPD curves are on D4RL's datasets, other data than these.", ""]
+             "100k-step run on one of these cores (docs/performance.md), a GPU's work still to do. Published RLPD, "
+             "on other data (D4RL's datasets, 250k online steps): the authors publish a plot, not result files; read "
+             "off it (ikostrikov/rlpd assets/plots.png, the mean over all D4RL locomotion tasks, normalised so that "
+             "0 is a random policy and 100 D4RL's expert), about 45 at 10k steps, 55-60 at 25k, 70 at 50k and 80 "
+             "at 100k. D4RL's expert returns are 3,234 on Hopper and 12,135 on HalfCheetah (v2).", ""]
     for env in sorted({r["env"] for _, r in runs}):
         mine = [(name, r) for name, r in runs if r["env"] == env]
         scratch = [r for _, r in mine if r["data"] is None and r["preset"] == "crossq-avg"]
