@@ -225,6 +225,11 @@ class SACConfig:
         return self.collect_on == "device" or (self.collect_on == "auto" and is_playground_id(self.env_id))
 
     @property
+    def mixes_offline_data(self) -> bool:
+        """offline_data drawn into each batch (offline_mode mix), not copied into the replay first (prefill)."""
+        return bool(self.offline_data) and self.offline_mode == "mix"
+
+    @property
     def critic_outputs(self) -> int:
         """Each critic's outputs: its quantiles (TQC), its atoms' logits (categorical), or its Q-value."""
         return self.n_quantiles or self.n_atoms or 1

@@ -168,7 +168,7 @@ class Collector:
     def sample(self, rng: np.random.Generator, batch_size: int, batches: int) -> dict[str, np.ndarray]:
         """`batches` batches of `batch_size` transitions, stacked (raw observations); with offline_data mixed in,
         offline_fraction of each batch's rows from the dataset (RLPD's symmetric sampling), drawn from `rng` too."""
-        if self.offline is None or self.config.offline_mode != "mix":
+        if self.offline is None or not self.config.mixes_offline_data:
             return self.buffer.sample(rng, batch_size, batches)
         k = offline_rows(batch_size, self.config.offline_fraction)
         online = self.buffer.sample(rng, batch_size - k, batches)

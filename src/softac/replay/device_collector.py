@@ -97,7 +97,7 @@ class DeviceCollector:
     def load_offline(self) -> OfflineData | None:
         """The run's offline dataset, read once and put on the device (its memory checked beside the replay's)."""
         data = self.offline_source.load()
-        if data is not None and self.offline_device is None and self.config.offline_mode == "mix":
+        if data is not None and self.offline_device is None and self.config.mixes_offline_data:
             import jax.numpy as jnp
 
             short = memory_shortfall(self.capacity * self.bytes_per_transition + data.nbytes,

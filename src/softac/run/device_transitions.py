@@ -67,8 +67,7 @@ class DeviceTransitions:
 
         self.learner, self.collector, self.run_state = learner, collector, run_state
         cfg, settings = learner.config, learner.functions.settings
-        mixed = offline_rows(cfg.batch_size, cfg.offline_fraction) if cfg.offline_data and cfg.offline_mode == "mix" \
-            else 0
+        mixed = offline_rows(cfg.batch_size, cfg.offline_fraction) if cfg.mixes_offline_data else 0
         self.spec = ChunkSpec(Program(settings), settings.policy, collector.envs, learner.spaces.act_dim,
                               cfg.gradient_steps, cfg.batch_size, cfg.learning_starts,
                               cfg.warmup_actions == "uniform", float(cfg.random_action_prob), cfg.lr_schedule == "linear",
