@@ -174,7 +174,7 @@ def _new_agent(config, run: Path, args: argparse.Namespace):
     offline = agent.collector.load_offline() if config.offline_data else None  # read now: a bad one fails first
     if offline is not None:
         start += f"; {offline.describe()}, {config.offline_mode}" + (
-            f" ({config.offline_fraction:g} of each batch)" if config.offline_mode == "mix" else " into the replay")
+            f" ({config.offline_fraction:g} of each batch)" if config.mixes_offline_data else " into the replay")
     if config.learning_starts >= config.total_steps:  # a preset's warm-up past a short --steps (fastsac's 40,960)
         start += (f"\nsoftac: note: learning_starts={config.learning_starts:,} is not below the run's "
                   f"{config.total_steps:,} steps: it acts at random throughout and never updates (--set "
