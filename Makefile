@@ -76,13 +76,15 @@ PYTEST_WORKERS ?= 2
 XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
 STOP_EARLY := $(if $(filter true 1,$(CI)),--maxfail=1)
 
-# XLA's backend at optimisation level 0 in make test (issue 64): its programs compile in about 60% of the time
-# (a 32-wide SAC update 2.8 -> 1.8 s, an image update 9.1 -> 7.0 s on the AVX-512 BF16 EPYC) and run about 2x
-# slower, which the tests' few hundred updates do not feel. They compute the same functions, rounded in other
-# orders (the tests bound their float comparisons by what the arithmetic allows, as for test-isa's AVX2), so
-# the code users run, at XLA's default level, is tested by the learning test (which drops this flag:
-# tests/test_learning.py), test-isa and test-min. A level of XLA_FLAGS's own comes after this one and wins.
-FAST_COMPILE := XLA_FLAGS="--xla_backend_optimization_level=0 $$XLA_FLAGS"
+# XLA's fast-compile flags in make test (issue 64; tests/fast_compile.py, which prints those this jaxlib knows):
+# LLVM at optimisation level 0 (its programs compile in about 60% of the time and run about 2x slower, which the
+# tests' few hundred updates do not feel) and XLA's earlier emitters for fused loops (at level 0 a tiny update
+# compiles in a third of the time: make test 926 -> 737 s on the AVX-512 BF16 EPYC). They compute the same
+# functions, rounded in other orders (the tests bound their float comparisons by what the arithmetic allows, as
+# for test-isa's AVX2); a test comparing two different programs bit for bit (`users_xla`) runs in a process of
+# its own with the user's flags. So the code users run, at XLA's defaults, is tested by those, the learning test
+# (tests/test_learning.py), test-isa and test-min. A flag of XLA_FLAGS's own comes after these and wins.
+FAST_COMPILE = XLA_FLAGS="$$($(BIN)/python tests/fast_compile.py) $$XLA_FLAGS"
 
 test: $(TEST_STAMP) system-deps
 	$(FAST_COMPILE) $(BIN)/python -m pytest -q $(XDIST) $(STOP_EARLY) --durations=30

@@ -1,4 +1,5 @@
 import contextlib
+import functools
 import os
 import subprocess
 import sys
@@ -20,6 +21,7 @@ TESTS = Path(__file__).parent
 sys.path.insert(0, str(TESTS))
 
 import softac_test_envs  # noqa: E402,F401  (registers the test envs)
+from fast_compile import fast_compile_in_effect, users_xla_flags  # noqa: E402
 
 from softac.config.sac_config import SACConfig  # noqa: E402
 
@@ -51,8 +53,23 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker("ray") is not None:
             item.add_marker(pytest.mark.xdist_group("ray"))
+        if item.get_closest_marker("users_xla") is not None and fast_compile_in_effect():
+            item.runtest = functools.partial(run_with_users_xla, item)
     # a stable sort: pytest-randomly's order (it shuffles before any other plugin's hook) within each rank
     items.sort(key=run_order)
+
+
+def run_with_users_xla(item) -> None:
+    """A `users_xla` test (tests/fast_compile.py) under make test's fast-compile XLA flags: the test, alone, in a
+    pytest process of its own whose XLA_FLAGS are the user's (this one's, less those flags); its output on failure.
+    Its fixtures are set up again there (this process's go unused)."""
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:randomly", "-p", "no:cacheprovider", "-p", "no:xdist",
+               "--rootdir", str(TESTS.parent), item.nodeid]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=TESTS.parent,
+                            env=child_env(XLA_FLAGS=users_xla_flags()))
+    if result.returncode != 0:
+        pytest.fail(f"{item.nodeid} with XLA_FLAGS={users_xla_flags()!r} (the user's):\n{result.stdout[-6000:]}"
+                    f"{result.stderr[-2000:]}", pytrace=False)
 
 
 def pytest_terminal_summary(terminalreporter, config):

@@ -445,6 +445,7 @@ def test_without_policy_average_the_actor_is_deployed_and_checkpoints_are_as_bef
     assert any(name.startswith("state.variants.policy_average") for name in averaged)
 
 
+@pytest.mark.users_xla  # two programs, one with the average, compared bit for bit (tests/fast_compile.py)
 def test_policy_average_changes_what_is_deployed_and_nothing_the_agent_trains(tiny):
     """Averaging only picks the deployed policy: with crossq and policy delay 3, two runs of one seed, one
     averaging, hold the same actor, critics, optimiser states and replay buffer bit for bit (exploration acts
