@@ -4,7 +4,11 @@
 #   sources:  for each env, two crossq-avg runs of seed 1000 (not a measured seed): "expert", 100k steps (its best
 #             checkpoint acts), and "medium", stopped once its evaluation reaches a third of crossq-avg's 100k-step
 #             return on v4 (docs/results.md: Hopper 2,781 -> 927, HalfCheetah 6,405 -> 2,135; a selection rule only).
+#             HalfCheetah's medium source must run upright (benchmarks/upright.py on its dataset: seed 1000's ran on
+#             its back): the seeds of MEDIUM_SEEDS are tried in turn, a flipped one's source and dataset renamed
+#             *-flipped-seedN.
 #   datasets: 100k transitions of each source's deterministic policy (`softac dataset --steps 100000`), in DATA.
+#             LEVELS (default "medium expert") picks the sources and datasets made.
 #   trials:   seeds 0..SEEDS-1, 100k env steps, evaluations every 5k (the 10k, 25k, 50k and 100k rows): rlpd with the
 #             medium data, with the expert data, without data; crossq-avg from scratch.
 #   cpu:      the CPU form, what fits one core: crossq-avg with the medium data (half of each batch, as rlpd mixes it)
@@ -21,21 +25,38 @@ PY=${PY:-python}
 ENVS=${ENVS:-Hopper-v5 HalfCheetah-v5}
 SEEDS=${SEEDS:-5}
 PARTS=${PARTS:-sources datasets trials}
+LEVELS=${LEVELS:-medium expert}
+MEDIUM_SEEDS=${MEDIUM_SEEDS:-1000 1001 1002 1003}
 SRC=${SRC:-benchmarks/offline-sources}
 DATA=${DATA:-benchmarks/offline-datasets}
 OUT=benchmarks/sweeps
 softac() { taskset -c "$CPU" "$PY" -m softac "$@"; }
+# HalfCheetah's first CPU sweep with the medium data (offline-HalfCheetah-v5-crossq-avg-medium) learned from seed
+# 1000's flipped policy; the sweep with an upright one's data is named apart
+medium_sweep() { case $1 in HalfCheetah-*) echo medium-upright;; *) echo medium;; esac; }
 medium_return() { case $1 in Hopper-*) echo 927;; HalfCheetah-*) echo 2135;; *) echo "no medium return for $1" >&2; exit 2;; esac; }
 
 for env in $ENVS; do
   if [[ " $PARTS " == *" sources "* ]]; then
-    [ -e "$SRC/$env-expert" ] || softac train --env "$env" --preset crossq-avg --seed 1000 --steps 100000 \
-      --out "$SRC/$env-expert" --no-progress
-    [ -e "$SRC/$env-medium" ] || softac train --env "$env" --preset crossq-avg --seed 1000 --steps 100000 \
-      --target-return "$(medium_return "$env")" --out "$SRC/$env-medium" --no-progress
+    [[ " $LEVELS " != *" expert "* ]] || [ -e "$SRC/$env-expert" ] || softac train --env "$env" --preset crossq-avg \
+      --seed 1000 --steps 100000 --out "$SRC/$env-expert" --no-progress
+    for seed in $MEDIUM_SEEDS; do
+      [[ " $LEVELS " == *" medium "* ]] || break
+      [ -e "$SRC/$env-medium" ] && break
+      [ -e "$SRC/$env-medium-flipped-seed$seed" ] && continue
+      softac train --env "$env" --preset crossq-avg --seed "$seed" --steps 100000 \
+        --target-return "$(medium_return "$env")" --out "$SRC/$env-medium" --no-progress
+      [[ $env == HalfCheetah-* ]] || break
+      softac dataset "$SRC/$env-medium" --steps 100000 --seed 1000 --out "$DATA/softac/$env-medium-v0"
+      taskset -c "$CPU" "$PY" benchmarks/upright.py "$DATA/softac/$env-medium-v0" && break
+      mv "$SRC/$env-medium" "$SRC/$env-medium-flipped-seed$seed"
+      mv "$DATA/softac/$env-medium-v0" "$DATA/softac/$env-medium-flipped-seed$seed-v0"
+    done
+    [[ " $LEVELS " != *" medium "* ]] || [ -e "$SRC/$env-medium" ] \
+      || { echo "no upright medium source for $env among seeds $MEDIUM_SEEDS" >&2; exit 3; }
   fi
   if [[ " $PARTS " == *" datasets "* ]]; then
-    for level in medium expert; do
+    for level in $LEVELS; do
       [ -e "$DATA/softac/$env-$level-v0" ] || softac dataset "$SRC/$env-$level" --steps 100000 --seed 1000 \
         --out "$DATA/softac/$env-$level-v0"
     done
@@ -50,7 +71,7 @@ for env in $ENVS; do
     sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
   fi
   if [[ " $PARTS " == *" cpu "* ]]; then
-    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-medium" \
+    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-$(medium_sweep "$env")" \
       --set offline_data="$(realpath "$DATA/softac/$env-medium-v0")" eval_interval=5000
     sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
   fi
