@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -13,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import assert_clean_error, assert_same_training, run_cli, straight_and_resumed, tiny_config
+from conftest import TESTS, assert_clean_error, assert_same_training, run_cli, straight_and_resumed, tiny_config
 from softac.config.sac_config import SACConfig
 from softac.errors import ConfigError
 
@@ -385,3 +387,33 @@ def test_an_image_runs_frames_become_a_dataset_and_an_image_runs_offline_data(tm
     packed = SAC(tiny_config("softac_test_envs:DotStateImage-v0", **IMAGE))
     with pytest.raises(OfflineDataError, match="an image with state values .* is not read as offline data"):
         load_offline_data(str(source), "DotStateImage-v0", packed.spaces, packed.learner.scaler.to_normalised)
+
+
+def test_the_upright_check_tells_a_flipped_halfcheetah_dataset_by_its_pitch(tmp_path):
+    """benchmarks/upright.py (issue 68's medium sources): a dataset whose observation 1 (HalfCheetah's torso pitch)
+    stays near 0 is upright (exit 0), one near pi, a cheetah on its back, is flipped (exit 1); not a dataset: exit 2."""
+    pytest.importorskip("minari")
+    import gymnasium as gym
+
+    from softac.replay.offline import write_minari
+
+    rng = np.random.default_rng(0)
+    box = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+
+    def dataset(name: str, pitch: float) -> Path:
+        episodes = [{"observations": np.c_[rng.normal(size=11), pitch + 0.1 * rng.normal(size=11), rng.normal(size=11)]
+                     .astype(np.float32), "actions": rng.uniform(-1, 1, (10, 1)).astype(np.float32),
+                     "rewards": rng.normal(size=10), "terminations": [False] * 10, "truncations": [False] * 9 + [True]}
+                    for _ in range(3)]
+        return write_minari(tmp_path / name, f"test/{name}", episodes, None, box,
+                            gym.spaces.Box(-1, 1, (1,), np.float32), "test", "test")
+
+    script = str(TESTS.parent / "benchmarks" / "upright.py")
+
+    def check(path: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, script, str(path)], capture_output=True, text=True)
+
+    upright, flipped = check(dataset("upright-v0", 0.2)), check(dataset("flipped-v0", -3.1))
+    assert upright.returncode == 0 and "upright" in upright.stdout, upright.stderr
+    assert flipped.returncode == 1 and "mean |pitch| 3.1" in flipped.stdout and "flipped" in flipped.stdout
+    assert_clean_error(check(tmp_path), "is not a dataset written by `softac dataset`")
