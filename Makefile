@@ -76,14 +76,10 @@ PYTEST_WORKERS ?= 2
 XDIST := -n $(PYTEST_WORKERS) --dist loadgroup
 STOP_EARLY := $(if $(filter true 1,$(CI)),--maxfail=1)
 
-# XLA's fast-compile flags in make test (issue 64; tests/fast_compile.py, which prints those this jaxlib knows):
-# LLVM at optimisation level 0 (its programs compile in about 60% of the time and run about 2x slower, which the
-# tests' few hundred updates do not feel) and XLA's earlier emitters for fused loops (at level 0 a tiny update
-# compiles in a third of the time: make test 926 -> 737 s on the AVX-512 BF16 EPYC). They compute the same
-# functions, rounded in other orders (the tests bound their float comparisons by what the arithmetic allows, as
-# for test-isa's AVX2); a test comparing two different programs bit for bit (`users_xla`) runs in a process of
-# its own with the user's flags. So the code users run, at XLA's defaults, is tested by those, the learning test
-# (tests/test_learning.py), test-isa and test-min. A flag of XLA_FLAGS's own comes after these and wins.
+# XLA's fast-compile flags in make test (issue 64): LLVM at level 0 and XLA's earlier fused-loop emitters, those of
+# them this jaxlib knows (tests/fast_compile.py prints them, and says what each saves and what it changes). The
+# code users run, at XLA's defaults, is tested by the `users_xla` tests, the learning test, test-isa and test-min.
+# A flag of XLA_FLAGS's own comes after these and wins.
 FAST_COMPILE = XLA_FLAGS="$$($(BIN)/python tests/fast_compile.py) $$XLA_FLAGS"
 
 test: $(TEST_STAMP) system-deps

@@ -40,20 +40,20 @@ for env in $ENVS; do
   if [[ " $PARTS " == *" sources "* ]]; then
     [[ " $LEVELS " != *" expert "* ]] || [ -e "$SRC/$env-expert" ] || softac train --env "$env" --preset crossq-avg \
       --seed 1000 --steps 100000 --out "$SRC/$env-expert" --no-progress
-    for seed in $MEDIUM_SEEDS; do
-      [[ " $LEVELS " == *" medium "* ]] || break
-      [ -e "$SRC/$env-medium" ] && break
-      [ -e "$SRC/$env-medium-flipped-seed$seed" ] && continue
-      softac train --env "$env" --preset crossq-avg --seed "$seed" --steps 100000 \
-        --target-return "$(medium_return "$env")" --out "$SRC/$env-medium" --no-progress
-      [[ $env == HalfCheetah-* ]] || break
-      softac dataset "$SRC/$env-medium" --steps 100000 --seed 1000 --out "$DATA/softac/$env-medium-v0"
-      taskset -c "$CPU" "$PY" benchmarks/upright.py "$DATA/softac/$env-medium-v0" && break
-      mv "$SRC/$env-medium" "$SRC/$env-medium-flipped-seed$seed"
-      mv "$DATA/softac/$env-medium-v0" "$DATA/softac/$env-medium-flipped-seed$seed-v0"
-    done
-    [[ " $LEVELS " != *" medium "* ]] || [ -e "$SRC/$env-medium" ] \
-      || { echo "no upright medium source for $env among seeds $MEDIUM_SEEDS" >&2; exit 3; }
+    if [[ " $LEVELS " == *" medium "* ]]; then
+      for seed in $MEDIUM_SEEDS; do
+        [ -e "$SRC/$env-medium" ] && break
+        [ -e "$SRC/$env-medium-flipped-seed$seed" ] && continue
+        softac train --env "$env" --preset crossq-avg --seed "$seed" --steps 100000 \
+          --target-return "$(medium_return "$env")" --out "$SRC/$env-medium" --no-progress
+        [[ $env == HalfCheetah-* ]] || break
+        softac dataset "$SRC/$env-medium" --steps 100000 --seed 1000 --out "$DATA/softac/$env-medium-v0"
+        taskset -c "$CPU" "$PY" benchmarks/upright.py "$DATA/softac/$env-medium-v0" && break
+        mv "$SRC/$env-medium" "$SRC/$env-medium-flipped-seed$seed"
+        mv "$DATA/softac/$env-medium-v0" "$DATA/softac/$env-medium-flipped-seed$seed-v0"
+      done
+      [ -e "$SRC/$env-medium" ] || { echo "no upright medium source for $env among seeds $MEDIUM_SEEDS" >&2; exit 3; }
+    fi
   fi
   if [[ " $PARTS " == *" datasets "* ]]; then
     for level in $LEVELS; do
