@@ -11,8 +11,8 @@
 #             LEVELS (default "medium expert") picks the sources and datasets made.
 #   trials:   seeds 0..SEEDS-1, 100k env steps, evaluations every 5k (the 10k, 25k, 50k and 100k rows): rlpd with the
 #             medium data, with the expert data, without data; crossq-avg from scratch.
-#   cpu:      the CPU form, what fits one core: crossq-avg with the medium data (half of each batch, as rlpd mixes it)
-#             and crossq-avg from scratch, the same seeds and evaluations (~6 minutes a trial on one core).
+#   cpu:      the CPU form, what fits one core: crossq-avg with each of LEVELS' data (half of each batch, as rlpd
+#             mixes it) and crossq-avg from scratch, the same seeds and evaluations (~6 minutes a trial on one core).
 # benchmarks/results_offline.py tables the offline-ENV-* sweeps in docs/results.md.
 # Each part skips what exists, so a stopped script picks up where it was. Cost, one Xeon core (AMX): rlpd's 20 updates
 # of 10 critics per env step are its bulk (docs/performance.md has the probe); a GPU (`--device gpu`) or several
@@ -71,8 +71,12 @@ for env in $ENVS; do
     sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
   fi
   if [[ " $PARTS " == *" cpu "* ]]; then
-    sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-$(medium_sweep "$env")" \
-      --set offline_data="$(realpath "$DATA/softac/$env-medium-v0")" eval_interval=5000
+    for level in $LEVELS; do
+      name=$level
+      [ "$level" != medium ] || name=$(medium_sweep "$env")
+      sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-$name" \
+        --set offline_data="$(realpath "$DATA/softac/$env-$level-v0")" eval_interval=5000
+    done
     sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
   fi
 done
