@@ -135,8 +135,9 @@ def test_plotting_several_sweeps_names_each_by_framework_and_preset(tmp_path):
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
 def test_the_front_scores_a_configuration_on_all_five_envs_against_the_best_published(tmp_path):
     """Issue 42's goal, per configuration run on all five v4 envs: each env's mean final over the best published
-    mean there, their average, and the envs at or above published CrossQ. The Hopper-v5 trials stand in for every
-    env's; a configuration on four envs gets no row."""
+    mean there, their average, the envs at or above published CrossQ and above published FlashSAC (issue 66), and
+    the five runs' time over crossq-avg's. The Hopper-v5 trials stand in for every env's; a configuration on four
+    envs gets no row."""
     import numpy as np
 
     sweeps, docs = tmp_path / "sweeps", tmp_path / "docs"
@@ -145,6 +146,11 @@ def test_the_front_scores_a_configuration_on_all_five_envs_against_the_best_publ
         shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / f"{env}-softac")
         if env != "Humanoid-v4":
             shutil.copytree(KEPT / "Hopper-v5-softac", sweeps / f"{env}-softac-again")
+        # the same trials named crossq-avg: the moonshot's time unit, so each row's time ratio is 1
+        avg = sweeps / f"{env}-softac-crossq-avg"
+        shutil.copytree(KEPT / "Hopper-v5-softac", avg)
+        spec = json.loads((avg / "sweep.json").read_text())
+        (avg / "sweep.json").write_text(json.dumps({**spec, "preset": "crossq-avg"}))
     docs.mkdir()
     assert results_doc.main([str(sweeps), "--docs", str(docs)]) == 0
     table = (docs / "results.md").read_text().split(f"### {results_doc.AGAINST_BEST}")[1].split("![front]")[0]
@@ -154,10 +160,13 @@ def test_the_front_scores_a_configuration_on_all_five_envs_against_the_best_publ
     best = [max(m[env][0] for m in published.values() if env in m) for env in results_doc.SUITE_V4]
     fractions = [mean / b for b in best]
     at_crossq = sum(mean >= published["CrossQ"][env][0] for env in results_doc.SUITE_V4)
+    above_flashsac = sum(mean > published["FlashSAC"][env][0] for env in results_doc.SUITE_V4)
     row = next(line for line in table.splitlines() if line.startswith("| softac, crossq preset |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1:6] == [f"{f:.2f}" for f in fractions]
-    assert cells[6:8] == [f"{np.mean(fractions):.2f}", f"{at_crossq} of 5"]
+    assert cells[6:9] == [f"{np.mean(fractions):.2f}", f"{at_crossq} of 5", f"{above_flashsac} of 5"]
+    assert cells[10] == "1.00"
+    assert "| softac, crossq-avg preset |" in table
     assert "again" not in table  # on four envs only: no row
 
 
