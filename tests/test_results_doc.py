@@ -170,6 +170,20 @@ def test_the_front_scores_a_configuration_on_all_five_envs_against_the_best_publ
     assert "again" not in table  # on four envs only: no row
 
 
+def test_a_per_env_choice_scores_each_env_by_the_configuration_chosen_there():
+    """Options chosen per env on tuning seeds are scored as one configuration: each env's score from the
+    configuration named for it, the default's elsewhere; no row until every chosen configuration ran on its env."""
+    load_benchmark_script("results_doc")  # puts benchmarks/ on the path for its sections' modules
+    results_mujoco = load_benchmark_script("results_mujoco")
+    envs = results_mujoco.SUITE_V4
+    scores = {"base": {env: (1000.0 + i, 300.0) for i, env in enumerate(envs)},
+              "special": {"Humanoid-v4": (5000.0, 900.0)}}
+    choices = {"picked": ("base", {"Humanoid-v4": "special"}), "missing": ("base", {"Ant-v4": "special"})}
+    combined = results_mujoco.per_env_choices(scores, choices)
+    assert set(combined) == {"picked"}
+    assert combined["picked"] == {**scores["base"], "Humanoid-v4": (5000.0, 900.0)}
+
+
 @pytest.mark.skipif(not (KEPT / "Hopper-v5-softac" / "sweep.json").exists(), reason="kept Hopper sweeps not present")
 def test_the_v4_front_puts_each_configurations_return_against_its_wall_time_beside_the_published(tmp_path):
     """The Hopper-v5 trials stand in for v4 ones: the front's row is their mean ± sd over seeds and the median
