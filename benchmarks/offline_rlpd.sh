@@ -32,8 +32,8 @@ DATA=${DATA:-benchmarks/offline-datasets}
 OUT=benchmarks/sweeps
 softac() { taskset -c "$CPU" "$PY" -m softac "$@"; }
 # HalfCheetah's first CPU sweep with the medium data (offline-HalfCheetah-v5-crossq-avg-medium) learned from seed
-# 1000's flipped policy; the sweep with an upright one's data is named apart
-medium_sweep() { case $1 in HalfCheetah-*) echo medium-upright;; *) echo medium;; esac; }
+# 1000's flipped policy; the sweep with an upright one's data is named apart. Usage: data_sweep ENV LEVEL
+data_sweep() { case $1:$2 in HalfCheetah-*:medium) echo medium-upright;; *) echo "$2";; esac; }
 medium_return() { case $1 in Hopper-*) echo 927;; HalfCheetah-*) echo 2135;; *) echo "no medium return for $1" >&2; exit 2;; esac; }
 
 for env in $ENVS; do
@@ -72,9 +72,7 @@ for env in $ENVS; do
   fi
   if [[ " $PARTS " == *" cpu "* ]]; then
     for level in $LEVELS; do
-      name=$level
-      [ "$level" != medium ] || name=$(medium_sweep "$env")
-      sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-$name" \
+      sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-$(data_sweep "$env" "$level")" \
         --set offline_data="$(realpath "$DATA/softac/$env-$level-v0")" eval_interval=5000
     done
     sweep --preset crossq-avg --out "$OUT/offline-$env-crossq-avg-scratch" --set eval_interval=5000
