@@ -5,6 +5,10 @@
 # (the device notes). Gymnasium, MuJoCo and tensorboardX go in here (absl-py and etils are there; no PyOpenGL or
 # imageio-ffmpeg: the runs render nothing, and the carry holds 64 MiB). Run it here, then name .whl in the carry:
 #   bash benchmarks/gpu_site.sh && ls -l .whl/site.tgz          (PLAYGROUND=1 for benchmarks/gpu_playground.sh)
+# OFFLINE=1 (benchmarks/gpu_rlpd.sh): also Minari and h5py, which read the datasets, and .whl/offline-datasets.tgz,
+# the datasets of DATA (default benchmarks/offline-datasets, made by benchmarks/offline_rlpd.sh) named by
+# OFFLINE_DATASETS (default the medium ones: 15 MB packed, with the 27 MB site and the 23 MB tree near the carry's
+# 64 MiB).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYVER=${PYVER:-3.12}
@@ -14,6 +18,18 @@ pins=$(.venv/bin/pip freeze | grep -iE '^(gymnasium|mujoco|farama-notifications|
 # MJX imports only if present: the runs use MJX's JAX implementation)
 if [ "${PLAYGROUND:-0}" = 1 ]; then
   pins="$pins $(.venv/bin/pip freeze | grep -iE '^(playground|mujoco-mjx|brax|flax|jaxopt|ml.collections|lxml|trimesh|mediapy|msgpack|treescope)==' | tr '\n' ' ')"
+fi
+if [ "${OFFLINE:-0}" = 1 ]; then
+  pins="$pins $(.venv/bin/pip freeze | grep -iE '^(minari|h5py)==' | tr '\n' ' ')"
+  data=${DATA:-benchmarks/offline-datasets}
+  names=${OFFLINE_DATASETS:-softac/Hopper-v5-medium-v0 softac/HalfCheetah-v5-medium-v0}
+  for name in $names; do
+    [ -d "$data/$name" ] || { echo "gpu_site.sh: no dataset $data/$name (offline_rlpd.sh makes it)" >&2; exit 2; }
+  done
+  mkdir -p .whl
+  # shellcheck disable=SC2086  # names are words
+  tar -C "$data" -czf .whl/offline-datasets.tgz $names
+  echo "wrote .whl/offline-datasets.tgz ($(du -h .whl/offline-datasets.tgz | cut -f1)):" $names
 fi
 site=$(mktemp -d)
 .venv/bin/pip install -q --target "$site" --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
