@@ -23,12 +23,10 @@ done
 for run in ${RUNS:-flashsac:HalfCheetah-v4:0}; do
   IFS=: read -r preset env seed <<< "$run"
   dir=$WORK/runs/$env-$preset/seed=$seed
+  log=$WORK/$preset-$env-$seed.log
   start=$SECONDS
   timeout "${LIMIT:-300}" $PY -m softac train --env "$env" --preset "$preset" --seed "$seed" --steps "${STEPS:-100000}" \
-    --device "$DEVICE" --out "$dir" --no-progress --set loggers=none ${extra[@]+"${extra[@]}"} > "$WORK/$preset-$seed.log" 2>&1
-  code=$?
-  echo "$run: exit $code after $((SECONDS - start)) s; last evaluation: $(tail -n 1 "$dir/eval.csv" 2>/dev/null)" \
-    | tee -a "$OUT/runs.txt"
-  tail -n 3 "$WORK/$preset-$seed.log"
+    --device "$DEVICE" --out "$dir" --no-progress --set loggers=none ${extra[@]+"${extra[@]}"} > "$log" 2>&1
+  report_run "$run" $? "$start" "$dir" "$log"
   pack_runs
 done

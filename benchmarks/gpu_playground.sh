@@ -33,10 +33,7 @@ for run in ${RUNS:-brax-sac:CheetahRun:128:0 brax-sac:CheetahRun:1024:0}; do
         --steps "${STEPS:-5000000}" --out "$dir" --eval-interval "$eval_interval" --eval-episodes "$eval_episodes" \
         --preset "$preset" --set "n_envs=$n" ${extra[@]+"${extra[@]}"} > "$log" 2>&1
     fi
-    code=$?
-    echo "$run $framework: exit $code after $((SECONDS - start)) s; last row: $(tail -n 1 "$dir/progress.csv" 2>/dev/null | cut -d, -f1-4);" \
-      "last evaluation: $(tail -n 1 "$dir/eval.csv" 2>/dev/null)" | tee -a "$OUT/runs.txt"
-    tail -n 3 "$log"
+    report_run "$run $framework" $? "$start" "$dir" "$log"
     pack_runs
   done
 done

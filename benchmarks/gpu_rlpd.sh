@@ -3,7 +3,8 @@
 # core a 100k-step run, docs/performance.md) from the datasets softac made from its own runs, up to the goal's point
 # (25k online steps: does it reach `crossq-avg`'s 100k-step return from scratch by then?):
 #   1. rlpd's update time per env step at Hopper-v5's sizes (benchmarks/update_time.py), at most UPDATE_LIMIT s;
-#   2. the RUNS (PRESET:ENV:LEVEL:SEED; LEVEL "none" trains without data, the paper's ablation), default rlpd from the
+#   2. the RUNS (PRESET:ENV:LEVEL:SEED; LEVEL "no-data" trains without data, the paper's ablation,
+#      named as benchmarks/offline_rlpd.sh names it), default rlpd from the
 #      medium datasets on fresh seeds 0-4 of Hopper-v5 and HalfCheetah-v5, STEPS online steps each (default 25k),
 #      evaluations every 5k, CONCURRENT at a time sharing the GPU (default all; each on its own CPU core, JAX's
 #      memory grown as needed, not preallocated), each capped at LIMIT s: a run cut short still brings back its
@@ -15,7 +16,7 @@
 # included: the defaults take about 7, so a rerun fits.
 #   device run: bash benchmarks/gpu_rlpd.sh   (carry .whl; timeout_s 420)
 #   here, on a CPU, tiny: DEVICE=cpu LIMIT=200 STEPS=600 UPDATE_LIMIT=60 CONCURRENT=2 RUNS='rlpd:Hopper-v5:medium:0
-#     rlpd:Hopper-v5:none:0' EXTRA='learning_starts=200 batch_size=32 hidden_sizes=16,16 gradient_steps=2
+#     rlpd:Hopper-v5:no-data:0' EXTRA='learning_starts=200 batch_size=32 hidden_sizes=16,16 gradient_steps=2
 #     policy_delay=2 eval_interval=300 eval_episodes=1' bash benchmarks/gpu_rlpd.sh
 set -u
 source "$(dirname "$0")/gpu_common.sh"
@@ -38,20 +39,16 @@ read -r -a runs <<< "${RUNS:-$default_runs}"
 concurrent=${CONCURRENT:-${#runs[@]}}
 cores=$(nproc)
 one_run() {  # PRESET:ENV:LEVEL:SEED CORE
-  local preset env level seed data=() dir log start code
+  local preset env level seed data=() dir log start
   IFS=: read -r preset env level seed <<< "$1"
-  [ "$level" = none ] || data=("offline_data=$(realpath "$DATA/softac/$env-$level-v0")")
+  [ "$level" = no-data ] || data=("offline_data=$(realpath "$DATA/softac/$env-$level-v0")")
   dir=$WORK/runs/offline-$env-$preset-$level/seed=$seed
   log=$WORK/$preset-$env-$level-$seed.log
   start=$SECONDS
   timeout "${LIMIT:-330}" taskset -c "$2" $PY -m softac train --env "$env" --preset "$preset" --seed "$seed" \
     --steps "${STEPS:-25000}" --device "$DEVICE" --out "$dir" --no-progress \
     --set loggers=none eval_interval=5000 ${data[@]+"${data[@]}"} ${extra[@]+"${extra[@]}"} > "$log" 2>&1
-  code=$?
-  echo "$1: exit $code after $((SECONDS - start)) s;" \
-    "last row: $(tail -n 1 "$dir/progress.csv" 2>/dev/null | cut -d, -f1-3);" \
-    "last evaluation: $(tail -n 1 "$dir/eval.csv" 2>/dev/null)" | tee -a "$OUT/runs.txt"
-  [ "$code" = 0 ] || tail -n 3 "$log"
+  report_run "$1" $? "$start" "$dir" "$log"
 }
 i=0
 for run in "${runs[@]}"; do
