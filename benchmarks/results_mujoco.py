@@ -139,6 +139,7 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     points: dict[str, dict[str, FrontPoint]] = {}
     labels: dict[str, str] = {}  # configuration -> its short label in the figure
     machines: dict[str, set[str]] = {}  # configuration -> the machines its points ran on
+    seeds: dict[str, dict[str, int]] = {}  # configuration -> env -> seeds run
     scores: dict[str, dict[str, tuple[float, float | None]]] = {}  # configuration -> env -> (mean final, seconds)
     lines = [f"## {FRONT}", "",
              "Gym MuJoCo v4 (the published tables' version), 100k env steps, final deterministic evaluation (10 "
@@ -172,6 +173,7 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
             label = short_label(env, d, name)
             labels[name] = min(labels.get(name, label), label, key=len)
             machines.setdefault(name, set()).add(machine)
+            seeds.setdefault(name, {})[env] = len(finals)
             points.setdefault(env, {})[name] = FrontPoint(float(np.mean(finals)), sd, seconds, bool(timed), machine,
                                                           gpu)
             scores.setdefault(name, {})[env] = (float(np.mean(finals)), seconds)
@@ -199,11 +201,14 @@ def front(sweeps: Path, figures: Path, kept: dict[str, list[str]]) -> list[str]:
     lines_drawn = {env: {m: published[m][env][0] for m in published if m in shown[env]} for env in points}
     figure = plot_front(drawn, lines_drawn, figures / "front-v4.png",
                         "Gym MuJoCo v4, 100k steps: final return against wall time per run")
-    key = ["", "The figure's key: each label, the configuration it stands for and the machines its points ran on "
-           "(every panel draws " + ", ".join(FRONT_METHODS) + " and the best published result of its env).", "",
-           "| label | configuration | machine |", "|---|---|---|"]
-    key += [f"| {labels[name]} | {name} | {'; '.join(sorted(machines[name]))} |"
-            for name in sorted(labels, key=lambda n: labels[n])]
+    envs = [env for env in SUITE_V4 if env in points]
+    key = ["", "The figure's key: each label, the configuration it stands for, its seeds per env (a point without "
+           "an error bar is one seed: a screen, not a result) and the machines its points ran on (every panel draws "
+           + ", ".join(FRONT_METHODS) + " and the best published result of its env).", "",
+           f"| label | configuration | seeds ({', '.join(env.split('-')[0] for env in envs)}) | machine |",
+           "|---|---|---|---|"]
+    key += [f"| {labels[name]} | {name} | {', '.join(str(seeds[name].get(env, '-')) for env in envs)} | "
+            f"{'; '.join(sorted(machines[name]))} |" for name in sorted(labels, key=lambda n: labels[n])]
     return lines + [f"![front](results/{figure.name})", *key, ""]
 
 
