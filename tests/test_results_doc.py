@@ -490,6 +490,9 @@ def test_the_front_figure_draws_short_labels_the_named_and_best_published_on_eve
     rows = [line for line in key.splitlines() if line.startswith("| crossq")]
     assert rows[0].startswith("| crossq | softac, crossq preset | ") and "GPU" not in rows[0]
     assert rows[1].startswith("| crossq-avg | softac, crossq-avg preset | ") and rows[1].endswith(" + GPU |")
+    n = len(list((KEPT / "Hopper-v5-softac").glob("seed=*")))  # each configuration's seeds per env, in suite order
+    assert "| label | configuration | seeds (Hopper, Ant) | machine |" in key
+    assert f" preset | {n}, - | " in rows[0] and f" preset | -, {n} | " in rows[1]
     assert (docs / "results" / "front-v4.png").stat().st_size > 10_000
 
 
